@@ -1,0 +1,34 @@
+# glossrt: `make demo` and `make test` do all set-up on a fresh machine.
+# They create .venv (Python 3.11 when available), install glossrt into it, make sure a
+# libLLVM >= 16 is usable (installing Debian's libllvm19 when run as root), then run.
+
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.glossrt-installed
+DEMO_OUT ?= demo-out
+
+.PHONY: demo test llvm bench clean-venv
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+llvm: $(STAMP)
+	@bash scripts/ensure-llvm.sh $(BIN)/python
+
+test: llvm
+	$(BIN)/python -m pytest -q
+
+demo: llvm
+	$(BIN)/glossrt demo --out $(DEMO_OUT)
+
+bench: llvm
+	$(BIN)/glossrt bench --json bench.json
+
+clean-venv:
+	rm -rf $(VENV)
