@@ -1,0 +1,156 @@
+"""Tests for glossrt.report: the HTML page and the section registry."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import mitsuba as mi
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
+
+from glossrt import report as rp
+from glossrt.errors import GlossrtError
+
+
+def _img(h=12, w=16, seed=0):
+    return np.random.default_rng(seed).uniform(0, 2, (h, w, 3)).astype(np.float32)
+
+
+def _srcs(page: str) -> list[str]:
+    return re.findall(r'<img src="([^"]+)"', page)
+
+
+def test_tonemap_clamps_and_encodes():
+    img = np.array([[[0.0, 0.5, 4.0]], [[np.nan, np.inf, 0.0031308]]], np.float32)
+    out = rp.tonemap(img)
+    assert out.dtype == np.uint8 and out.shape == (2, 1, 3)
+    # sRGB(0.5) = 1.055 * 0.5^(1/2.4) - 0.055 = 0.7354 -> 188
+    assert out[0, 0].tolist() == [0, 188, 255]
+    assert out[1, 0].tolist() == [0, 255, 10]
+    assert rp.tonemap(np.full((1, 1, 3), 0.25), exposure=1.0)[0, 0, 0] == 188
+
+
+def test_report_writes_page_with_images_table_and_error_map(tmp_path):
+    rep = rp.Report(tmp_path / "rep", "Test <report>")
+    sec = rep.section("Images & maps", "Intro <b>not bold</b>\n\nsecond paragraph")
+    ref = _img(seed=1)
+    noisy = ref + np.random.default_rng(2).normal(0, 0.1, ref.shape).astype(np.float32)
+    p1 = sec.image("ref", mi.TensorXf(ref), caption="reference <1>")
+    rels = sec.images_row([("a", ref), ("b", noisy)], name="row")
+    p2 = sec.error_map("err", noisy, ref, caption="relative error")
+    sec.table(["metric", "value", "n"], [("rmse", 0.123456789, 3), ("<x>", None, 0)])
+    fig = Figure(figsize=(2, 2))
+    fig.add_subplot().plot([0, 1], [1, 0])
+    p3 = sec.figure("plot", fig)
+    sec.raw_html('<p class="raw">raw</p>')
+    rep.section("Second").paragraph("a & b")
+    index = rep.write()
+
+    assert index == tmp_path / "rep" / "index.html" and index.exists()
+    page = index.read_text(encoding="utf-8")
+    srcs = _srcs(page)
+    assert {p1, p2, p3, *rels} <= set(srcs)
+    for s in srcs:
+        assert not Path(s).is_absolute() and (index.parent / s).is_file(), s
+    png = mpimg.imread(index.parent / p1)
+    assert png.shape[:2] == ref.shape[:2]
+    # Escaping: user text never becomes markup; raw_html does.
+    assert "<b>not bold</b>" not in page and "&lt;b&gt;not bold&lt;/b&gt;" in page
+    assert "<title>Test &lt;report&gt;</title>" in page
+    assert "reference &lt;1&gt;" in page and "&lt;x&gt;" in page and "a &amp; b" in page
+    assert page.count("<p>") >= 2
+    assert '<p class="raw">raw</p>' in page
+    assert "0.1235" in page
+    assert "http" not in page.replace("http-equiv", "")  # no external assets
+
+
+def test_image_names_are_unique_and_sanitised(tmp_path):
+    rep = rp.Report(tmp_path, "t")
+    sec = rep.section("s")
+    a = sec.image("my img/../x", _img())
+    b = sec.image("my img/../x", _img())
+    assert a != b and "/" not in a[len("img/") :] and ".." not in a
+    assert (tmp_path / a).is_file() and (tmp_path / b).is_file()
+
+
+def test_error_map_rejects_mismatch(tmp_path):
+    sec = rp.Report(tmp_path, "t").section("s")
+    with pytest.raises(GlossrtError, match=r"\(12, 16, 3\).*\(12, 15, 3\)"):
+        sec.error_map("e", _img(), _img(w=15))
+    with pytest.raises(GlossrtError, match="kind"):
+        sec.error_map("e", _img(), _img(), kind="squared")
+
+
+def test_error_image_values():
+    ref = np.full((2, 2, 3), 0.5)
+    img = ref + 0.1
+    assert np.allclose(rp.error_image(img, ref, kind="absolute"), 0.1)
+    assert np.allclose(rp.error_image(img, ref, kind="relative", eps=0.0), 0.2)
+
+
+@pytest.fixture
+def clean_registry():
+    before = {name for name, _, _ in rp.registered_sections()}
+    yield
+    for name, _, _ in rp.registered_sections():
+        if name not in before:
+            rp.unregister_section(name)
+
+
+def test_build_report_runs_sections_in_order(tmp_path, clean_registry):
+    calls = []
+
+    @rp.register_section("test-late", order=900)
+    def late(ctx, report):
+        calls.append("late")
+        report.section("Late").paragraph(ctx.scene)
+
+    @rp.register_section("test-early", order=-900)
+    def early(ctx, report):
+        calls.append("early")
+        report.section("Early").table(["stage", "s"], ctx.timings.items())
+
+    ctx = rp.DemoContext(out_dir=tmp_path, scene="glossy <sphere>", timings={"render": 1.5})
+    index = rp.build_report(ctx, "Demo")
+    assert calls.index("early") < calls.index("late")
+    page = index.read_text(encoding="utf-8")
+    assert page.index("Early") < page.index("Late")
+    assert "glossy &lt;sphere&gt;" in page and "1.5" in page
+
+
+def test_failing_section_is_shown_and_raises(tmp_path, clean_registry):
+    @rp.register_section("test-ok", order=-800)
+    def ok(ctx, report):
+        report.section("Fine").paragraph("fine")
+
+    @rp.register_section("test-broken", order=-700)
+    def broken(ctx, report):
+        raise ValueError("boom <here>")
+
+    @rp.register_section("test-after", order=-600)
+    def after(ctx, report):
+        report.section("After").paragraph("still runs")
+
+    ctx = rp.DemoContext(out_dir=tmp_path, scene="s")
+    with pytest.raises(GlossrtError, match="test-broken") as e:
+        rp.build_report(ctx, "Demo")
+    assert "boom" in str(e.value)
+    page = (tmp_path / "index.html").read_text(encoding="utf-8")
+    assert 'class="error"' in page and "boom &lt;here&gt;" in page and "ValueError" in page
+    assert "still runs" in page and "Fine" in page
+
+
+def test_register_same_name_replaces(clean_registry):
+    @rp.register_section("test-dup", order=1)
+    def one(ctx, report):
+        pass
+
+    @rp.register_section("test-dup", order=2)
+    def two(ctx, report):
+        pass
+
+    dup = [(n, o, f) for n, o, f in rp.registered_sections() if n == "test-dup"]
+    assert dup == [("test-dup", 2, two)]
