@@ -1,0 +1,81 @@
+"""What the G-buffer needs to know about a Mitsuba BSDF: lobes, roughness and specular F0."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import mitsuba as mi
+import numpy as np
+
+
+@dataclass
+class Material:
+    kind: str
+    has_diffuse: bool
+    has_specular: bool
+    alpha: float  # constant GGX alpha (1 for purely diffuse, 0 for smooth)
+    alpha_attr: bool  # evaluate bsdf.eval_attribute_1("alpha") per hit instead
+    f0: tuple[float, float, float]
+
+
+def _rgb(value) -> np.ndarray:
+    a = np.array(value, dtype=np.float64).ravel()
+    return np.repeat(a, 3)[:3] if a.size == 1 else a[:3]
+
+
+def _param(params: mi.SceneParameters, *names: str):
+    keys = set(params.keys())
+    for prefix in ("", "brdf_0.", "nested_brdf_0."):
+        for n in names:
+            if prefix + n in keys:
+                return params[prefix + n], prefix + n
+    return None, None
+
+
+def describe_bsdf(bsdf: mi.BSDF) -> Material:
+    """Lobes, roughness and Fresnel F0 (normal incidence) of a supported Mitsuba BSDF."""
+    flags = int(bsdf.flags())
+    has_d = bool(flags & int(mi.BSDFFlags.Diffuse))
+    has_s = bool(flags & (int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta)))
+    glossy = bool(flags & int(mi.BSDFFlags.Glossy))
+    params = mi.traverse(bsdf)
+    kind = bsdf.class_name()
+
+    alpha, alpha_attr = (0.0 if has_s else 1.0), False
+    if glossy:
+        val, key = _param(params, "alpha.value", "alpha")
+        if val is not None:
+            alpha = float(np.array(val).ravel()[0])
+        else:
+            au, _ = _param(params, "alpha_u.value", "alpha_u")
+            av, _ = _param(params, "alpha_v.value", "alpha_v")
+            tex, tkey = _param(params, "alpha.data")
+            if au is not None and av is not None:
+                alpha = float(np.sqrt(np.array(au).ravel()[0] * np.array(av).ravel()[0]))
+            elif bsdf.has_attribute("alpha"):
+                alpha_attr = True
+            elif tex is not None:
+                alpha = float(np.mean(np.array(tex)))
+                warnings.warn(
+                    f"{kind}: textured roughness inside a wrapper BSDF; the roughness channel "
+                    f"uses its mean {alpha:.3f}",
+                    stacklevel=2,
+                )
+
+    f0 = np.zeros(3)
+    if has_s:
+        eta, _ = _param(params, "eta.value", "eta")
+        k, _ = _param(params, "k.value")
+        if k is not None:  # conductor: Fresnel at normal incidence with complex IOR
+            e, kk = _rgb(eta), _rgb(k)
+            f0 = ((e - 1) ** 2 + kk**2) / ((e + 1) ** 2 + kk**2)
+        elif eta is not None:  # dielectric coating (plastic)
+            e = _rgb(eta)
+            f0 = ((e - 1) / (e + 1)) ** 2
+        else:
+            f0 = np.ones(3)
+        spec, _ = _param(params, "specular_reflectance.value")
+        if spec is not None:
+            f0 = f0 * _rgb(spec)
+    return Material(kind, has_d, has_s, alpha, alpha_attr, tuple(float(v) for v in f0))

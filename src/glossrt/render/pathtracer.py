@@ -1,0 +1,274 @@
+"""G-buffer + separated 1 spp path tracer (Dr.Jit kernels, Mitsuba scenes).
+
+Reads a :class:`glossrt.scenes.SceneSetup`; produces every channel of the Frame schema:
+``color, emission, direct_diffuse, direct_specular, indirect_diffuse, indirect_specular,
+albedo_diffuse, albedo_specular, normal, position, depth, roughness, mesh_id, motion``.
+
+The light transport is Mitsuba's ``path`` integrator (next-event estimation with
+power-heuristic MIS, Russian roulette from depth 5) with the contributions split:
+
+* ``emission``: radiance of an emitter hit by the primary ray (or the environment);
+* ``direct_*``: paths with exactly one scattering event (NEE at the primary hit, plus the
+  BSDF-sampled ray from the primary hit that reaches an emitter), split by BSDF lobe with
+  ``BSDFContext.type_mask`` (diffuse vs everything else: glossy and delta);
+* ``indirect_*``: longer paths, attributed to the lobe sampled at the primary hit.
+
+Primary rays go through pixel centres, so the G-buffer is noise-free and deterministic;
+random numbers come from a PCG32 stream keyed by (pixel index, seed), so rendering a subset
+of pixels gives exactly the values a full render gives for those pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+#: Lobe masks: diffuse, and everything that is not diffuse (glossy + delta).
+DIFFUSE_MASK = int(mi.BSDFFlags.Diffuse)
+SPECULAR_MASK = int(mi.BSDFFlags.All) & ~DIFFUSE_MASK
+RR_DEPTH = 5
+
+RADIANCE_OUT = ("emission", "direct_diffuse", "direct_specular", "indirect_diffuse",
+                "indirect_specular")
+
+
+class PixelSampler:
+    """Independent uniform numbers from a PCG32 stream per (pixel, seed).
+
+    Same ``next_1d``/``next_2d`` interface as ``mi.Sampler`` so the shading code can use
+    either."""
+
+    DRJIT_STRUCT = {"rng": mi.PCG32}
+
+    def __init__(self, pixel: mi.UInt32 | None = None, seed: mi.UInt32 | None = None):
+        if pixel is None:
+            self.rng = mi.PCG32()
+            return
+        v0, v1 = mi.sample_tea_32(pixel, seed, 4)
+        # size=1: the per-lane state comes from (pixel, seed) only, not from the lane index
+        self.rng = mi.PCG32(1, mi.UInt64(v0) | (mi.UInt64(v1) << 32), mi.UInt64(pixel))
+
+    def next_1d(self, active=True) -> mi.Float:
+        return self.rng.next_float32()
+
+    def next_2d(self, active=True) -> mi.Point2f:
+        return mi.Point2f(self.rng.next_float32(), self.rng.next_float32())
+
+
+def _mis(a: mi.Float, b: mi.Float) -> mi.Float:
+    """Power heuristic (Veach 1997, eq. 9.13 with beta = 2)."""
+    a2, b2 = dr.square(a), dr.square(b)
+    return dr.detach(dr.select(a2 > 0, a2 / (a2 + b2), 0.0))
+
+
+def _context(mask: int) -> mi.BSDFContext:
+    ctx = mi.BSDFContext()
+    ctx.type_mask = mask
+    return ctx
+
+
+@dataclass
+class ShadeResult:
+    emission: mi.Color3f
+    direct_diffuse: mi.Color3f
+    direct_specular: mi.Color3f
+    indirect_diffuse: mi.Color3f
+    indirect_specular: mi.Color3f
+    si: mi.SurfaceInteraction3f
+    bsdf: mi.BSDFPtr
+
+
+@dr.syntax
+def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int) -> ShadeResult:
+    """Trace one path per lane from ``ray`` and return its separated contributions."""
+    ctx_all = mi.BSDFContext()
+    ctx_d, ctx_s = _context(DIFFUSE_MASK), _context(SPECULAR_MASK)
+    zero = dr.zeros(mi.Color3f)
+
+    # --- primary hit (path vertex 0) --------------------------------------------------
+    si0 = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True)
+    valid0 = si0.is_valid()
+    emission = mi.Color3f(si0.emitter(scene).eval(si0))
+    bsdf0 = si0.bsdf(ray)
+    direct_d, direct_s = mi.Color3f(zero), mi.Color3f(zero)
+    act0 = valid0 & (max_depth > 1)
+
+    # next-event estimation, split by lobe; MIS against the full BSDF's pdf
+    ds, em_w = scene.sample_emitter_direction(si0, sampler.next_2d(), True, act0)
+    wo = si0.to_local(ds.d)
+    f_d = bsdf0.eval(ctx_d, si0, wo, act0)
+    f_s = bsdf0.eval(ctx_s, si0, wo, act0)
+    pdf_b = bsdf0.pdf(ctx_all, si0, wo, act0)
+    w_em = dr.select(ds.delta, 1.0, _mis(ds.pdf, pdf_b))
+    direct_d += dr.select(act0, em_w * f_d * w_em, 0.0)
+    direct_s += dr.select(act0, em_w * f_s * w_em, 0.0)
+
+    # BSDF sampling at the primary hit decides the lobe of everything further along
+    bs, bsdf_w = bsdf0.sample(ctx_all, si0, sampler.next_1d(), sampler.next_2d(), act0)
+    lobe_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
+    beta = mi.Spectrum(bsdf_w)
+    prev_si = dr.detach(si0)
+    prev_pdf = mi.Float(bs.pdf)
+    prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    ray_k = si0.spawn_ray(si0.to_world(bs.wo))
+    depth = mi.UInt32(1)
+    active = act0 & dr.any(beta != 0.0)
+    L_dir = mi.Color3f(zero)  # BSDF-sampled hits of emitters from vertex 0
+    L_ind = mi.Color3f(zero)
+
+    # --- vertices 1, 2, ... ----------------------------------------------------------
+    while active:
+        si = scene.ray_intersect(ray_k, ray_flags=mi.RayFlags.All, coherent=False)
+        # emitter hit by BSDF sampling, MIS-weighted against emitter sampling
+        dsk = mi.DirectionSample3f(scene, si=si, ref=prev_si)
+        em_pdf = scene.pdf_emitter_direction(prev_si, dsk, ~prev_delta)
+        w_b = dr.select(prev_delta, 1.0, _mis(prev_pdf, em_pdf))
+        contrib = beta * w_b * si.emitter(scene).eval(si, active)
+        first = depth == 1
+        L_dir += dr.select(active & first, contrib, 0.0)
+        L_ind += dr.select(active & ~first, contrib, 0.0)
+
+        active_next = active & si.is_valid() & (depth + 1 < max_depth)
+        bsdf = si.bsdf(ray_k)
+        dsn, em_wn = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_next)
+        won = si.to_local(dsn.d)
+        f_n, pdf_n = bsdf.eval_pdf(ctx_all, si, won, active_next)
+        w_en = dr.select(dsn.delta, 1.0, _mis(dsn.pdf, pdf_n))
+        L_ind += dr.select(active_next, beta * em_wn * f_n * w_en, 0.0)
+
+        bsn, wn = bsdf.sample(ctx_all, si, sampler.next_1d(), sampler.next_2d(), active_next)
+        beta *= wn
+        # Russian roulette as in Mitsuba's path integrator
+        q = dr.minimum(dr.max(beta), 0.95)
+        rr = active_next & (depth + 1 >= RR_DEPTH)
+        survive = sampler.next_1d() < q
+        beta = dr.select(rr, beta / q, beta)
+        active_next &= ~rr | survive
+        prev_si = dr.detach(si)
+        prev_pdf = mi.Float(bsn.pdf)
+        prev_delta = mi.has_flag(bsn.sampled_type, mi.BSDFFlags.Delta)
+        ray_k = si.spawn_ray(si.to_world(bsn.wo))
+        depth += 1
+        active = active_next & dr.any(beta != 0.0)
+
+    direct_d += dr.select(lobe_diffuse, L_dir, 0.0)
+    direct_s += dr.select(lobe_diffuse, 0.0, L_dir)
+    return ShadeResult(
+        emission=emission,
+        direct_diffuse=direct_d,
+        direct_specular=direct_s,
+        indirect_diffuse=dr.select(lobe_diffuse, L_ind, 0.0),
+        indirect_specular=dr.select(lobe_diffuse, 0.0, L_ind),
+        si=si0,
+        bsdf=bsdf0,
+    )
+
+
+class ShapeTable:
+    """Per-shape constants, indexed by the shape's Dr.Jit registry id (``si.shape``).
+
+    mesh index (1-based position in ``scene.shapes()``), whether the BSDF has a diffuse /
+    non-diffuse lobe, its specular F0 (RGB) and roughness: a constant, or the BSDF's
+    ``alpha`` attribute evaluated per hit when it is textured."""
+
+    DRJIT_STRUCT = {
+        "index": mi.UInt32,
+        "has_diffuse": mi.Bool,
+        "has_specular": mi.Bool,
+        "alpha_attr": mi.Bool,
+        "alpha": mi.Float,
+        "f0": mi.Color3f,
+    }
+
+    def __init__(self, scene: mi.Scene):
+        from .materials import describe_bsdf
+
+        shapes = scene.shapes()
+        ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
+        n = max(ids, default=0) + 1
+        index, has_d, has_s, attr, alpha = [0] * n, [False] * n, [False] * n, [False] * n, [0.0] * n
+        f0 = [[0.0] * n for _ in range(3)]
+        self.materials = {}
+        for i, (s, rid) in enumerate(zip(shapes, ids)):
+            m = describe_bsdf(s.bsdf())
+            self.materials[s.id() or f"shape_{i}"] = m
+            index[rid] = i + 1
+            has_d[rid], has_s[rid], attr[rid], alpha[rid] = (
+                m.has_diffuse, m.has_specular, m.alpha_attr, m.alpha)
+            for c in range(3):
+                f0[c][rid] = m.f0[c]
+        self.index = mi.UInt32(index)
+        self.has_diffuse = mi.Bool(has_d)
+        self.has_specular = mi.Bool(has_s)
+        self.alpha_attr = mi.Bool(attr)
+        self.alpha = mi.Float(alpha)
+        self.f0 = mi.Color3f(*f0)
+
+
+def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, forward: mi.Vector3f,
+            shapes: ShapeTable, table) -> dict:
+    """Noise-free G-buffer values of the primary hit."""
+    valid = si.is_valid()
+    rid = dr.reinterpret_array(mi.UInt32, si.shape)
+    rid = dr.select(valid, rid, 0)
+    index = dr.gather(mi.UInt32, shapes.index, rid, valid)
+    has_d = dr.gather(mi.Bool, shapes.has_diffuse, rid, valid)
+    has_s = dr.gather(mi.Bool, shapes.has_specular, rid, valid)
+    attr = dr.gather(mi.Bool, shapes.alpha_attr, rid, valid)
+    alpha = dr.gather(mi.Float, shapes.alpha, rid, valid)
+    f0 = dr.gather(mi.Color3f, shapes.f0, rid, valid)
+    alpha = dr.select(attr, bsdf.eval_attribute_1("alpha", si, valid & attr), alpha)
+    n = mi.Vector3f(si.sh_frame.n)
+    n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)  # face the camera
+    cos_o = dr.abs(mi.Frame3f.cos_theta(si.wi))
+    albedo_d = dr.select(valid & has_d, bsdf.eval_diffuse_reflectance(si, valid & has_d), 0.0)
+    albedo_s = dr.select(valid & has_s, table.lookup(cos_o, alpha, f0), 0.0)
+    depth = dr.select(valid, si.t * dr.dot(ray.d, forward), dr.inf)
+    return {
+        "albedo_diffuse": mi.Color3f(albedo_d),
+        "albedo_specular": mi.Color3f(albedo_s),
+        "normal": dr.select(valid, n, 0.0),
+        "position": dr.select(valid, mi.Vector3f(si.p), 0.0),
+        "depth": depth,
+        "roughness": dr.select(valid, alpha, 0.0),
+        "mesh_id": mi.Float(index),
+    }
+
+
+def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable, table,
+                 motion_inputs, pixel: mi.UInt32, seed: mi.UInt32, width: int, height: int,
+                 max_depth: int) -> dict:
+    """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
+    radiance values were not finite and were replaced by 0 (see the package docstring)."""
+    from .motion import motion
+
+    x = mi.Float(pixel % width) + 0.5
+    y = mi.Float(pixel // width) + 0.5
+    pos = mi.Point2f(x / width, y / height)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+    forward = dr.normalize(sensor.world_transform() @ mi.Vector3f(0, 0, 1))
+    sampler = PixelSampler(pixel, seed)
+    r = shade(scene, sampler, ray, max_depth)
+    out = gbuffer(r.si, r.bsdf, ray, forward, shapes, table)
+    bad = mi.UInt32(0)  # per lane: radiance values that were not finite
+    color = dr.zeros(mi.Color3f)
+    for name in RADIANCE_OUT:
+        v = getattr(r, name)
+        ok = dr.isfinite(v)
+        for c in range(3):
+            bad += dr.select(ok[c], 0, 1)
+        v = dr.select(ok, v, 0.0)
+        out[name] = v
+        color += v
+    out["color"] = color
+    valid = r.si.is_valid()
+    # background: a far point along the ray, so camera rotation still moves the sky
+    p_motion = dr.select(valid, mi.Vector3f(r.si.p), mi.Vector3f(ray.o + ray.d * 1e6))
+    out["motion"] = motion(p_motion, mi.UInt32(out["mesh_id"]), mi.Bool(True),
+                           mi.Point2f(x, y), motion_inputs)
+    # one kernel for everything (a reduction first would re-run the path tracing for it)
+    dr.eval(out, bad)
+    out["nonfinite"] = dr.sum(bad)
+    return out

@@ -1,0 +1,332 @@
+"""Scenes: built-in procedural scenes and Mitsuba 3 XML files, with their animation.
+
+A :class:`SceneSetup` wraps a loaded ``mi.Scene`` together with glossrt's own pinhole
+sensor (so any output size can be asked for), a camera path and rigid object motion.
+``setup.set_frame(i)`` poses camera and objects for frame ``i``; the renderer reads
+``setup.camera(i)`` and ``setup.object_transforms(i)`` to build motion vectors.
+
+Adding a built-in scene is one decorated function in :mod:`glossrt.scenes.library`::
+
+    @builtin("my-scene", "one line shown by `glossrt render --help`")
+    def my_scene() -> SceneSpec:
+        return SceneSpec(scene_dict, camera_path=..., object_paths={"shape_id": path})
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import xml.etree.ElementTree as ET
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import backend
+from ..errors import SceneError
+
+backend.ensure()
+import mitsuba as mi  # noqa: E402
+
+Matrix = np.ndarray
+#: Mitsuba plugins glossrt's renderer supports (BSDF and emitter types).
+SUPPORTED_BSDFS = {"diffuse", "conductor", "roughconductor", "plastic", "roughplastic", "twosided"}
+SUPPORTED_EMITTERS = {"area", "point", "constant", "envmap"}
+SUPPORTED_SENSORS = {"perspective"}
+
+
+@dataclass
+class SceneSpec:
+    """What a built-in scene builder returns: a Mitsuba scene dict and its animation.
+
+    ``camera_path(frame) -> 4x4`` gives the sensor's to_world per frame (None: static);
+    ``object_paths[shape_id](frame) -> 4x4`` gives a rigid transform applied on top of the
+    shape's rest pose (None entries / missing ids: static)."""
+
+    scene_dict: dict
+    camera_path: Callable[[int], Matrix] | None = None
+    object_paths: dict[str, Callable[[int], Matrix]] = field(default_factory=dict)
+    max_depth: int | None = None
+    description: str = ""
+
+
+BUILTIN: dict[str, tuple[Callable[[], SceneSpec], str]] = {}
+
+
+def builtin(name: str, description: str):
+    """Register a built-in scene builder under ``name``."""
+
+    def deco(fn: Callable[[], SceneSpec]):
+        BUILTIN[name] = (fn, description)
+        return fn
+
+    return deco
+
+
+def to_matrix(t) -> Matrix:
+    """4x4 float64 NumPy matrix of a Mitsuba transform (scalar or width-1 vectorised)."""
+    m = np.array(t.matrix, dtype=np.float64)
+    if m.ndim == 3:
+        m = m[..., 0]
+    return m.reshape(4, 4)
+
+
+def look_at(origin, target, up) -> Matrix:
+    return to_matrix(mi.ScalarTransform4f().look_at(origin, target, up))
+
+
+def rotation_about(point, axis, degrees: float) -> Matrix:
+    """4x4 rotation by ``degrees`` about the line through ``point`` along ``axis``."""
+    t = (
+        mi.ScalarTransform4f().translate(list(point))
+        @ mi.ScalarTransform4f().rotate(list(axis), degrees)
+        @ mi.ScalarTransform4f().translate([-p for p in point])
+    )
+    return to_matrix(t)
+
+
+def translation(v) -> Matrix:
+    m = np.eye(4)
+    m[:3, 3] = v
+    return m
+
+
+class SceneSetup:
+    """A loaded scene, glossrt's sensor for it, and its animation."""
+
+    def __init__(
+        self,
+        name: str,
+        scene: mi.Scene,
+        *,
+        size: tuple[int, int] | None = None,
+        camera_path: Callable[[int], Matrix] | None = None,
+        object_paths: dict[str, Callable[[int], Matrix]] | None = None,
+        max_depth: int | None = None,
+        source: str | None = None,
+    ):
+        self.name = name
+        self.scene = scene
+        self.source = source
+        self.max_depth = max_depth
+        sensors = scene.sensors()
+        if not sensors:
+            raise SceneError(f"{name}: the scene has no sensor (camera)")
+        s0 = sensors[0]
+        p0 = mi.traverse(s0)
+        if "x_fov" not in p0.keys():
+            raise SceneError(
+                f"{name}: sensor type {s0.class_name()} is not supported (use a perspective camera)"
+            )
+        self.fov = float(p0["x_fov"][0])
+        self.rest_camera = to_matrix(p0["to_world"])
+        film_size = tuple(int(v) for v in s0.film().size())
+        self.size = tuple(size) if size is not None else film_size
+        w, h = self.size
+        if w <= 0 or h <= 0:
+            raise SceneError(f"image size must be positive, got {w}x{h}")
+        near = float(p0["near_clip"]) if "near_clip" in p0.keys() else 1e-2
+        far = float(p0["far_clip"]) if "far_clip" in p0.keys() else 1e4
+        self.sensor = mi.load_dict(
+            {
+                "type": "perspective",
+                "fov": self.fov,
+                "fov_axis": "x",
+                "near_clip": near,
+                "far_clip": far,
+                "to_world": mi.ScalarTransform4f(self.rest_camera),
+                "film": {
+                    "type": "hdrfilm",
+                    "width": w,
+                    "height": h,
+                    "rfilter": {"type": "box"},
+                    "pixel_format": "rgb",
+                },
+            }
+        )
+        self.sensor_params = mi.traverse(self.sensor)
+        self.camera_path = camera_path
+        self.object_paths = dict(object_paths or {})
+        self.params = mi.traverse(scene)
+        self._rest: dict[str, tuple[str, object]] = {}
+        shapes = {s.id(): s for s in scene.shapes()}
+        for sid in self.object_paths:
+            if sid not in shapes:
+                raise SceneError(f"{name}: animated shape {sid!r} is not in the scene")
+            for key in (f"{sid}.vertex_positions", f"{sid}.to_world"):
+                if key in self.params.keys():
+                    val = self.params[key]
+                    self._rest[sid] = (key, type(val)(val))
+                    break
+            else:
+                raise SceneError(f"{name}: shape {sid!r} cannot be moved (no transform parameter)")
+        self.shape_index = {s.id(): i + 1 for i, s in enumerate(scene.shapes())}
+        self.frame = None
+
+    # -- animation -------------------------------------------------------------------
+    def camera_matrix(self, frame: int) -> Matrix:
+        return self.rest_camera if self.camera_path is None else self.camera_path(frame)
+
+    def camera(self, frame: int):
+        """The :class:`glossrt.frame.Camera` of ``frame`` (None for frame < 0)."""
+        from ..frame import Camera
+
+        if frame < 0:
+            return None
+        return Camera(to_world=self.camera_matrix(frame), fov=self.fov, resolution=self.size)
+
+    def object_transforms(self, frame: int) -> dict[int, Matrix]:
+        """Mesh index (1-based, as in the ``mesh_id`` channel) -> rigid transform at ``frame``."""
+        return {self.shape_index[sid]: path(frame) for sid, path in self.object_paths.items()}
+
+    @property
+    def animated(self) -> bool:
+        return self.camera_path is not None or bool(self.object_paths)
+
+    def set_frame(self, frame: int) -> None:
+        """Pose camera and moving objects for ``frame``."""
+        if frame == self.frame:
+            return
+        self.sensor_params["to_world"] = mi.Transform4f(self.camera_matrix(frame))
+        self.sensor_params.update()
+        if self.object_paths:
+            for sid, path in self.object_paths.items():
+                key, rest = self._rest[sid]
+                m = path(frame)
+                if key.endswith("to_world"):
+                    self.params[key] = mi.Transform4f(m) @ rest
+                else:
+                    v = np.array(rest, dtype=np.float64).reshape(-1, 3)
+                    v = v @ m[:3, :3].T + m[:3, 3]
+                    self.params[key] = mi.Float(v.astype(np.float32).ravel())
+            self.params.update()
+        self.frame = frame
+
+    def look_at_point(self) -> np.ndarray:
+        """The point the camera orbits: on its view axis, level with the scene's centre."""
+        m = self.rest_camera
+        origin, forward = m[:3, 3], m[:3, 2] / np.linalg.norm(m[:3, 2])
+        bbox = self.scene.bbox()
+        centre = np.array([bbox.center()[i] for i in range(3)], dtype=np.float64)
+        d = float(np.dot(centre - origin, forward))
+        if not np.isfinite(d) or d <= 1e-3:
+            d = 1.0
+        return origin + d * forward
+
+    def set_orbit(self, degrees: float, frames: int) -> None:
+        """Camera path: rotate about the look-at point around the camera's up axis, spanning
+        ``degrees`` in total over ``frames`` frames (frame 0 is the scene's own camera)."""
+        if self.camera_path is not None:
+            return
+        pivot = self.look_at_point()
+        up = self.rest_camera[:3, 1]
+        rest = self.rest_camera
+        step = degrees / max(frames - 1, 1)
+        self.camera_path = lambda f: rotation_about(pivot, up, step * f) @ rest
+
+
+# -- loading ------------------------------------------------------------------------------
+
+
+def _check_xml_plugins(path: str) -> int | None:
+    """Reject unsupported plugins before Mitsuba loads the file; return the integrator's
+    ``max_depth`` when the file sets one."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise SceneError(f"{path}: not a valid XML scene ({e})") from None
+    max_depth = None
+    for el in root.iter():
+        kind, typ = el.tag, el.get("type")
+        if kind == "bsdf" and typ not in SUPPORTED_BSDFS:
+            raise SceneError(
+                f"{path}: BSDF plugin {typ!r} is not supported by glossrt's renderer "
+                f"(supported: {', '.join(sorted(SUPPORTED_BSDFS))})"
+            )
+        if kind == "emitter" and typ not in SUPPORTED_EMITTERS:
+            raise SceneError(
+                f"{path}: emitter plugin {typ!r} is not supported "
+                f"(supported: {', '.join(sorted(SUPPORTED_EMITTERS))})"
+            )
+        if kind == "sensor" and typ not in SUPPORTED_SENSORS:
+            raise SceneError(f"{path}: sensor plugin {typ!r} is not supported (use perspective)")
+        if kind == "integrator":
+            for child in el:
+                if child.get("name") == "max_depth":
+                    try:
+                        max_depth = int(child.get("value"))
+                    except (TypeError, ValueError):
+                        pass  # a $parameter: Mitsuba's default applies
+    return max_depth
+
+
+def load(
+    name_or_path: str,
+    *,
+    size: tuple[int, int] | None = None,
+    orbit: float | None = None,
+    frames: int = 1,
+) -> SceneSetup:
+    """Load a built-in scene by name or a Mitsuba 3 XML file by path.
+
+    ``size`` (W, H) overrides the scene's film size; ``orbit`` (degrees over all
+    ``frames``) adds a camera orbit to a scene without its own animation."""
+    if size is not None and (size[0] <= 0 or size[1] <= 0):
+        raise SceneError(f"image size must be positive, got {size[0]}x{size[1]}")
+    from . import library  # noqa: F401  (registers the built-in scenes)
+
+    if name_or_path in BUILTIN:
+        spec = BUILTIN[name_or_path][0]()
+        try:
+            scene = mi.load_dict(spec.scene_dict)
+        except Exception as e:  # pragma: no cover - a bug in a built-in scene
+            raise SceneError(f"built-in scene {name_or_path!r} failed to load: {e}") from e
+        setup = SceneSetup(
+            name_or_path,
+            scene,
+            size=size,
+            camera_path=spec.camera_path,
+            object_paths=spec.object_paths,
+            max_depth=spec.max_depth,
+        )
+    else:
+        path = name_or_path
+        if not path.endswith(".xml") and not os.path.exists(path):
+            raise SceneError(
+                f"unknown scene {path!r}: not a built-in scene ({', '.join(sorted(BUILTIN))}) "
+                "and no such file"
+            )
+        if not os.path.isfile(path):
+            raise SceneError(f"scene file not found: {path}")
+        max_depth = _check_xml_plugins(path)
+        try:
+            scene = mi.load_file(path)
+        except Exception as e:
+            msg = str(e).strip().splitlines()[-1] if str(e).strip() else repr(e)
+            raise SceneError(f"{path}: Mitsuba could not load the scene: {msg}") from None
+        setup = SceneSetup(
+            os.path.splitext(os.path.basename(path))[0],
+            scene,
+            size=size,
+            max_depth=max_depth,
+            source=path,
+        )
+    if orbit:
+        setup.set_orbit(float(orbit), frames)
+    return setup
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'640x360' -> (640, 360), with a clear error for anything else."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise SceneError(f"--size must look like 640x360, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise SceneError(f"--size must be positive, got {text!r}")
+    return w, h
+
+
+def wobble(amplitude: float, period: float) -> Callable[[int], float]:
+    """A smooth periodic scalar path, handy for built-in animation."""
+    return lambda f: amplitude * math.sin(2.0 * math.pi * f / period)
