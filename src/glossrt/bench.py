@@ -1,0 +1,130 @@
+"""Benchmarks run by ``glossrt bench``: registered functions, warm-up, median of repeats.
+
+Each benchmark returns a dict of measurements; ratios are always measured side by side in
+the same run (machines are noisy). The device and versions are recorded with the results.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from . import backend
+
+BENCHMARKS: dict[str, Callable[[BenchContext], dict]] = {}
+
+
+@dataclass
+class BenchContext:
+    size: tuple[int, int] = (640, 360)
+    warmup: int = 3
+    repeats: int = 9
+    extra: dict = field(default_factory=dict)
+
+
+def benchmark(name: str):
+    """Register ``fn(ctx) -> dict`` as benchmark ``name``."""
+
+    def deco(fn):
+        BENCHMARKS[name] = fn
+        return fn
+
+    return deco
+
+
+def timeit(fn: Callable[[], object], warmup: int, repeats: int) -> dict:
+    """Median / min / max wall time (s) of ``fn`` after ``warmup`` calls, synchronising the
+    Dr.Jit device before reading the clock."""
+    import drjit as dr
+
+    for _ in range(warmup):
+        fn()
+    dr.sync_thread()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+    return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times),
+            "repeats": repeats}
+
+
+@benchmark("render-vs-mitsuba-path")
+def render_vs_mitsuba(ctx: BenchContext) -> dict:
+    """glossrt's G-buffer + separated 1 spp frame (frozen) vs Mitsuba's own 1 spp ``path``
+    integrator, same scene (glossy-cornell), size and max_depth, interleaved in one run."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from . import render, scenes
+
+    setup = scenes.load("glossy-cornell", size=ctx.size)
+    r = render.Renderer(setup, frozen=True)
+    integrator = mi.load_dict({"type": "path", "max_depth": r.max_depth})
+    counter = {"f": 0}
+
+    def ours():
+        counter["f"] += 1
+        r.trace(0, dr.arange(mi.UInt32, ctx.size[0] * ctx.size[1]),
+                dr.opaque(mi.UInt32, counter["f"]))
+
+    def ours_frame():
+        counter["f"] += 1
+        r.render(counter["f"] % 60)
+
+    def theirs():
+        counter["f"] += 1
+        img = mi.render(setup.scene, sensor=setup.sensor, integrator=integrator, spp=1,
+                        seed=counter["f"])
+        dr.eval(img)
+
+    # interleave the measurements so machine noise hits both alike
+    rounds = 3
+    res = {"glossrt_kernels": [], "glossrt_frame": [], "mitsuba_path": []}
+    for _ in range(rounds):
+        res["glossrt_kernels"].append(timeit(ours, ctx.warmup, ctx.repeats)["median_s"])
+        res["glossrt_frame"].append(timeit(ours_frame, ctx.warmup, ctx.repeats)["median_s"])
+        res["mitsuba_path"].append(timeit(theirs, ctx.warmup, ctx.repeats)["median_s"])
+    med = {k: statistics.median(v) for k, v in res.items()}
+    return {
+        "scene": "glossy-cornell",
+        "size": list(ctx.size),
+        "max_depth": r.max_depth,
+        "glossrt_trace_s": med["glossrt_kernels"],
+        "glossrt_frame_s": med["glossrt_frame"],
+        "mitsuba_path_1spp_s": med["mitsuba_path"],
+        "ratio_trace_vs_path": med["glossrt_kernels"] / med["mitsuba_path"],
+        "ratio_frame_vs_path": med["glossrt_frame"] / med["mitsuba_path"],
+        "target_ratio": 1.5,
+        "rounds": rounds,
+    }
+
+
+def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,
+        repeats: int = 9, log: Callable[[str], None] = print) -> dict:
+    """Run the named (default: all) benchmarks and return a JSON-able dict."""
+    info = backend.info()
+    ctx = BenchContext(size=size, warmup=warmup, repeats=repeats)
+    unknown = [n for n in names or [] if n not in BENCHMARKS]
+    if unknown:
+        from .errors import GlossrtError
+
+        raise GlossrtError(f"unknown benchmark(s) {unknown}; available: {sorted(BENCHMARKS)}")
+    results = {}
+    for name in names or list(BENCHMARKS):
+        log(f"bench {name} ...")
+        results[name] = BENCHMARKS[name](ctx)
+        log("  " + json.dumps(results[name]))
+    return {
+        "device": info["device"],
+        "variant": info["variant"],
+        "versions": {k: info[k] for k in ("glossrt", "mitsuba", "drjit")},
+        "machine": {"platform": platform.platform(), "processor": platform.processor()},
+        "size": list(size),
+        "results": results,
+    }

@@ -1,0 +1,205 @@
+"""The ``glossrt`` command line: info | render | compare | demo | bench."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from .errors import GlossrtError
+
+EXAMPLES = """examples:
+  glossrt info
+  glossrt render glossy-cornell --out out/cornell --frames 16 --size 320x240
+  glossrt render glossy-cornell --out out/cornell-ref --frames 16 --size 320x240 \\
+      --reference --spp 1024 --every 4
+  glossrt render scene.xml --out out/xml --frames 30 --orbit 20
+  glossrt compare out/cornell out/cornell-ref --json metrics.json
+  glossrt demo --out demo-out
+  glossrt bench --json bench.json --size 640x360
+"""
+
+
+def _writable_dir(path: str) -> Path:
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=p, prefix=".glossrt-probe-"):
+            pass
+    except OSError as e:
+        raise GlossrtError(f"output folder {path!r} is not writable: {e.strerror or e}") from None
+    return p
+
+
+def cmd_info(args) -> int:
+    from . import backend
+
+    for k, v in backend.info().items():
+        print(f"{k:10s} {v}")
+    return 0
+
+
+def cmd_render(args) -> int:
+    from . import render, scenes
+    from .frame import Frame, frame_filename
+    from .progress import Progress
+
+    if args.frames < 1:
+        raise GlossrtError(f"--frames must be >= 1, got {args.frames}")
+    if args.spp < 1:
+        raise GlossrtError(f"--spp must be >= 1, got {args.spp}")
+    size = scenes.parse_size(args.size) if args.size else None
+    setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
+    out = _writable_dir(args.out)
+    r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
+    todo = list(range(args.start, args.start + args.frames, args.every))
+    reference = args.reference or args.mitsuba or args.spp > 1
+    spp = args.spp if (args.spp > 1 or not reference) else 256
+    bad = 0
+    desc = f"{'reference ' if reference else ''}{setup.name} {setup.size[0]}x{setup.size[1]}"
+    with Progress(len(todo) * (spp if reference else 1), desc) as p:
+        for k, i in enumerate(todo):
+            if args.mitsuba:
+                import mitsuba as mi
+
+                img = r.render_mitsuba(i, spp, seed=args.seed)
+                cam = setup.camera(i)
+                f = Frame(channels={"color": mi.TensorXf(img)}, camera=cam,
+                          prev_camera=setup.camera(i - 1) if i > 0 else cam, index=i,
+                          meta={"scene": setup.name, "spp": spp, "reference": "mitsuba-path",
+                                "max_depth": r.max_depth})
+                p.update((k + 1) * spp)
+            elif reference:
+                f = r.render_reference(i, spp, progress=lambda d, n, k=k: p.update(k * spp + d))
+            else:
+                f = r.render(i)
+                p.update(k + 1)
+            bad += int(f.meta.get("nonfinite_samples", 0))
+            f.save(out / frame_filename(i))
+    print(f"wrote {len(todo)} frame(s) to {out}")
+    if bad:
+        print(f"warning: {bad} non-finite radiance value(s) were replaced by 0 "
+              "(counts per frame in the EXR header, meta.nonfinite_samples)", file=sys.stderr)
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from .compare import compare_dirs, format_table
+
+    for d in (args.out_dir, args.ref_dir):
+        if not os.path.isdir(d):
+            raise GlossrtError(f"not a folder: {d}")
+    res = compare_dirs(args.out_dir, args.ref_dir, channel=args.channel)
+    print(format_table(res))
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=2))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .demo import run_demo
+    from .scenes import parse_size
+
+    _writable_dir(args.out)
+    path = run_demo(args.out, size=parse_size(args.size), frames=args.frames,
+                    ref_spp=args.spp, scene=args.scene)
+    print(f"report: {path}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from . import bench
+    from .scenes import parse_size
+
+    res = bench.run(args.only or None, size=parse_size(args.size), repeats=args.repeats,
+                    warmup=args.warmup, log=lambda s: print(s, file=sys.stderr))
+    text = json.dumps(res, indent=2)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+    print(text)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="glossrt", description="Real-time rendering of glossy surfaces (Mitsuba 3 + Dr.Jit).",
+        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", choices=["auto", "cpu", "gpu"], default=None,
+                    help="backend (default: env GLOSSRT_DEVICE or auto)")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    def add(name, fn, help_, example):
+        p = sub.add_parser(name, help=help_, description=help_, epilog=f"example:\n  {example}",
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        p.set_defaults(fn=fn)
+        return p
+
+    add("info", cmd_info, "print variant, device, versions and the libLLVM in use",
+        "glossrt info")
+
+    p = add("render", cmd_render, "render 1 spp frames (or converged references) to EXR",
+            "glossrt render glossy-cornell --out out/cornell --frames 8 --size 320x240")
+    p.add_argument("scene", help="built-in scene name (glossy-cornell, roughness-map) or XML path")
+    p.add_argument("--out", required=True, help="output folder (one EXR per frame)")
+    p.add_argument("--frames", type=int, default=1)
+    p.add_argument("--start", type=int, default=0, help="first frame index")
+    p.add_argument("--every", type=int, default=1, help="render every k-th frame only")
+    p.add_argument("--spp", type=int, default=1, help="samples per pixel (references)")
+    p.add_argument("--size", help="WxH (default: the scene's film size)")
+    p.add_argument("--orbit", type=float, default=None,
+                   help="orbit the camera by DEG degrees in total over the frames "
+                        "(scenes without their own animation)")
+    p.add_argument("--max-depth", type=int, default=None,
+                   help="Mitsuba max_depth (default 3, or the XML integrator's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--reference", action="store_true",
+                   help="converged frames (pixel-centre primary hits), --spp defaults to 256")
+    p.add_argument("--mitsuba", action="store_true",
+                   help="anti-aliased reference from Mitsuba's own path integrator "
+                        "(color only)")
+
+    p = add("compare", cmd_compare, "metrics of frames against references, per frame and mean",
+            "glossrt compare out/cornell out/cornell-ref --json metrics.json")
+    p.add_argument("out_dir")
+    p.add_argument("ref_dir")
+    p.add_argument("--channel", default="color")
+    p.add_argument("--json", help="also write the results as JSON")
+
+    p = add("demo", cmd_demo, "render a built-in sequence + references and write an HTML report",
+            "glossrt demo --out demo-out")
+    p.add_argument("--out", required=True)
+    p.add_argument("--scene", default="glossy-cornell")
+    p.add_argument("--size", default="160x120")
+    p.add_argument("--frames", type=int, default=8)
+    p.add_argument("--spp", type=int, default=256, help="reference samples per pixel")
+
+    p = add("bench", cmd_bench, "registered benchmarks (median of repeats), JSON out",
+            "glossrt bench --json bench.json --size 640x360")
+    p.add_argument("--json")
+    p.add_argument("--size", default="640x360")
+    p.add_argument("--repeats", type=int, default=9)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--only", nargs="*", help="benchmark names")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        from . import backend
+
+        backend.use(args.device)
+        return args.fn(args)
+    except GlossrtError as e:
+        print(f"glossrt: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("glossrt: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,56 @@
+"""A small progress bar on stderr (no dependency): live on a terminal, a few lines otherwise."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+
+class Progress:
+    """``with Progress(total, "rendering") as p: p.update(k)`` (k = items done so far)."""
+
+    def __init__(self, total: int, desc: str, enabled: bool = True, stream=None):
+        self.total = max(int(total), 1)
+        self.desc = desc
+        self.stream = stream or sys.stderr
+        self.enabled = enabled
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.t0 = time.perf_counter()
+        self._last_quarter = -1
+        self.done = 0
+
+    def update(self, done: int) -> None:
+        self.done = min(int(done), self.total)
+        if not self.enabled:
+            return
+        frac = self.done / self.total
+        elapsed = time.perf_counter() - self.t0
+        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
+        if self.tty:
+            bar = "#" * int(30 * frac)
+            self.stream.write(
+                f"\r{self.desc}: [{bar:<30}] {self.done}/{self.total} "
+                f"{elapsed:5.1f}s elapsed, {eta:5.1f}s left"
+            )
+            self.stream.flush()
+        else:
+            quarter = int(4 * frac)
+            if quarter != self._last_quarter:
+                self._last_quarter = quarter
+                self.stream.write(f"{self.desc}: {self.done}/{self.total} ({elapsed:.1f}s)\n")
+                self.stream.flush()
+
+    def __call__(self, done: int, total: int | None = None) -> None:
+        self.update(done)
+
+    def close(self) -> None:
+        if self.enabled and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+    def __enter__(self) -> Progress:
+        self.update(0)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,113 @@
+"""The command line end to end on tiny images: render, compare, bench, demo, bad input."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from glossrt.cli import main
+from glossrt.frame import Frame, load_sequence
+
+
+def test_info(capsys):
+    assert main(["info"]) == 0
+    out = capsys.readouterr().out
+    assert "variant" in out and "libllvm" in out and "mitsuba" in out
+
+
+def test_render_compare_roundtrip(tmp_path, capsys):
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    assert main(["render", "glossy-cornell", "--out", str(out), "--frames", "3",
+                 "--size", "32x24"]) == 0
+    files = sorted(os.listdir(out))
+    assert files == ["frame_0000.exr", "frame_0001.exr", "frame_0002.exr"]
+    frames = load_sequence(out)
+    assert frames[1].width == 32 and frames[1].height == 24
+    assert frames[1].prev_camera is not None
+    # the camera moves, so frame 1 has non-zero motion somewhere
+    assert np.abs(frames[1].numpy("motion")).max() > 0.01
+    assert main(["render", "glossy-cornell", "--out", str(ref), "--frames", "3", "--every", "2",
+                 "--size", "32x24", "--reference", "--spp", "32"]) == 0
+    assert sorted(os.listdir(ref)) == ["frame_0000.exr", "frame_0002.exr"]
+    assert Frame.load(ref / "frame_0002.exr").meta["spp"] == 32
+    capsys.readouterr()
+    js = tmp_path / "m.json"
+    assert main(["compare", str(out), str(ref), "--json", str(js)]) == 0
+    table = capsys.readouterr().out
+    assert "frame_0000.exr" in table and "frame_0002.exr" in table
+    res = json.loads(js.read_text())
+    assert len(res["frames"]) == 2 and res["mean"]["rmse"] > 0
+
+
+def test_render_mitsuba_reference(tmp_path):
+    out = tmp_path / "m"
+    assert main(["render", "glossy-cornell", "--out", str(out), "--size", "24x16", "--mitsuba",
+                 "--spp", "8"]) == 0
+    f = Frame.load(out / "frame_0000.exr")
+    assert tuple(f.names) == ("color",) and f.meta["reference"] == "mitsuba-path"
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["render", "no-such-scene", "--out", "{tmp}/o"], ["no-such-scene"]),
+        (["render", "{tmp}/missing.xml", "--out", "{tmp}/o"], ["not found", "missing.xml"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--size", "0x10"], ["size"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--size", "abc"], ["size", "abc"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/file/sub"], ["not writable", "file"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--frames", "0"], ["frames"]),
+        (["compare", "{tmp}/nope", "{tmp}"], ["not a folder", "nope"]),
+        (["bench", "--only", "nope", "--size", "8x8"], ["unknown benchmark", "nope"]),
+    ],
+)
+def test_bad_input_is_a_clear_error(tmp_path, capsys, argv, words):
+    (tmp_path / "file").write_text("not a folder")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("glossrt: error:")
+    for w in words:
+        assert w in err
+    assert not (tmp_path / "o").exists() or not os.listdir(tmp_path / "o")
+
+
+def test_unsupported_plugin_exit_code(tmp_path, capsys):
+    xml = tmp_path / "s.xml"
+    xml.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="dielectric"/>'
+                   '</shape></scene>')
+    assert main(["render", str(xml), "--out", str(tmp_path / "o")]) == 2
+    assert "dielectric" in capsys.readouterr().err
+
+
+def test_bench_json(tmp_path, capsys):
+    js = tmp_path / "b.json"
+    assert main(["bench", "--json", str(js), "--size", "32x24", "--repeats", "1",
+                 "--warmup", "1"]) == 0
+    res = json.loads(js.read_text())
+    r = res["results"]["render-vs-mitsuba-path"]
+    assert res["variant"] and res["device"]
+    assert r["glossrt_frame_s"] > 0 and r["mitsuba_path_1spp_s"] > 0
+    assert r["ratio_frame_vs_path"] == pytest.approx(
+        r["glossrt_frame_s"] / r["mitsuba_path_1spp_s"])
+
+
+def test_demo_writes_report(tmp_path):
+    from glossrt.demo import run_demo
+
+    page = run_demo(tmp_path / "demo", size=(32, 24), frames=4, ref_every=2, ref_spp=16,
+                    mitsuba_spp=16, log=lambda *a: None)
+    html = page.read_text()
+    assert page.name == "index.html"
+    for heading in ("Frames", "converged reference", "Mitsuba", "Timings"):
+        assert heading in html
+    assert len(os.listdir(tmp_path / "demo" / "frames")) == 4
+    assert len(os.listdir(tmp_path / "demo" / "references")) == 2
+    for src in __import__("re").findall(r'src="([^"]+)"', html):
+        assert (tmp_path / "demo" / src).is_file()
+
+
+def test_help_has_examples(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "examples:" in capsys.readouterr().out
