@@ -28,6 +28,7 @@ from ..brdf.ggx import SpecularAlbedoTable  # noqa: E402
 from ..frame import Frame  # noqa: E402
 from ..scenes import SceneSetup  # noqa: E402
 from .motion import MotionInputs  # noqa: E402
+from . import integrator as _integrator  # noqa: E402,F401  (registers "glossrt")
 from .pathtracer import RADIANCE_OUT, ShapeTable, trace_pixels  # noqa: E402
 
 GBUFFER_OUT = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "roughness",

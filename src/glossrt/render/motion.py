@@ -31,8 +31,9 @@ class MotionInputs:
         w2c = np.linalg.inv(np.asarray(prev_camera.to_world, dtype=np.float64))
         focal = (w / 2) / math.tan(math.radians(prev_camera.fov) / 2)
         prev = np.concatenate([w2c.ravel(), [focal, w / 2, h / 2]])
-        self.rel = mi.Float(rel.astype(np.float32).ravel())
-        self.prev = mi.Float(prev.astype(np.float32))
+        # from Python lists: NumPy-backed inputs can make dr.freeze re-record (alignment)
+        self.rel = mi.Float(rel.astype(np.float32).ravel().tolist())
+        self.prev = mi.Float(prev.astype(np.float32).tolist())
 
 
 def _row_dot(arr: mi.Float, base, p: mi.Vector3f, row: int) -> mi.Float:
