@@ -83,8 +83,9 @@ def section_noise(ctx: DemoContext, report: Report) -> None:
         rows.append([ref.index, metrics.rmse(img, r), metrics.relmse(img, r),
                      metrics.ssim(img, r), metrics.flip(img, r)])
     s.table(["frame", "RMSE", "relMSE", "SSIM", "FLIP"], rows)
-    s.paragraph(f"Temporal error of the 1 spp sequence (mean absolute luminance difference of "
-                f"consecutive frames): {metrics.temporal_error([f['color'] for f in ctx.frames]):.4g}")
+    te = metrics.temporal_error([f["color"] for f in ctx.frames])
+    s.paragraph("Temporal error of the 1 spp sequence (mean absolute luminance difference of "
+                f"consecutive frames): {te:.4g}")
     ref = ctx.references[0]
     f = by_index[ref.index]
     s.images_row([("1 spp", f["color"]), (f"reference, {ref.meta.get('spp')} spp", ref["color"])],

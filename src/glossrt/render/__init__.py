@@ -27,8 +27,8 @@ import mitsuba as mi  # noqa: E402
 from ..brdf.ggx import SpecularAlbedoTable  # noqa: E402
 from ..frame import Frame  # noqa: E402
 from ..scenes import SceneSetup  # noqa: E402
-from .motion import MotionInputs  # noqa: E402
 from . import integrator as _integrator  # noqa: E402,F401  (registers "glossrt")
+from .motion import MotionInputs  # noqa: E402
 from .pathtracer import RADIANCE_OUT, ShapeTable, trace_pixels  # noqa: E402
 
 GBUFFER_OUT = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "roughness",

@@ -191,7 +191,7 @@ class ShapeTable:
         index, has_d, has_s, attr, alpha = [0] * n, [False] * n, [False] * n, [False] * n, [0.0] * n
         f0 = [[0.0] * n for _ in range(3)]
         self.materials = {}
-        for i, (s, rid) in enumerate(zip(shapes, ids)):
+        for i, (s, rid) in enumerate(zip(shapes, ids, strict=True)):
             m = describe_bsdf(s.bsdf())
             self.materials[s.id() or f"shape_{i}"] = m
             index[rid] = i + 1

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import SceneSpec, builtin, look_at, rotation_about, translation, wobble
-from . import mi  # the variant is already selected by the package
+from . import (
+    SceneSpec,
+    builtin,
+    look_at,
+    mi,  # the variant is already selected by the package
+    rotation_about,
+    translation,
+    wobble,
+)
 
 T = mi.ScalarTransform4f
 
