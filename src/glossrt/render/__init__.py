@@ -25,6 +25,7 @@ backend.ensure()
 import mitsuba as mi  # noqa: E402
 
 from ..brdf.ggx import SpecularAlbedoTable  # noqa: E402
+from ..errors import GlossrtError  # noqa: E402
 from ..frame import Frame  # noqa: E402
 from ..scenes import SceneSetup  # noqa: E402
 from . import integrator as _integrator  # noqa: E402,F401  (registers "glossrt")
@@ -35,6 +36,7 @@ GBUFFER_OUT = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth
                "mesh_id", "motion")
 COMPONENTS = {"depth": 1, "roughness": 1, "mesh_id": 1, "motion": 2}
 REFERENCE_SALT = 0x5EED
+UNBOUNDED_DEPTH = 1 << 30
 #: lanes per launch when rendering references (pixels x samples)
 MAX_LANES = 1 << 21
 
@@ -75,15 +77,17 @@ class Renderer:
     def __init__(self, setup: SceneSetup, max_depth: int | None = None, seed: int = 0,
                  frozen: bool = True):
         self.setup = setup
-        self.max_depth = int(max_depth if max_depth is not None else (setup.max_depth or 3))
-        if self.max_depth < 1:
-            raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
+        md = int(max_depth if max_depth is not None else (setup.max_depth or 3))
+        if md == 0 or md < -1:
+            raise GlossrtError(f"max_depth must be >= 1, or -1 for unbounded; got {md}")
+        #: Mitsuba's convention: -1 = unbounded (Russian roulette ends the paths)
+        self.max_depth = UNBOUNDED_DEPTH if md == -1 else md
         self.seed = seed
         self.frozen = frozen
         self.shapes = ShapeTable(setup.scene)
         self.table = SpecularAlbedoTable.load()
         self.width, self.height = setup.size
-        self.n_meshes = len(setup.scene.shapes())
+        self.n_meshes = len(setup.shapes)
 
     # -- low level ---------------------------------------------------------------------
     def _motion_inputs(self, frame: int) -> MotionInputs:
@@ -172,7 +176,8 @@ class Renderer:
         """Mitsuba's own ``path`` integrator (anti-aliased, box filter) on the same scene,
         camera and ``max_depth``: RGB image (H, W, 3)."""
         self.setup.set_frame(frame)
-        integrator = mi.load_dict({"type": "path", "max_depth": self.max_depth})
+        md = -1 if self.max_depth == UNBOUNDED_DEPTH else self.max_depth
+        integrator = mi.load_dict({"type": "path", "max_depth": md})
         img = mi.render(self.setup.scene, sensor=self.setup.sensor, integrator=integrator,
                         spp=spp, seed=frame_seed(frame, seed, 0xA11A5))
         return mi.TensorXf(img)

@@ -32,7 +32,8 @@ class GlossrtIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.max_depth = int(props.get("max_depth", 3))
+        md = int(props.get("max_depth", 3))
+        self.max_depth = 1 << 30 if md < 0 else md  # Mitsuba: -1 = unbounded
         self._tables: dict[int, ShapeTable] = {}
         from ..brdf.ggx import SpecularAlbedoTable
 
@@ -51,8 +52,7 @@ class GlossrtIntegrator(mi.SamplingIntegrator):
         ray = mi.Ray3f(ray)
         r = shade(scene, sampler, ray, self.max_depth)
         sensor = scene.sensors()[0]
-        forward = dr.normalize(sensor.world_transform() @ mi.Vector3f(0, 0, 1))
-        gb = gbuffer(r.si, r.bsdf, ray, forward, self._shapes(scene), self.albedo)
+        gb = gbuffer(r.si, r.bsdf, ray, sensor, self._shapes(scene), self.albedo)
         values = {name: getattr(r, name) for name in RADIANCE_OUT}
         values.update(gb)
         values["depth"] = dr.select(r.si.is_valid(), gb["depth"], 0.0)  # films can't average inf

@@ -166,6 +166,18 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int) -> ShadeResul
     )
 
 
+def stable_shapes(scene: mi.Scene) -> list:
+    """``scene.shapes()`` in an order that does not change between loads of the same scene
+    (Mitsuba's own order varies from load to load), so ``mesh_id`` is reproducible."""
+
+    def key(s):
+        b = s.bbox()
+        return (s.id(), s.class_name(), tuple(float(b.min[i]) for i in range(3)),
+                tuple(float(b.max[i]) for i in range(3)))
+
+    return sorted(scene.shapes(), key=key)
+
+
 class ShapeTable:
     """Per-shape constants, indexed by the shape's Dr.Jit registry id (``si.shape``).
 
@@ -185,7 +197,7 @@ class ShapeTable:
     def __init__(self, scene: mi.Scene):
         from .materials import describe_bsdf
 
-        shapes = scene.shapes()
+        shapes = stable_shapes(scene)
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
         n = max(ids, default=0) + 1
         index, has_d, has_s, attr, alpha = [0] * n, [False] * n, [False] * n, [False] * n, [0.0] * n
@@ -207,7 +219,13 @@ class ShapeTable:
         self.f0 = mi.Color3f(*f0)
 
 
-def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, forward: mi.Vector3f,
+def camera_axes(sensor: mi.Sensor) -> tuple[mi.Point3f, mi.Vector3f]:
+    """Camera position and unit viewing axis (camera-space +z) of a sensor."""
+    to_world = sensor.world_transform()
+    return to_world.translation(), dr.normalize(to_world @ mi.Vector3f(0, 0, 1))
+
+
+def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor: mi.Sensor,
             shapes: ShapeTable, table) -> dict:
     """Noise-free G-buffer values of the primary hit."""
     valid = si.is_valid()
@@ -225,7 +243,9 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, forwar
     cos_o = dr.abs(mi.Frame3f.cos_theta(si.wi))
     albedo_d = dr.select(valid & has_d, bsdf.eval_diffuse_reflectance(si, valid & has_d), 0.0)
     albedo_s = dr.select(valid & has_s, table.lookup(cos_o, alpha, f0), 0.0)
-    depth = dr.select(valid, si.t * dr.dot(ray.d, forward), dr.inf)
+    origin, forward = camera_axes(sensor)
+    # camera-space z (not si.t: Mitsuba's rays start on the near-clip plane)
+    depth = dr.select(valid, dr.dot(si.p - origin, forward), dr.inf)
     return {
         "albedo_diffuse": mi.Color3f(albedo_d),
         "albedo_specular": mi.Color3f(albedo_s),
@@ -248,10 +268,9 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable, table,
     y = mi.Float(pixel // width) + 0.5
     pos = mi.Point2f(x / width, y / height)
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
-    forward = dr.normalize(sensor.world_transform() @ mi.Vector3f(0, 0, 1))
     sampler = PixelSampler(pixel, seed)
     r = shade(scene, sampler, ray, max_depth)
-    out = gbuffer(r.si, r.bsdf, ray, forward, shapes, table)
+    out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
     bad = mi.UInt32(0)  # per lane: radiance values that were not finite
     color = dr.zeros(mi.Color3f)
     for name in RADIANCE_OUT:

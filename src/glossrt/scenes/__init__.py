@@ -149,7 +149,11 @@ class SceneSetup:
         self.object_paths = dict(object_paths or {})
         self.params = mi.traverse(scene)
         self._rest: dict[str, tuple[str, object]] = {}
-        shapes = {s.id(): s for s in scene.shapes()}
+        from ..render.pathtracer import stable_shapes
+
+        #: shapes in mesh_id order (1-based); stable across loads of the same scene
+        self.shapes = stable_shapes(scene)
+        shapes = {s.id(): s for s in self.shapes}
         for sid in self.object_paths:
             if sid not in shapes:
                 raise SceneError(f"{name}: animated shape {sid!r} is not in the scene")
@@ -160,7 +164,7 @@ class SceneSetup:
                     break
             else:
                 raise SceneError(f"{name}: shape {sid!r} cannot be moved (no transform parameter)")
-        self.shape_index = {s.id(): i + 1 for i, s in enumerate(scene.shapes())}
+        self.shape_index = {s.id(): i + 1 for i, s in enumerate(self.shapes) if s.id()}
         self.frame = None
 
     # -- animation -------------------------------------------------------------------
@@ -236,6 +240,8 @@ def _check_xml_plugins(path: str) -> int | None:
     except ET.ParseError as e:
         raise SceneError(f"{path}: not a valid XML scene ({e})") from None
     max_depth = None
+    # <default name="max_depth" value="5"/> supplies $max_depth unless overridden
+    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
     for el in root.iter():
         kind, typ = el.tag, el.get("type")
         if kind == "bsdf" and typ not in SUPPORTED_BSDFS:
@@ -253,10 +259,16 @@ def _check_xml_plugins(path: str) -> int | None:
         if kind == "integrator":
             for child in el:
                 if child.get("name") == "max_depth":
+                    value = child.get("value") or ""
+                    if value.startswith("$"):
+                        value = defaults.get(value[1:], "")
                     try:
-                        max_depth = int(child.get("value"))
-                    except (TypeError, ValueError):
-                        pass  # a $parameter: Mitsuba's default applies
+                        max_depth = int(value)
+                    except ValueError:
+                        raise SceneError(
+                            f"{path}: integrator max_depth {child.get('value')!r} is not an "
+                            "integer (nor a parameter with a <default>)"
+                        ) from None
     return max_depth
 
 

@@ -1,0 +1,446 @@
+"""glossrt.scenes: built-in scenes, XML loading (supported and unsupported plugins, errors),
+size override, animation (set_frame, orbit) and the integrator's max_depth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from glossrt import backend
+
+backend.ensure()
+import mitsuba as mi  # noqa: E402
+
+from glossrt import scenes  # noqa: E402
+from glossrt.errors import GlossrtError, SceneError  # noqa: E402
+from glossrt.frame import RADIANCE, Camera  # noqa: E402
+from glossrt.render import Renderer  # noqa: E402
+
+SIZE = (24, 18)
+
+SENSOR = """
+  <sensor type="perspective">
+    <float name="fov" value="{fov}"/>{extra}
+    <transform name="to_world">
+      <lookat origin="0, 1, 4" target="0, 0.3, 0" up="0, 1, 0"/>
+    </transform>
+    <film type="hdrfilm">
+      <integer name="width" value="40"/><integer name="height" value="30"/>
+    </film>
+  </sensor>"""
+
+FLOOR = """
+  <shape type="rectangle" id="floor">
+    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="3"/></transform>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.5, 0.5, 0.5"/></bsdf>
+  </shape>"""
+
+AREA_LIGHT = """
+  <shape type="rectangle" id="lamp">
+    <transform name="to_world">
+      <rotate x="1" angle="90"/><scale value="0.5"/><translate y="2.5"/>
+    </transform>
+    <emitter type="area"><rgb name="radiance" value="10, 10, 10"/></emitter>
+  </shape>"""
+
+CONSTANT = '\n  <emitter type="constant"><rgb name="radiance" value="0.2, 0.3, 0.4"/></emitter>'
+
+
+def scene_xml(body: str, *, integrator: str = "", fov: float = 45.0, sensor_extra: str = "",
+              defaults: str = "") -> str:
+    return (f'<scene version="3.0.0">{defaults}{integrator}'
+            f'{SENSOR.format(fov=fov, extra=sensor_extra)}{body}\n</scene>\n')
+
+
+def write(tmp_path, text: str, name: str = "scene.xml") -> str:
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def sphere(bsdf: str, sid: str = "object") -> str:
+    return (f'\n  <shape type="sphere" id="{sid}">'
+            f'<point name="center" x="0" y="0.5" z="0"/><float name="radius" value="0.5"/>'
+            f"{bsdf}</shape>")
+
+
+# -- built-ins -----------------------------------------------------------------------------------
+
+
+def test_builtins_are_listed_with_descriptions():
+    from glossrt.scenes import library  # noqa: F401  (registers the built-ins)
+
+    assert {"glossy-cornell", "roughness-map"} <= set(scenes.BUILTIN)
+    for name, (fn, description) in scenes.BUILTIN.items():
+        assert callable(fn) and description.strip(), name
+
+
+@pytest.mark.parametrize("name", ["glossy-cornell", "roughness-map"])
+def test_builtins_load(name):
+    setup = scenes.load(name)
+    assert setup.name == name
+    assert setup.size == (320, 240)  # the scenes' own film
+    assert setup.max_depth == 3
+    assert setup.animated
+    assert setup.source is None
+    cam = setup.camera(0)
+    assert cam.resolution == setup.size and cam.fov > 0
+    assert setup.camera(-1) is None
+    assert len(setup.scene.shapes()) >= 3
+    # 1-based mesh indices, one per shape; shape_index names those with an id (Mitsuba
+    # merges shapes that share a BSDF into one mesh without an id)
+    assert len(setup.shapes) == len(setup.scene.shapes())
+    named = [i for i, s in enumerate(setup.shapes, 1) if s.id()]
+    assert sorted(setup.shape_index.values()) == named
+
+
+def test_size_override():
+    setup = scenes.load("glossy-cornell", size=(40, 30))
+    assert setup.size == (40, 30)
+    assert tuple(setup.sensor.film().size()) == (40, 30)
+    assert setup.camera(0).resolution == (40, 30)
+    f = Renderer(setup).render(0)
+    assert f.numpy("color").shape == (30, 40, 3)
+    assert f.camera.resolution == (40, 30)
+
+
+def test_set_frame_moves_camera_and_objects():
+    setup = scenes.load("glossy-cornell", size=SIZE)
+    sphere_shape = next(s for s in setup.scene.shapes() if s.id() == "sphere")
+
+    def centre():
+        bb = sphere_shape.bbox()
+        return np.array([bb.center()[i] for i in range(3)], dtype=np.float64)
+
+    setup.set_frame(0)
+    cam0, c0 = Camera.from_sensor(setup.sensor), centre()
+    setup.set_frame(10)
+    cam10, c10 = Camera.from_sensor(setup.sensor), centre()
+    # the sensor really is posed as camera(frame) says
+    np.testing.assert_allclose(cam0.to_world, setup.camera(0).to_world, atol=1e-6)
+    np.testing.assert_allclose(cam10.to_world, setup.camera(10).to_world, atol=1e-6)
+    assert np.linalg.norm(cam10.position - cam0.position) > 0.1
+    # the sphere slides along x by its object path
+    moved = setup.object_transforms(10)[setup.shape_index["sphere"]][:3, 3]
+    np.testing.assert_allclose(c10 - c0, moved - setup.object_transforms(0)[
+        setup.shape_index["sphere"]][:3, 3], atol=1e-5)
+    assert abs(c10[0] - c0[0]) > 0.05
+    # back to frame 0 restores the rest pose exactly (no accumulated drift)
+    setup.set_frame(0)
+    np.testing.assert_allclose(centre(), c0, atol=1e-6)
+
+
+def test_mesh_ids_are_stable_across_loads():
+    """mesh_id (1-based index of a shape) must name the same shape every time a scene is loaded,
+    or frames rendered in different runs (a reference and its 1 spp frames) disagree."""
+    first = scenes.load("glossy-cornell", size=SIZE).shape_index
+    for _ in range(20):
+        assert scenes.load("glossy-cornell", size=SIZE).shape_index == first
+
+
+# -- XML scenes ----------------------------------------------------------------------------------
+
+
+def test_xml_scene_uses_its_film_and_name(tmp_path):
+    path = write(tmp_path, scene_xml(FLOOR + CONSTANT), "my_room.xml")
+    setup = scenes.load(path)
+    assert setup.name == "my_room"
+    assert setup.source == path
+    assert setup.size == (40, 30)
+    assert setup.max_depth is None
+    assert Renderer(setup).max_depth == 3  # glossrt's default
+    assert not setup.animated
+    np.testing.assert_array_equal(setup.camera(7).to_world, setup.camera(0).to_world)
+
+
+def test_xml_sensor_is_reproduced(tmp_path):
+    """glossrt's own sensor shoots the same rays as the file's sensor, also for a vertical
+    field of view (Mitsuba converts it to x_fov)."""
+    extra = '\n    <string name="fov_axis" value="y"/>'
+    path = write(tmp_path, scene_xml(FLOOR + CONSTANT, fov=30.0, sensor_extra=extra))
+    setup = scenes.load(path)
+    expected_x_fov = 2 * math.degrees(math.atan(math.tan(math.radians(15.0)) * 40 / 30))
+    assert setup.fov == pytest.approx(expected_x_fov, rel=1e-5)
+    uv = mi.Point2f([0.0, 1.0, 0.5, 0.25], [0.0, 1.0, 0.5, 0.8])
+    ours, _ = setup.sensor.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    theirs, _ = setup.scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    np.testing.assert_allclose(np.array(ours.d), np.array(theirs.d), atol=1e-6)
+    np.testing.assert_allclose(np.array(ours.o), np.array(theirs.o), atol=1e-6)
+
+
+def test_orbit_rotates_about_the_look_at_point(tmp_path):
+    path = write(tmp_path, scene_xml(FLOOR + sphere('<bsdf type="diffuse"/>') + CONSTANT))
+    frames, degrees = 5, 40.0
+    setup = scenes.load(path, size=SIZE, orbit=degrees, frames=frames)
+    assert setup.animated
+    static = scenes.load(path, size=SIZE)
+    pivot = setup.look_at_point()
+    rest = static.camera(0)
+    np.testing.assert_array_equal(setup.camera(0).to_world, rest.to_world)
+    # the pivot lies on the rest camera's view axis
+    f0 = rest.to_world[:3, 2]
+    off = pivot - rest.position
+    assert np.linalg.norm(np.cross(off, f0)) < 1e-6 * np.linalg.norm(off)
+    up = rest.to_world[:3, 1]
+    r0 = rest.position - pivot
+    # the transforms are built in float32 (Mitsuba's ScalarTransform4f): ~1e-6 relative
+    for k in range(frames):
+        cam = setup.camera(k)
+        r = cam.position - pivot
+        # same distance to the pivot, same height along the up axis
+        assert np.linalg.norm(r) == pytest.approx(np.linalg.norm(r0), rel=1e-6)
+        assert np.dot(r, up) == pytest.approx(np.dot(r0, up), abs=1e-5)
+        # still looking at the pivot
+        fwd = cam.to_world[:3, 2]
+        assert np.linalg.norm(np.cross(-r / np.linalg.norm(r), fwd)) < 1e-5
+        # rotated by k * degrees / (frames - 1) about the up axis
+        a, b = r0 - np.dot(r0, up) * up, r - np.dot(r, up) * up
+        angle = math.degrees(math.atan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))
+        assert angle == pytest.approx(k * degrees / (frames - 1), abs=1e-3)
+    # and the sensor follows
+    setup.set_frame(frames - 1)
+    np.testing.assert_allclose(Camera.from_sensor(setup.sensor).to_world,
+                               setup.camera(frames - 1).to_world, atol=1e-6)
+
+
+def test_orbit_does_not_replace_a_builtin_camera_path():
+    a = scenes.load("glossy-cornell", size=SIZE, orbit=90.0, frames=4)
+    b = scenes.load("glossy-cornell", size=SIZE)
+    for k in range(4):
+        np.testing.assert_array_equal(a.camera(k).to_world, b.camera(k).to_world)
+
+
+BSDFS = {
+    # plugin -> (XML, expected G-buffer roughness, has diffuse albedo)
+    "diffuse": ('<bsdf type="diffuse"><rgb name="reflectance" value="0.6, 0.5, 0.4"/></bsdf>',
+                1.0, True),
+    "conductor": ('<bsdf type="conductor"><string name="material" value="Au"/></bsdf>', 0.0,
+                  False),
+    "roughconductor": ('<bsdf type="roughconductor"><string name="material" value="Cu"/>'
+                       '<float name="alpha" value="0.2"/></bsdf>', 0.2, False),
+    "plastic": ('<bsdf type="plastic"><rgb name="diffuse_reflectance" value="0.1, 0.4, 0.2"/>'
+                "</bsdf>", 0.0, True),
+    "roughplastic": ('<bsdf type="roughplastic"><float name="alpha" value="0.15"/>'
+                     '<rgb name="diffuse_reflectance" value="0.4, 0.1, 0.1"/></bsdf>', 0.15,
+                     True),
+    "twosided": ('<bsdf type="twosided"><bsdf type="roughconductor">'
+                 '<string name="material" value="Al"/><float name="alpha" value="0.3"/>'
+                 "</bsdf></bsdf>", 0.3, False),
+}
+
+
+def _check_frame(frame, setup):
+    for name in RADIANCE + ("color", "albedo_diffuse", "albedo_specular", "normal", "position",
+                            "roughness", "mesh_id", "motion"):
+        assert np.all(np.isfinite(frame.numpy(name))), name
+    depth = frame.numpy("depth")[..., 0]
+    hit = frame.numpy("mesh_id")[..., 0] > 0
+    assert np.all(np.isfinite(depth[hit])) and np.all(np.isposinf(depth[~hit]))
+    assert frame.meta["nonfinite_samples"] == 0
+    assert np.all(frame.numpy("color") >= 0)
+
+
+@pytest.mark.parametrize("plugin", sorted(BSDFS))
+def test_xml_bsdf_renders(tmp_path, plugin):
+    xml, alpha, has_diffuse = BSDFS[plugin]
+    body = FLOOR + sphere(xml) + AREA_LIGHT + CONSTANT
+    setup = scenes.load(write(tmp_path, scene_xml(body)), size=SIZE)
+    r = Renderer(setup)
+    for f in (r.render(0), r.render_reference(0, spp=8)):
+        _check_frame(f, setup)
+    obj = f.numpy("mesh_id")[..., 0] == setup.shape_index["object"]
+    assert obj.sum() > 10
+    assert f.numpy("color")[obj].mean() > 0  # lit
+    np.testing.assert_allclose(f.numpy("roughness")[..., 0][obj], alpha, rtol=1e-6)
+    assert bool(np.any(f.numpy("albedo_diffuse")[obj] > 0)) == has_diffuse
+    assert np.all(f.numpy("albedo_specular")[obj] > 0) == (plugin not in ("diffuse",))
+
+
+def test_xml_twosided_is_lit_from_behind(tmp_path):
+    # a one-sided diffuse panel seen from its back is black; the twosided one is lit
+    def panel(bsdf):
+        return ('\n  <shape type="rectangle" id="object"><transform name="to_world">'
+                '<rotate y="1" angle="180"/><translate y="0.6"/></transform>'
+                f"{bsdf}</shape>")
+
+    diffuse = '<bsdf type="diffuse"><rgb name="reflectance" value="0.7, 0.7, 0.7"/></bsdf>'
+    light = ('\n  <emitter type="point"><point name="position" x="0" y="1" z="3"/>'
+             '<rgb name="intensity" value="10, 10, 10"/></emitter>')
+    means = {}
+    for kind, bsdf in (("one", diffuse), ("two", f'<bsdf type="twosided">{diffuse}</bsdf>')):
+        setup = scenes.load(write(tmp_path, scene_xml(panel(bsdf) + light), f"{kind}.xml"),
+                            size=SIZE)
+        f = Renderer(setup).render_reference(0, spp=4)
+        _check_frame(f, setup)
+        obj = f.numpy("mesh_id")[..., 0] == setup.shape_index["object"]
+        assert obj.sum() > 10
+        means[kind] = f.numpy("color")[obj].mean()
+        # the G-buffer normal faces the camera either way
+        n, p = f.numpy("normal")[obj], f.numpy("position")[obj]
+        assert np.all(np.sum(n * (f.camera.position - p), -1) > 0)
+    assert means["one"] == 0 and means["two"] > 0.05
+
+
+def _write_envmap(path) -> None:
+    h, w = 8, 16
+    img = np.zeros((h, w, 3), np.float32)
+    img[: h // 2] = (0.5, 0.7, 1.0)  # sky
+    img[h // 2:] = (0.2, 0.15, 0.1)  # ground
+    img[1, 3] = (50.0, 45.0, 40.0)  # sun
+    mi.Bitmap(img).write(str(path))
+
+
+EMITTERS = {
+    "area": AREA_LIGHT,
+    "point": ('\n  <emitter type="point"><point name="position" x="1" y="2.5" z="1"/>'
+              '<rgb name="intensity" value="8, 8, 8"/></emitter>'),
+    "constant": CONSTANT,
+    "envmap": ('\n  <emitter type="envmap"><string name="filename" value="sky.exr"/>'
+               '<float name="scale" value="1.5"/></emitter>'),
+}
+
+
+@pytest.mark.parametrize("plugin", sorted(EMITTERS))
+def test_xml_emitter_renders(tmp_path, plugin):
+    _write_envmap(tmp_path / "sky.exr")
+    bsdf = ('<bsdf type="roughplastic"><float name="alpha" value="0.3"/>'
+            '<rgb name="diffuse_reflectance" value="0.5, 0.5, 0.5"/></bsdf>')
+    body = FLOOR + sphere(bsdf) + EMITTERS[plugin]
+    setup = scenes.load(write(tmp_path, scene_xml(body)), size=SIZE)
+    r = Renderer(setup)
+    for f in (r.render(0), r.render_reference(0, spp=8)):
+        _check_frame(f, setup)
+    obj = f.numpy("mesh_id")[..., 0] == setup.shape_index["object"]
+    assert obj.sum() > 10
+    assert f.numpy("direct_diffuse")[obj].mean() > 0
+    assert f.numpy("direct_specular")[obj].mean() > 0
+    bg = f.numpy("mesh_id")[..., 0] == 0
+    assert bg.sum() > 0
+    em = f.numpy("emission")
+    if plugin in ("constant", "envmap"):
+        assert np.all(em[bg] > 0)  # the environment is seen behind the scene
+        if plugin == "constant":
+            np.testing.assert_allclose(em[bg], np.broadcast_to((0.2, 0.3, 0.4), em[bg].shape),
+                                       rtol=1e-6)
+    else:
+        assert not np.any(em[bg])
+    if plugin == "point":
+        assert not np.any(em)  # a point light is never seen directly
+
+
+# -- errors --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("plugin, kind", [("dielectric", "bsdf"), ("principled", "bsdf"),
+                                          ("spot", "emitter"), ("directional", "emitter")])
+def test_unsupported_plugins_raise_scene_error(tmp_path, plugin, kind):
+    if kind == "bsdf":
+        body = FLOOR + sphere(f'<bsdf type="{plugin}"/>') + CONSTANT
+    else:
+        body = FLOOR + f'\n  <emitter type="{plugin}"/>'
+    path = write(tmp_path, scene_xml(body))
+    with pytest.raises(SceneError, match=plugin) as e:
+        scenes.load(path)
+    assert kind.lower() in str(e.value).lower() or "emitter" in str(e.value)
+
+
+def test_unsupported_bsdf_nested_in_twosided(tmp_path):
+    body = FLOOR + sphere('<bsdf type="twosided"><bsdf type="roughdielectric"/></bsdf>')
+    with pytest.raises(SceneError, match="roughdielectric"):
+        scenes.load(write(tmp_path, scene_xml(body + CONSTANT)))
+
+
+def test_unsupported_sensor(tmp_path):
+    text = scene_xml(FLOOR + CONSTANT).replace('type="perspective"', 'type="orthographic"')
+    with pytest.raises(SceneError, match="orthographic"):
+        scenes.load(write(tmp_path, text))
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(SceneError, match="not found"):
+        scenes.load(str(tmp_path / "nope.xml"))
+    with pytest.raises(SceneError, match="no-such-scene"):
+        scenes.load("no-such-scene")
+    with pytest.raises(SceneError):
+        scenes.load(str(tmp_path))  # a folder is not a scene
+
+
+def test_broken_xml(tmp_path):
+    path = write(tmp_path, scene_xml(FLOOR + CONSTANT).replace("</scene>", ""))
+    with pytest.raises(SceneError, match="XML"):
+        scenes.load(path)
+
+
+def test_xml_that_mitsuba_rejects(tmp_path):
+    # well-formed XML, but not a valid scene: Mitsuba's error becomes a SceneError
+    body = FLOOR + '\n  <shape type="no_such_shape_plugin"/>'
+    with pytest.raises(SceneError, match="Mitsuba could not load"):
+        scenes.load(write(tmp_path, scene_xml(body + CONSTANT)))
+
+
+@pytest.mark.parametrize("size", [(0, 10), (10, 0), (-4, 10), (10, -1)])
+def test_bad_size(tmp_path, size):
+    with pytest.raises(SceneError, match="positive"):
+        scenes.load("glossy-cornell", size=size)
+    with pytest.raises(SceneError, match="positive"):
+        scenes.load(write(tmp_path, scene_xml(FLOOR + CONSTANT)), size=size)
+
+
+@pytest.mark.parametrize("text", ["0x10", "10x-3", "abc", "10", "10x10x3", ""])
+def test_parse_size_errors(text):
+    with pytest.raises(SceneError):
+        scenes.parse_size(text)
+
+
+def test_parse_size():
+    assert scenes.parse_size("640x360") == (640, 360)
+    assert scenes.parse_size("32X24") == (32, 24)
+
+
+def test_scene_error_is_a_glossrt_error():
+    assert issubclass(SceneError, GlossrtError)
+
+
+# -- integrator max_depth ------------------------------------------------------------------------
+
+
+def test_xml_integrator_max_depth_is_used(tmp_path):
+    integrator = '\n  <integrator type="path"><integer name="max_depth" value="5"/></integrator>'
+    setup = scenes.load(write(tmp_path, scene_xml(FLOOR + CONSTANT, integrator=integrator)),
+                        size=SIZE)
+    assert setup.max_depth == 5
+    r = Renderer(setup)
+    assert r.max_depth == 5
+    assert r.render(0).meta["max_depth"] == 5
+    # an explicit max_depth still wins
+    assert Renderer(setup, max_depth=2).max_depth == 2
+
+
+def test_xml_integrator_max_depth_from_default_parameter(tmp_path):
+    """``<default name="max_depth" value="5"/>`` + ``value="$max_depth"`` (as Mitsuba's own
+    example scenes write it): Mitsuba's integrator gets 5, so must glossrt."""
+    defaults = '\n  <default name="max_depth" value="5"/>'
+    integrator = ('\n  <integrator type="path">'
+                  '<integer name="max_depth" value="$max_depth"/></integrator>')
+    path = write(tmp_path, scene_xml(FLOOR + CONSTANT, integrator=integrator,
+                                     defaults=defaults))
+    setup = scenes.load(path, size=SIZE)
+    assert "max_depth = 5" in str(setup.scene.integrator())  # what Mitsuba itself uses
+    assert setup.max_depth == 5
+
+
+def test_xml_integrator_unbounded_max_depth(tmp_path):
+    """Mitsuba's max_depth = -1 means "no limit" (its path integrator's default). glossrt must
+    either render such a scene or refuse it with a GlossrtError, not crash with a bare
+    ValueError (which the CLI does not catch)."""
+    integrator = '\n  <integrator type="path"><integer name="max_depth" value="-1"/></integrator>'
+    path = write(tmp_path, scene_xml(FLOOR + CONSTANT, integrator=integrator))
+    try:
+        setup = scenes.load(path, size=SIZE)
+        r = Renderer(setup)
+    except GlossrtError:
+        return
+    f = r.render(0)
+    _check_frame(f, setup)
