@@ -57,6 +57,7 @@ def test_render_mitsuba_reference(tmp_path):
         (["render", "glossy-cornell", "--out", "{tmp}/o", "--size", "abc"], ["size", "abc"]),
         (["render", "glossy-cornell", "--out", "{tmp}/file/sub"], ["not writable", "file"]),
         (["render", "glossy-cornell", "--out", "{tmp}/o", "--frames", "0"], ["frames"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--max-depth", "0"], ["max_depth"]),
         (["compare", "{tmp}/nope", "{tmp}"], ["not a folder", "nope"]),
         (["bench", "--only", "nope", "--size", "8x8"], ["unknown benchmark", "nope"]),
     ],

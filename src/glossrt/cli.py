@@ -53,8 +53,8 @@ def cmd_render(args) -> int:
         raise GlossrtError(f"--spp must be >= 1, got {args.spp}")
     size = scenes.parse_size(args.size) if args.size else None
     setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
-    out = _writable_dir(args.out)
     r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
+    out = _writable_dir(args.out)
     todo = list(range(args.start, args.start + args.frames, args.every))
     reference = args.reference or args.mitsuba or args.spp > 1
     spp = args.spp if (args.spp > 1 or not reference) else 256
