@@ -106,8 +106,10 @@ def section_mitsuba(ctx: DemoContext, report: Report) -> None:
     s = report.section(
         "Agreement with Mitsuba's path integrator",
         "glossrt's converged reference (pixel centres) next to Mitsuba's own `path` integrator "
-        f"({spp} spp, box-filtered, anti-aliased) with the same max_depth. They differ at "
-        "geometric edges (anti-aliasing) and by Monte Carlo noise only.",
+        f"({spp} spp, box-filtered, anti-aliased) with the same max_depth. Away from geometric "
+        "edges and near-mirror reflections (where a pixel centre and a pixel's area see "
+        "different things, e.g. the edge of the light in the gold sphere) they differ by Monte "
+        "Carlo noise only; tests/test_render.py checks this statistically.",
     )
     s.images_row([("glossrt reference", ref["color"]), ("Mitsuba path", img)], name="mitsuba")
     s.error_map("mitsuba_error", ref["color"], img, caption="relative difference")
