@@ -1,0 +1,54 @@
+"""Denoisers: SVGF (Schied 2017), its baselines, and the tools a user would pick instead.
+
+Every method is available as a per-sequence callable through :func:`make`:
+``d = make("svgf"); for f in frames: img = d(f)`` (``d.reset()`` between sequences).
+"""
+
+from __future__ import annotations
+
+from .. import backend
+
+backend.ensure()
+
+from ..errors import GlossrtError  # noqa: E402
+from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous, taa  # noqa: E402
+
+METHODS = ("svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn", "optix")
+
+
+class _PerFrame:
+    """A stateless per-frame denoiser with the same interface as the stateful ones."""
+
+    def __init__(self, fn, needs=()):
+        self.fn = fn
+        self.needs = needs
+
+    def __call__(self, frame):
+        return self.fn(frame)
+
+    def reset(self) -> None:
+        pass
+
+
+def make(method: str, **params):
+    """A denoiser by name: ``__call__(frame) -> mi.TensorXf`` and ``reset()``."""
+    if method == "svgf":
+        return SVGF(**params)
+    if method == "svgf-spatial-variance":
+        return SVGF(variance="spatial", **params)
+    if method == "atrous":
+        return _PerFrame(lambda f: atrous(f, **params))
+    if method == "atrous-temporal":
+        return ATrousTemporal(**params)
+    if method == "oidn":
+        from .oidn import oidn_denoise
+
+        return _PerFrame(lambda f: oidn_denoise(f, **params))
+    if method == "optix":
+        from .optix import OptixTemporal
+
+        return OptixTemporal(**params)
+    raise GlossrtError(f"unknown denoiser {method!r}; choose one of {', '.join(METHODS)}")
+
+
+__all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "atrous", "make", "taa"]

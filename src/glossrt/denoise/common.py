@@ -1,0 +1,146 @@
+"""Shared pieces of glossrt's screen-space filters (Dr.Jit, one lane per pixel).
+
+Images inside the filters are structure-of-arrays: one flat ``mi.Float`` of H*W values per
+channel (``Img`` = list of channels). Neighbour access gathers with clamped coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from ..errors import FrameError
+
+#: Rec. 709 luminance weights (linear RGB)
+LUM = (0.2126, 0.7152, 0.0722)
+#: albedo below this is treated as "no albedo": the radiance is filtered as it is
+ALBEDO_EPS = 1e-3
+
+Img = list  # list[mi.Float], one flat array per channel
+
+
+@dataclass
+class Grid:
+    """Pixel coordinates of a W x H image, one lane per pixel (row-major, row 0 on top)."""
+
+    w: int
+    h: int
+
+    def __post_init__(self):
+        self.idx = dr.arange(mi.UInt32, self.w * self.h)
+        self.x = mi.Int32(self.idx % self.w)
+        self.y = mi.Int32(self.idx // self.w)
+
+    def index(self, x: mi.Int32, y: mi.Int32) -> mi.UInt32:
+        """Flat index of (x, y) clamped to the image."""
+        xc = dr.clip(x, 0, self.w - 1)
+        yc = dr.clip(y, 0, self.h - 1)
+        return mi.UInt32(yc * self.w + xc)
+
+    def inside(self, x: mi.Int32, y: mi.Int32) -> mi.Bool:
+        return (x >= 0) & (x < self.w) & (y >= 0) & (y < self.h)
+
+
+def split(t: mi.TensorXf) -> Img:
+    """(H, W, C) tensor -> C flat channels."""
+    h, w, c = t.shape
+    idx = dr.arange(mi.UInt32, h * w) * c
+    return [dr.gather(mi.Float, t.array, idx + k) for k in range(c)]
+
+
+def merge(chs: Img, h: int, w: int) -> mi.TensorXf:
+    """C flat channels -> (H, W, C) tensor."""
+    c = len(chs)
+    out = dr.zeros(mi.Float, h * w * c)
+    idx = dr.arange(mi.UInt32, h * w) * c
+    for k, ch in enumerate(chs):
+        dr.scatter(out, ch, idx + k)
+    return mi.TensorXf(out, (h, w, c))
+
+
+def fetch(chs: Img, index: mi.UInt32, active=True) -> Img:
+    return [dr.gather(mi.Float, ch, index, active) for ch in chs]
+
+
+def luminance(rgb: Img) -> mi.Float:
+    return LUM[0] * rgb[0] + LUM[1] * rgb[1] + LUM[2] * rgb[2]
+
+
+def finite(chs: Img) -> tuple[Img, mi.UInt32]:
+    """Replace NaN/Inf by 0; also return the number of replaced values (per lane)."""
+    bad = mi.UInt32(0)
+    out = []
+    for ch in chs:
+        ok = dr.isfinite(ch)
+        bad += dr.select(ok, 0, 1)
+        out.append(dr.select(ok, ch, 0.0))
+    return out, bad
+
+
+def demodulate(radiance: Img, albedo: Img) -> Img:
+    """Divide by the albedo (Schied 2017, sec. 3: filter untextured illumination); where the
+    albedo is ~0 the radiance is kept as it is (and :func:`remodulate` leaves it alone)."""
+    return [dr.select(a > ALBEDO_EPS, r / dr.maximum(a, ALBEDO_EPS), r)
+            for r, a in zip(radiance, albedo, strict=True)]
+
+
+def remodulate(illum: Img, albedo: Img) -> Img:
+    return [dr.select(a > ALBEDO_EPS, f * a, f) for f, a in zip(illum, albedo, strict=True)]
+
+
+def add(a: Img, b: Img) -> Img:
+    return [x + y for x, y in zip(a, b, strict=True)]
+
+
+def depth_gradient(grid: Grid, inv_z: mi.Float) -> tuple[mi.Float, mi.Float]:
+    """Screen-space gradient of 1/z (one-sided difference of smaller magnitude, so a depth
+    edge does not inflate it). 1/z is an affine function of clip-space depth, so
+    |z(p)-z(q)| / |grad z . (p-q)| is the same for both: Schied 2017 eq. 3 works on it as on
+    clip-space depth."""
+    out = []
+    for dx, dy in ((1, 0), (0, 1)):
+        f = dr.gather(mi.Float, inv_z, grid.index(grid.x + dx, grid.y + dy)) - inv_z
+        b = inv_z - dr.gather(mi.Float, inv_z, grid.index(grid.x - dx, grid.y - dy))
+        out.append(dr.select(dr.abs(f) < dr.abs(b), f, b))
+    return out[0], out[1]
+
+
+@dataclass
+class GBuffer:
+    """What the filters read from a Frame, as flat channels."""
+
+    normal: Img
+    inv_z: mi.Float  # 1/depth, 0 on background
+    dzdx: mi.Float
+    dzdy: mi.Float
+    mesh: mi.Float
+    position: Img | None = None
+
+    @property
+    def hit(self) -> mi.Bool:
+        return self.mesh > 0
+
+
+def gbuffer(frame, grid: Grid, with_position: bool = False) -> GBuffer:
+    normal, depth, mesh = frame.require("normal", "depth", "mesh_id")
+    z = split(depth)[0]
+    inv_z = dr.select(dr.isfinite(z) & (z > 0), dr.rcp(z), 0.0)
+    dzdx, dzdy = depth_gradient(grid, inv_z)
+    pos = split(frame["position"]) if with_position else None
+    return GBuffer(split(normal), inv_z, dzdx, dzdy, split(mesh)[0], pos)
+
+
+def check_frame(frame, names) -> None:
+    """Raise FrameError unless all ``names`` exist (naming file and channel)."""
+    frame.require(*names)
+    h, w = frame.height, frame.width
+    for n in names:
+        if tuple(frame[n].shape[:2]) != (h, w):
+            raise FrameError(f"{frame.where}: channel {n!r} has size {frame[n].shape[:2]}, "
+                             f"expected {(h, w)}")
+
+
+# the 5-tap B3 spline kernel of the a-trous transform (Schied 2017, eq. 1)
+H5 = (1.0 / 16.0, 1.0 / 4.0, 3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0)

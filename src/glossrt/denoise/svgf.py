@@ -1,0 +1,393 @@
+"""SVGF: spatiotemporal variance-guided filtering (Schied et al. 2017).
+
+Reads (per frame): ``emission``, ``direct_diffuse``, ``direct_specular``,
+``indirect_diffuse``, ``indirect_specular``, ``albedo_diffuse``, ``albedo_specular``,
+``normal``, ``depth``, ``mesh_id``, ``motion`` (+ the camera header to detect cuts).
+Produces: the reconstructed RGB image (H, W, 3).
+
+Stages (functions below, named as in the paper / Falcor's pass): ``demodulate`` ->
+``reproject`` (temporal accumulation of colour and luminance moments with geometric
+consistency tests) -> ``estimate_variance`` (temporal, or the 7x7 spatial fallback) ->
+``svgf_level`` x 5 (a-trous with w_z, w_n, w_l; level 1 feeds the colour history) ->
+``remodulate`` + emission. Optionally :func:`taa` afterwards.
+
+>>> svgf = SVGF()                        # doctest: +SKIP
+>>> for frame in frames:                 # doctest: +SKIP
+...     image = svgf(frame)              # mi.TensorXf (H, W, 3)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..errors import GlossrtError
+from .atrous import dammertz_level, svgf_level
+from .common import (
+    GBuffer,
+    Grid,
+    Img,
+    add,
+    check_frame,
+    demodulate,
+    fetch,
+    finite,
+    gbuffer,
+    luminance,
+    merge,
+    remodulate,
+    split,
+)
+
+#: the signals filtered separately: (radiance channels summed, albedo channels summed)
+SIGNAL_SETS = {
+    "separate": [  # direct/indirect x diffuse/specular (4 signals, glossrt's default)
+        (("direct_diffuse",), ("albedo_diffuse",)),
+        (("direct_specular",), ("albedo_specular",)),
+        (("indirect_diffuse",), ("albedo_diffuse",)),
+        (("indirect_specular",), ("albedo_specular",)),
+    ],
+    "direct-indirect": [  # the paper's split: direct and indirect, one albedo
+        (("direct_diffuse", "direct_specular"), ("albedo_diffuse", "albedo_specular")),
+        (("indirect_diffuse", "indirect_specular"), ("albedo_diffuse", "albedo_specular")),
+    ],
+    "single": [
+        (("direct_diffuse", "direct_specular", "indirect_diffuse", "indirect_specular"),
+         ("albedo_diffuse", "albedo_specular")),
+    ],
+}
+GEOMETRY = ("normal", "depth", "mesh_id", "motion")
+MIN_TEMPORAL_HISTORY = 4  # frames; below this the variance is estimated spatially (sec. 4.2)
+
+
+@dataclass
+class History:
+    """What survives from one frame to the next (flat channels)."""
+
+    color: list  # per signal: Img (3 channels), the first a-trous level's output
+    moments: list  # per signal: [mu1, mu2]
+    length: mi.Float
+    normal: Img
+    inv_z: mi.Float
+    mesh: mi.Float
+
+
+def _signal(frame, radiance: tuple, albedo: tuple) -> tuple[Img, Img, mi.UInt32]:
+    rad = split(frame[radiance[0]])
+    for name in radiance[1:]:
+        rad = add(rad, split(frame[name]))
+    alb = split(frame[albedo[0]])
+    for name in albedo[1:]:
+        alb = add(alb, split(frame[name]))
+    rad, bad = finite(rad)  # input hygiene: NaN/Inf never enter the history
+    return rad, alb, bad
+
+
+def _consistent(gb: GBuffer, prev: History, q: mi.UInt32, inside: mi.Bool) -> mi.Bool:
+    """Geometric consistency of previous-frame pixel q with the current pixel: same mesh,
+    normals within ~25 degrees, depth within the local depth gradient (Schied 2017, 4.1)."""
+    mesh_q = dr.gather(mi.Float, prev.mesh, q, inside)
+    z_q = dr.gather(mi.Float, prev.inv_z, q, inside)
+    n_q = fetch(prev.normal, q, inside)
+    cos = gb.normal[0] * n_q[0] + gb.normal[1] * n_q[1] + gb.normal[2] * n_q[2]
+    # tolerance: 4 pixels' worth of the local 1/z gradient plus 1% of 1/z (camera motion
+    # changes a point's depth a little between frames)
+    tol = 4.0 * (dr.abs(gb.dzdx) + dr.abs(gb.dzdy)) + 0.01 * gb.inv_z
+    return inside & (mesh_q == gb.mesh) & (gb.mesh > 0) & (cos > 0.9) & (
+        dr.abs(z_q - gb.inv_z) <= tol)
+
+
+def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
+              moments: list, alpha: float, moments_alpha: float):
+    """Temporal accumulation (Schied 2017, sec. 4.1): bilinear 2x2 reprojection with
+    per-tap consistency tests and renormalised weights, a 3x3 fallback, else disocclusion.
+    Returns accumulated colours and moments per signal, and the new history length."""
+    # previous-frame position in pixel-index space (pixel centres at integers)
+    px = mi.Float(grid.x) + motion[0]
+    py = mi.Float(grid.y) + motion[1]
+    x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
+    fx, fy = px - mi.Float(x0), py - mi.Float(y0)
+    taps = []
+    w_sum = mi.Float(0.0)
+    for dx, dy, wb in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                       (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        qx, qy = x0 + dx, y0 + dy
+        inside = grid.inside(qx, qy)
+        q = grid.index(qx, qy)
+        w = dr.select(_consistent(gb, prev, q, inside), wb, 0.0)
+        taps.append((q, w))
+        w_sum += w
+    bilinear_ok = w_sum > 1e-2
+    # 3x3 fallback around the reprojected pixel, uniform weights on consistent taps
+    rx, ry = mi.Int32(dr.round(px)), mi.Int32(dr.round(py))
+    taps3 = []
+    w3_sum = mi.Float(0.0)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            qx, qy = rx + dx, ry + dy
+            inside = grid.inside(qx, qy) & ~bilinear_ok
+            q = grid.index(qx, qy)
+            w = dr.select(_consistent(gb, prev, q, inside), 1.0, 0.0)
+            taps3.append((q, w))
+            w3_sum += w
+    success = bilinear_ok | (w3_sum > 0)
+    norm = dr.select(bilinear_ok, dr.rcp(dr.maximum(w_sum, 1e-6)),
+                     dr.rcp(dr.maximum(w3_sum, 1e-6)))
+    all_taps = [(q, dr.select(bilinear_ok, w, 0.0)) for q, w in taps] + [
+        (q, dr.select(bilinear_ok, 0.0, w)) for q, w in taps3]
+
+    def resample(chs: Img) -> Img:
+        out = [dr.zeros(mi.Float, dr.width(grid.idx)) for _ in chs]
+        for q, w in all_taps:
+            vals = fetch(chs, q, w > 0)
+            out = [o + w * v for o, v in zip(out, vals, strict=True)]
+        return [o * norm for o in out]
+
+    length = dr.select(success, resample([prev.length])[0] + 1.0, 1.0)
+    a_c = dr.select(success, dr.maximum(alpha, dr.rcp(length)), 1.0)
+    a_m = dr.select(success, dr.maximum(moments_alpha, dr.rcp(length)), 1.0)
+    out_c, out_m = [], []
+    for c, m, hc, hm in zip(colors, moments, prev.color, prev.moments, strict=True):
+        pc, pm = resample(hc), resample(hm)
+        # Schied 2017, eq. (temporal EMA): C'_i = alpha C_i + (1 - alpha) C'_{i-1}
+        out_c.append([dr.lerp(p, x, a_c) for p, x in zip(pc, c, strict=True)])
+        out_m.append([dr.lerp(p, x, a_m) for p, x in zip(pm, m, strict=True)])
+    return out_c, out_m, length
+
+
+def spatial_variance(grid: Grid, gb: GBuffer, moments: list[mi.Float],
+                     sigma_z: float = 1.0, sigma_n: float = 128.0) -> mi.Float:
+    """7x7 bilateral estimate of the luminance variance from the moments, weighted by depth
+    and world-space normal (Schied 2017, sec. 4.2: used while the history is short)."""
+    m1, m2 = mi.Float(0.0), mi.Float(0.0)
+    w_sum = mi.Float(0.0)
+    for dy in range(-3, 4):
+        for dx in range(-3, 4):
+            qx, qy = grid.x + dx, grid.y + dy
+            inside = grid.inside(qx, qy) & gb.hit
+            q = grid.index(qx, qy)
+            z_q = dr.gather(mi.Float, gb.inv_z, q, inside)
+            n_q = fetch(gb.normal, q, inside)
+            mesh_q = dr.gather(mi.Float, gb.mesh, q, inside)
+            plane = dr.abs(gb.dzdx * dx + gb.dzdy * dy)
+            w_z = dr.exp(-dr.abs(gb.inv_z - z_q) / (sigma_z * plane + 1e-3 * gb.inv_z + 1e-12))
+            cos = gb.normal[0] * n_q[0] + gb.normal[1] * n_q[1] + gb.normal[2] * n_q[2]
+            w = dr.select(inside & (mesh_q > 0), w_z * dr.power(dr.maximum(cos, 0.0), sigma_n),
+                          0.0)
+            m1 += w * dr.gather(mi.Float, moments[0], q, inside)
+            m2 += w * dr.gather(mi.Float, moments[1], q, inside)
+            w_sum += w
+    m1, m2 = m1 / dr.maximum(w_sum, 1e-6), m2 / dr.maximum(w_sum, 1e-6)
+    return dr.maximum(m2 - dr.square(m1), 0.0)
+
+
+def _empty_history(n_signals: int, size: int) -> History:
+    z = dr.zeros(mi.Float, size)
+    return History(
+        color=[[mi.Float(z), mi.Float(z), mi.Float(z)] for _ in range(n_signals)],
+        moments=[[mi.Float(z), mi.Float(z)] for _ in range(n_signals)],
+        length=mi.Float(z),
+        normal=[mi.Float(z), mi.Float(z), mi.Float(z)],
+        inv_z=mi.Float(z),
+        mesh=mi.Float(z),
+    )
+
+
+@dataclass
+class SVGFParams:
+    alpha: float = 0.2  # colour EMA (sec. 4.1)
+    moments_alpha: float = 0.2
+    sigma_z: float = 1.0  # sec. 4.4
+    sigma_n: float = 128.0
+    sigma_l: float = 4.0
+    levels: int = 5  # 65x65 footprint
+    feedback_level: int = 0  # the first level's output feeds the colour history
+    signals: str = "separate"  # "separate" (4), "direct-indirect" (the paper's 2), "single"
+    variance: str = "temporal"  # or "spatial": always the 7x7 estimate
+    spatial: str = "svgf"  # or "dammertz": the a-trous-temporal baseline
+    temporal: bool = True
+    # Dammertz 2010 weights (used when spatial == "dammertz")
+    sigma_rt: float = 0.5
+    sigma_dn: float = 0.3
+    sigma_x: float = 0.3
+
+
+def _pipeline(frame_ch: dict, hist: History, p: SVGFParams, w: int, h: int):
+    """One frame of the filter: returns (rgb channels, new history, non-finite count)."""
+    grid = Grid(w, h)
+    gb = GBuffer(
+        normal=frame_ch["normal"], inv_z=frame_ch["inv_z"], dzdx=frame_ch["dzdx"],
+        dzdy=frame_ch["dzdy"], mesh=frame_ch["mesh"], position=frame_ch.get("position"))
+    colors, moments, albedos = [], [], []
+    bad = mi.UInt32(0)
+    for rad, alb, b in frame_ch["signals"]:
+        illum = demodulate(rad, alb)
+        lum = luminance(illum)
+        colors.append(illum)
+        moments.append([lum, dr.square(lum)])
+        albedos.append(alb)
+        bad += b
+    if p.temporal:
+        colors, moments, length = reproject(grid, gb, frame_ch["motion"], hist, colors,
+                                            moments, p.alpha, p.moments_alpha)
+    else:
+        length = dr.ones(mi.Float, w * h)
+    out = [mi.Float(e) for e in frame_ch["emission"]]
+    new_colors = []
+    for k in range(len(colors)):
+        c = colors[k]
+        if p.spatial == "svgf":
+            var_t = dr.maximum(moments[k][1] - dr.square(moments[k][0]), 0.0)
+            var_s = spatial_variance(grid, gb, moments[k], p.sigma_z, p.sigma_n)
+            if p.variance == "spatial":
+                var = var_s
+            else:
+                var = dr.select(length < MIN_TEMPORAL_HISTORY, var_s, var_t)
+        feedback = c
+        for level in range(p.levels):
+            step = 1 << level
+            if p.spatial == "svgf":
+                c, var = svgf_level(grid, c, var, gb, step, p.sigma_z, p.sigma_n, p.sigma_l)
+            else:
+                c = dammertz_level(grid, c, gb, step, p.sigma_rt * 2.0**-level, p.sigma_dn,
+                                   p.sigma_x)
+            if p.spatial == "svgf":
+                dr.eval(c, var)  # a kernel boundary per level
+            else:
+                dr.eval(c)
+            if level == p.feedback_level:
+                feedback = c
+        new_colors.append(feedback)
+        out = add(out, remodulate(c, albedos[k]))
+    new_hist = History(color=new_colors, moments=moments, length=length, normal=gb.normal,
+                       inv_z=gb.inv_z, mesh=gb.mesh)
+    return out, new_hist, dr.sum(bad)
+
+
+class SVGF:
+    """Spatiotemporal variance-guided filter (stateful: keeps the history between frames).
+
+    ``SVGF(**params)`` with the fields of :class:`SVGFParams` (paper defaults);
+    ``svgf(frame) -> mi.TensorXf`` (H, W, 3); ``svgf.reset()`` drops the history. The
+    history is also dropped when the frame size changes or at a camera cut (the frame's
+    ``prev_camera`` is not the camera of the frame filtered before). ``frozen=True``
+    replays recorded kernels on steady-state frames (``dr.freeze``)."""
+
+    def __init__(self, frozen: bool = True, **params):
+        unknown = set(params) - set(SVGFParams.__dataclass_fields__)
+        if unknown:
+            raise GlossrtError(f"unknown SVGF parameter(s): {sorted(unknown)}")
+        self.params = SVGFParams(**params)
+        if self.params.signals not in SIGNAL_SETS:
+            raise GlossrtError(f"signals must be one of {sorted(SIGNAL_SETS)}")
+        if self.params.variance not in ("temporal", "spatial"):
+            raise GlossrtError("variance must be 'temporal' or 'spatial'")
+        self.frozen = frozen
+        self._step = dr.freeze(_pipeline) if frozen else _pipeline
+        self.nonfinite = 0
+        self.reset()
+
+    def reset(self) -> None:
+        self.history: History | None = None
+        self._size = None
+        self._camera = None
+        self.frames = 0
+
+    @property
+    def needs(self) -> tuple[str, ...]:
+        names = {"emission"}
+        for rad, alb in SIGNAL_SETS[self.params.signals]:
+            names.update(rad)
+            names.update(alb)
+        names.update(GEOMETRY)
+        if self.params.spatial == "dammertz":
+            names.add("position")
+        return tuple(sorted(names))
+
+    def _is_cut(self, frame) -> bool:
+        if self._camera is None or frame.prev_camera is None:
+            return False
+        a, b = np.asarray(self._camera.to_world), np.asarray(frame.prev_camera.to_world)
+        return not (np.allclose(a, b, atol=1e-5) and
+                    abs(self._camera.fov - frame.prev_camera.fov) < 1e-6)
+
+    def __call__(self, frame) -> mi.TensorXf:
+        check_frame(frame, self.needs)
+        w, h = frame.width, frame.height
+        if self._size != (w, h) or self._is_cut(frame):
+            self.reset()
+        self._size = (w, h)
+        grid = Grid(w, h)
+        gb = gbuffer(frame, grid, with_position=self.params.spatial == "dammertz")
+        emission, bad_e = finite(split(frame["emission"]))
+        ch = {
+            "signals": [_signal(frame, rad, alb) for rad, alb in
+                        SIGNAL_SETS[self.params.signals]],
+            "emission": emission,
+            "normal": gb.normal, "inv_z": gb.inv_z, "dzdx": gb.dzdx, "dzdy": gb.dzdy,
+            "mesh": gb.mesh, "motion": split(frame["motion"]),
+        }
+        if gb.position is not None:
+            ch["position"] = gb.position
+        hist = self.history or _empty_history(len(ch["signals"]), w * h)
+        if self.history is None:
+            ch["motion"] = [dr.full(mi.Float, 1e9, w * h)] * 2  # nothing to reproject onto
+        out, self.history, bad = self._step(ch, hist, self.params, w, h)
+        self.nonfinite += int(bad[0]) + int(dr.sum(bad_e)[0])
+        self._camera = frame.camera
+        self.frames += 1
+        return merge(out, h, w)
+
+
+def atrous(frame, levels: int = 5, sigma_rt: float = 0.5, sigma_n: float = 0.3,
+           sigma_x: float = 0.3, signals: str = "separate") -> mi.TensorXf:
+    """Edge-avoiding a-trous (Dammertz et al. 2010) per frame, no temporal accumulation:
+    the demodulated signals are filtered with global colour/normal/position sigmas."""
+    f = SVGF(frozen=False, temporal=False, spatial="dammertz", levels=levels,
+             sigma_rt=sigma_rt, sigma_dn=sigma_n, sigma_x=sigma_x, signals=signals)
+    return f(frame)
+
+
+class ATrousTemporal(SVGF):
+    """The paper's "augmented" prior work: SVGF's temporal accumulation followed by
+    Dammertz's edge-avoiding a-trous (global parameters)."""
+
+    def __init__(self, frozen: bool = True, **params):
+        params.setdefault("spatial", "dammertz")
+        super().__init__(frozen=frozen, **params)
+
+
+def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
+        alpha: float = 0.1) -> mi.TensorXf:
+    """Temporal antialiasing (Karis 2014) as a separate pass: reproject ``history`` with the
+    motion vectors (bilinear), clamp it to the 3x3 neighbourhood's min/max of ``image``,
+    blend with weight ``alpha`` for the new frame. Pass the result as next ``history``."""
+    h, w, _ = image.shape
+    if history is None or tuple(history.shape) != tuple(image.shape):
+        return mi.TensorXf(image)
+    grid = Grid(w, h)
+    cur = split(image)
+    mot = split(motion)
+    lo = [mi.Float(c) for c in cur]
+    hi = [mi.Float(c) for c in cur]
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            n = fetch(cur, grid.index(grid.x + dx, grid.y + dy))
+            lo = [dr.minimum(a, b) for a, b in zip(lo, n, strict=True)]
+            hi = [dr.maximum(a, b) for a, b in zip(hi, n, strict=True)]
+    px, py = mi.Float(grid.x) + mot[0], mi.Float(grid.y) + mot[1]
+    x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
+    fx, fy = px - mi.Float(x0), py - mi.Float(y0)
+    prev = split(history)
+    acc = [dr.zeros(mi.Float, w * h) for _ in prev]
+    for dx, dy, wb in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                       (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        vals = fetch(prev, grid.index(x0 + dx, y0 + dy))
+        acc = [a + wb * v for a, v in zip(acc, vals, strict=True)]
+    onscreen = grid.inside(mi.Int32(dr.round(px)), mi.Int32(dr.round(py)))
+    out = [dr.select(onscreen, dr.lerp(dr.clip(p, l, u), c, alpha), c)
+           for p, l, u, c in zip(acc, lo, hi, cur, strict=True)]
+    return merge(out, h, w)
