@@ -1,4 +1,4 @@
-"""The ``glossrt`` command line: info | render | compare | demo | bench."""
+"""The ``glossrt`` command line: info | render | denoise | compare | demo | bench."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ EXAMPLES = """examples:
   glossrt render glossy-cornell --out out/cornell-ref --frames 16 --size 320x240 \\
       --reference --spp 1024 --every 4
   glossrt render scene.xml --out out/xml --frames 30 --orbit 20
-  glossrt compare out/cornell out/cornell-ref --json metrics.json
+  glossrt denoise out/cornell --method svgf --out out/cornell-svgf
+  glossrt compare out/cornell-svgf out/cornell-ref --json metrics.json
   glossrt demo --out demo-out
   glossrt bench --json bench.json --size 640x360
 """
@@ -83,6 +84,41 @@ def cmd_render(args) -> int:
     if bad:
         print(f"warning: {bad} non-finite radiance value(s) were replaced by 0 "
               "(counts per frame in the EXR header, meta.nonfinite_samples)", file=sys.stderr)
+    return 0
+
+
+def cmd_denoise(args) -> int:
+    import time
+
+    from . import denoise
+    from .frame import Frame, load_sequence
+    from .progress import Progress
+
+    if not os.path.isdir(args.in_dir):
+        raise GlossrtError(f"not a folder: {args.in_dir}")
+    d = denoise.make(args.method)
+    frames = load_sequence(args.in_dir, require=getattr(d, "needs", ()) or ("color",))
+    out = _writable_dir(args.out)
+    seconds = []
+    with Progress(len(frames), f"{args.method} {frames[0].width}x{frames[0].height}") as p:
+        for k, f in enumerate(frames):
+            t0 = time.perf_counter()
+            img = d(f)
+            import drjit as dr
+
+            dr.eval(img)
+            dr.sync_thread()
+            seconds.append(time.perf_counter() - t0)
+            channels = dict(f.channels)
+            channels["color"] = img
+            meta = dict(f.meta, denoiser=args.method, denoise_seconds=seconds[-1])
+            g = Frame(channels=channels, camera=f.camera, prev_camera=f.prev_camera,
+                      index=f.index, meta=meta)
+            g.save(out / Path(f.source).name)
+            p.update(k + 1)
+    steady = seconds[1:] or seconds
+    print(f"wrote {len(frames)} frame(s) to {out}; {args.method}: "
+          f"{1000 * sorted(steady)[len(steady) // 2]:.1f} ms per frame (median, after the first)")
     return 0
 
 
@@ -160,6 +196,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mitsuba", action="store_true",
                    help="anti-aliased reference from Mitsuba's own path integrator "
                         "(color only)")
+
+    p = add("denoise", cmd_denoise,
+            "denoise an EXR sequence (writes frames with the denoised color)",
+            "glossrt denoise out/cornell --method svgf --out out/cornell-svgf")
+    p.add_argument("in_dir", help="folder of frame EXRs (glossrt's or any following FORMATS.md)")
+    p.add_argument("--method", default="svgf",
+                   choices=["svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn",
+                            "optix"])
+    p.add_argument("--out", required=True, help="output folder")
 
     p = add("compare", cmd_compare, "metrics of frames against references, per frame and mean",
             "glossrt compare out/cornell out/cornell-ref --json metrics.json")

@@ -28,54 +28,84 @@ def gaussian3x3(grid: Grid, v: mi.Float) -> mi.Float:
     return acc
 
 
+def pow_int(x: mi.Float, n: float) -> mi.Float:
+    """x**n by repeated squaring when n is a small integer (w_n's 128 is 7 squarings,
+    far cheaper than exp(n log x)); dr.power otherwise."""
+    if float(n).is_integer() and 0 < n <= 1024:
+        n = int(n)
+        result, base = None, x
+        while n:
+            if n & 1:
+                result = base if result is None else result * base
+            n >>= 1
+            if n:
+                base = base * base
+        return result
+    return dr.power(x, n)
+
+
 def svgf_level(grid: Grid, color: Img, var: mi.Float, gb: GBuffer, step: int,
                sigma_z: float = 1.0, sigma_n: float = 128.0, sigma_l: float = 4.0,
-               lum_weights: bool = True, normal_weight=None) -> tuple[Img, mi.Float]:
+               lum_weights: bool = True) -> tuple[Img, mi.Float]:
     """One level of the variance-guided edge-avoiding a-trous transform with hole size
-    ``step`` (1, 2, 4, ...). Returns the filtered colour and its propagated variance.
+    ``step`` (1, 2, 4, ...) for one signal. Returns the filtered colour and its variance."""
+    (c,), (v,) = svgf_level_multi(grid, [color], [var], gb, step, sigma_z, sigma_n, sigma_l,
+                                  lum_weights)
+    return c, v
 
-    ``normal_weight(p_index, q_index) -> Float`` may replace w_n (later: lobe weights)."""
-    lum_p = luminance(color)
-    std_p = dr.sqrt(dr.maximum(gaussian3x3(grid, var), 0.0))
-    hit_p = gb.hit
-    sum_w = mi.Float(1.0)  # the centre tap: h(0)^2 * w(p, p) normalised out below
+
+def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, step: int,
+                     sigma_z: float = 1.0, sigma_n: float = 128.0, sigma_l: float = 4.0,
+                     lum_weights: bool = True) -> tuple[list, list]:
+    """:func:`svgf_level` for several signals at once: the geometric weights w_z * w_n are
+    computed once per tap and shared; colour + variance of a signal are gathered from one
+    interleaved array (one cache line per tap)."""
+    n_sig = len(colors)
+    # interleaved (r, g, b, var) per signal and (nx, ny, nz, 1/z) for the geometry
+    packed = [dr.ravel(mi.Vector4f(c[0], c[1], c[2], v)) for c, v in
+              zip(colors, variances, strict=True)]
+    geo = dr.ravel(mi.Vector4f(gb.normal[0], gb.normal[1], gb.normal[2], gb.inv_z))
+    hit_p = gb.inv_z > 0
+    lum_p = [luminance(c) for c in colors]
+    inv_den_l = [dr.rcp(sigma_l * dr.sqrt(dr.maximum(gaussian3x3(grid, v), 0.0)) + EPS_L)
+                 for v in variances]
     h0 = H5[2] * H5[2]
-    sum_w = mi.Float(h0)
-    acc = [h0 * c for c in color]
-    acc_var = mi.Float(h0 * h0) * var
+    sum_w = [mi.Float(h0) for _ in range(n_sig)]
+    acc = [[h0 * ch for ch in c] for c in colors]
+    acc_var = [mi.Float(h0 * h0) * v for v in variances]
+    eps_z = EPS_Z * gb.inv_z + 1e-12
     for dy in range(-2, 3):
         for dx in range(-2, 3):
             if dx == 0 and dy == 0:
                 continue
             qx, qy = grid.x + dx * step, grid.y + dy * step
             inside = grid.inside(qx, qy) & hit_p
-            q = grid.index(qx, qy)
-            c_q = fetch(color, q, inside)
-            var_q = dr.gather(mi.Float, var, q, inside)
-            z_q = dr.gather(mi.Float, gb.inv_z, q, inside)
-            mesh_q = dr.gather(mi.Float, gb.mesh, q, inside)
+            q4 = grid.index(qx, qy) * 4
+            nq = [dr.gather(mi.Float, geo, q4 + k, inside) for k in range(4)]
+            z_q = nq[3]
             # Schied 2017, eq. 3 (on 1/z, an affine function of clip-space depth)
             plane = dr.abs(gb.dzdx * (dx * step) + gb.dzdy * (dy * step))
-            w_z = dr.exp(-dr.abs(gb.inv_z - z_q) / (sigma_z * plane + EPS_Z * gb.inv_z + 1e-12))
-            if normal_weight is None:
-                n_q = fetch(gb.normal, q, inside)
-                cos = gb.normal[0] * n_q[0] + gb.normal[1] * n_q[1] + gb.normal[2] * n_q[2]
-                w_n = dr.power(dr.maximum(cos, 0.0), sigma_n)  # Schied 2017, eq. 4
-            else:
-                w_n = normal_weight(grid.idx, q)
-            w = w_z * w_n
-            if lum_weights:
-                # Schied 2017, eq. 5
-                w_l = dr.exp(-dr.abs(lum_p - luminance(c_q)) / (sigma_l * std_p + EPS_L))
-                w = w * w_l
-            w = dr.select(inside & (mesh_q > 0), w, 0.0)
-            hw = (H5[dx + 2] * H5[dy + 2]) * w
-            sum_w += hw
-            acc = [a + hw * c for a, c in zip(acc, c_q, strict=True)]
-            acc_var += dr.square(hw) * var_q
-    out = [dr.select(hit_p, a / sum_w, c) for a, c in zip(acc, color, strict=True)]
-    # variance propagation with squared weights (Schied 2017, sec. 4.3)
-    out_var = dr.select(hit_p, acc_var / dr.square(sum_w), var)
+            a_z = dr.abs(gb.inv_z - z_q) / (sigma_z * plane + eps_z)
+            cos = gb.normal[0] * nq[0] + gb.normal[1] * nq[1] + gb.normal[2] * nq[2]
+            w_zn = dr.exp(-a_z) * pow_int(dr.maximum(cos, 0.0), sigma_n)  # eq. 3 * eq. 4
+            w_zn = dr.select(inside & (z_q > 0), w_zn, 0.0)  # never across into background
+            h = H5[dx + 2] * H5[dy + 2]
+            for k in range(n_sig):
+                cq = [dr.gather(mi.Float, packed[k], q4 + j, inside) for j in range(4)]
+                w = w_zn
+                if lum_weights:
+                    # Schied 2017, eq. 5
+                    w = w * dr.exp(-dr.abs(lum_p[k] - luminance(cq[:3])) * inv_den_l[k])
+                hw = h * w
+                sum_w[k] += hw
+                acc[k] = [a + hw * c for a, c in zip(acc[k], cq[:3], strict=True)]
+                acc_var[k] += dr.square(hw) * cq[3]
+    out, out_var = [], []
+    for k in range(n_sig):
+        inv = dr.rcp(sum_w[k])
+        out.append([dr.select(hit_p, a * inv, c) for a, c in zip(acc[k], colors[k], strict=True)])
+        # variance propagation with squared weights (Schied 2017, sec. 4.3)
+        out_var.append(dr.select(hit_p, acc_var[k] * dr.square(inv), variances[k]))
     return out, out_var
 
 

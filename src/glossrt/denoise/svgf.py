@@ -25,7 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import GlossrtError
-from .atrous import dammertz_level, svgf_level
+from .atrous import dammertz_level, pow_int, svgf_level_multi
 from .common import (
     GBuffer,
     Grid,
@@ -159,7 +159,8 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
 
 
 def spatial_variance(grid: Grid, gb: GBuffer, moments: list[mi.Float],
-                     sigma_z: float = 1.0, sigma_n: float = 128.0) -> mi.Float:
+                     sigma_z: float = 1.0, sigma_n: float = 128.0,
+                     active: mi.Bool | bool = True) -> mi.Float:
     """7x7 bilateral estimate of the luminance variance from the moments, weighted by depth
     and world-space normal (Schied 2017, sec. 4.2: used while the history is short)."""
     m1, m2 = mi.Float(0.0), mi.Float(0.0)
@@ -167,7 +168,7 @@ def spatial_variance(grid: Grid, gb: GBuffer, moments: list[mi.Float],
     for dy in range(-3, 4):
         for dx in range(-3, 4):
             qx, qy = grid.x + dx, grid.y + dy
-            inside = grid.inside(qx, qy) & gb.hit
+            inside = grid.inside(qx, qy) & gb.hit & active
             q = grid.index(qx, qy)
             z_q = dr.gather(mi.Float, gb.inv_z, q, inside)
             n_q = fetch(gb.normal, q, inside)
@@ -175,7 +176,7 @@ def spatial_variance(grid: Grid, gb: GBuffer, moments: list[mi.Float],
             plane = dr.abs(gb.dzdx * dx + gb.dzdy * dy)
             w_z = dr.exp(-dr.abs(gb.inv_z - z_q) / (sigma_z * plane + 1e-3 * gb.inv_z + 1e-12))
             cos = gb.normal[0] * n_q[0] + gb.normal[1] * n_q[1] + gb.normal[2] * n_q[2]
-            w = dr.select(inside & (mesh_q > 0), w_z * dr.power(dr.maximum(cos, 0.0), sigma_n),
+            w = dr.select(inside & (mesh_q > 0), w_z * pow_int(dr.maximum(cos, 0.0), sigma_n),
                           0.0)
             m1 += w * dr.gather(mi.Float, moments[0], q, inside)
             m2 += w * dr.gather(mi.Float, moments[1], q, inside)
@@ -184,15 +185,22 @@ def spatial_variance(grid: Grid, gb: GBuffer, moments: list[mi.Float],
     return dr.maximum(m2 - dr.square(m1), 0.0)
 
 
-def _empty_history(n_signals: int, size: int) -> History:
+def _zeros(size: int) -> mi.Float:
+    """A distinct, evaluated array of zeros: literals and aliased arguments would make
+    dr.freeze record a second variant of the pipeline."""
     z = dr.zeros(mi.Float, size)
+    dr.make_opaque(z)
+    return z
+
+
+def _empty_history(n_signals: int, size: int) -> History:
     return History(
-        color=[[mi.Float(z), mi.Float(z), mi.Float(z)] for _ in range(n_signals)],
-        moments=[[mi.Float(z), mi.Float(z)] for _ in range(n_signals)],
-        length=mi.Float(z),
-        normal=[mi.Float(z), mi.Float(z), mi.Float(z)],
-        inv_z=mi.Float(z),
-        mesh=mi.Float(z),
+        color=[[_zeros(size) for _ in range(3)] for _ in range(n_signals)],
+        moments=[[_zeros(size) for _ in range(2)] for _ in range(n_signals)],
+        length=_zeros(size),
+        normal=[_zeros(size) for _ in range(3)],
+        inv_z=_zeros(size),
+        mesh=_zeros(size),
     )
 
 
@@ -236,32 +244,35 @@ def _pipeline(frame_ch: dict, hist: History, p: SVGFParams, w: int, h: int):
     else:
         length = dr.ones(mi.Float, w * h)
     out = [mi.Float(e) for e in frame_ch["emission"]]
-    new_colors = []
-    for k in range(len(colors)):
-        c = colors[k]
-        if p.spatial == "svgf":
+    n_sig = len(colors)
+    if p.spatial == "svgf":
+        variances = []
+        for k in range(n_sig):
             var_t = dr.maximum(moments[k][1] - dr.square(moments[k][0]), 0.0)
-            var_s = spatial_variance(grid, gb, moments[k], p.sigma_z, p.sigma_n)
             if p.variance == "spatial":
-                var = var_s
+                var = spatial_variance(grid, gb, moments[k], p.sigma_z, p.sigma_n)
             else:
-                var = dr.select(length < MIN_TEMPORAL_HISTORY, var_s, var_t)
-        feedback = c
-        for level in range(p.levels):
-            step = 1 << level
-            if p.spatial == "svgf":
-                c, var = svgf_level(grid, c, var, gb, step, p.sigma_z, p.sigma_n, p.sigma_l)
-            else:
-                c = dammertz_level(grid, c, gb, step, p.sigma_rt * 2.0**-level, p.sigma_dn,
-                                   p.sigma_x)
-            if p.spatial == "svgf":
-                dr.eval(c, var)  # a kernel boundary per level
-            else:
-                dr.eval(c)
-            if level == p.feedback_level:
-                feedback = c
-        new_colors.append(feedback)
-        out = add(out, remodulate(c, albedos[k]))
+                young = length < MIN_TEMPORAL_HISTORY
+                var = dr.select(young, spatial_variance(grid, gb, moments[k], p.sigma_z,
+                                                        p.sigma_n, young), var_t)
+            variances.append(var)
+    c = colors
+    feedback = colors
+    for level in range(p.levels):
+        step = 1 << level
+        if p.spatial == "svgf":
+            c, variances = svgf_level_multi(grid, c, variances, gb, step, p.sigma_z,
+                                            p.sigma_n, p.sigma_l)
+            dr.eval(c, variances)  # a kernel boundary per level
+        else:
+            c = [dammertz_level(grid, ck, gb, step, p.sigma_rt * 2.0**-level, p.sigma_dn,
+                                p.sigma_x) for ck in c]
+            dr.eval(c)
+        if level == p.feedback_level:
+            feedback = c
+    for k in range(n_sig):
+        out = add(out, remodulate(c[k], albedos[k]))
+    new_colors = feedback
     new_hist = History(color=new_colors, moments=moments, length=length, normal=gb.normal,
                        inv_z=gb.inv_z, mesh=gb.mesh)
     return out, new_hist, dr.sum(bad)
@@ -334,7 +345,8 @@ class SVGF:
             ch["position"] = gb.position
         hist = self.history or _empty_history(len(ch["signals"]), w * h)
         if self.history is None:
-            ch["motion"] = [dr.full(mi.Float, 1e9, w * h)] * 2  # nothing to reproject onto
+            ch["motion"] = [_zeros(w * h) + 1e9 for _ in range(2)]  # nothing to reproject onto
+            dr.make_opaque(ch["motion"])
         out, self.history, bad = self._step(ch, hist, self.params, w, h)
         self.nonfinite += int(bad[0]) + int(dr.sum(bad_e)[0])
         self._camera = frame.camera
