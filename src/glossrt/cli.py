@@ -122,6 +122,33 @@ def cmd_denoise(args) -> int:
     return 0
 
 
+def cmd_experiment(args) -> int:
+    from . import experiments
+    from .report import Report
+    from .scenes import parse_size
+
+    out = _writable_dir(args.out)
+    size = parse_size(args.size)
+    res = experiments.denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
+                                ref_spp=args.spp, static_frames=args.static_frames)
+    md = res.markdown()
+    (out / "denoisers.md").write_text(md + "\n")
+    (out / "denoisers.json").write_text(json.dumps({
+        "size": list(res.size), "frames": res.frames, "ref_spp": res.ref_spp,
+        "quality": res.quality, "per_frame": res.per_frame, "seconds": res.seconds,
+        "temporal": res.temporal, "skipped": res.skipped}, indent=2))
+    rep = Report(out, "glossrt denoiser comparison")
+    s = rep.section("Denoisers", f"glossy-cornell {size[0]}x{size[1]}, {args.frames} frames, "
+                                 f"references {args.spp} spp every {args.ref_every} frames")
+    from .experiments import DenoiserResults
+
+    s.table(DenoiserResults.COLUMNS, res.table())
+    s.images_row(list(res.images.items()), name="denoised")
+    rep.write()
+    print(md)
+    return 0
+
+
 def cmd_compare(args) -> int:
     from .compare import compare_dirs, format_table
 
@@ -205,6 +232,16 @@ def build_parser() -> argparse.ArgumentParser:
                    choices=["svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn",
                             "optix"])
     p.add_argument("--out", required=True, help="output folder")
+
+    p = add("experiment", cmd_experiment,
+            "the denoiser comparison behind docs/RESULTS.md (quality, time, temporal error)",
+            "glossrt experiment --out results --size 256x192 --frames 30 --spp 1024")
+    p.add_argument("--out", required=True)
+    p.add_argument("--size", default="256x192")
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--ref-every", type=int, default=10)
+    p.add_argument("--spp", type=int, default=1024)
+    p.add_argument("--static-frames", type=int, default=60)
 
     p = add("compare", cmd_compare, "metrics of frames against references, per frame and mean",
             "glossrt compare out/cornell out/cornell-ref --json metrics.json")

@@ -119,6 +119,44 @@ def section_mitsuba(ctx: DemoContext, report: Report) -> None:
     s.paragraph(f"RMSE between the two: {metrics.rmse(ref['color'], img):.4g}")
 
 
+@register_section("denoisers", order=40)
+def section_denoisers(ctx: DemoContext, report: Report) -> None:
+    from .experiments import DenoiserResults, denoisers
+
+    res: DenoiserResults = ctx.extra.get("denoisers") or denoisers(
+        size=(ctx.frames[0].width, ctx.frames[0].height), sequence=ctx.frames,
+        references=ctx.references, static_frames=30)
+    s = report.section(
+        "Denoisers",
+        "Every denoiser on the same 1 spp sequence, against the converged references "
+        "(mean over the referenced frames), with its median wall time per frame after the "
+        "first (frozen kernels replay) and its temporal error on a static 30-frame sequence "
+        "(mean absolute luminance difference of consecutive frames, second half; Schied "
+        "2017, fig. 10). SVGF: Schied et al. 2017 with 4 signals (direct/indirect x "
+        "diffuse/specular); atrous: Dammertz et al. 2010 per frame; atrous-temporal: the same "
+        "after SVGF's temporal accumulation; oidn: Intel Open Image Denoise per frame.",
+    )
+    s.table(DenoiserResults.COLUMNS, res.table())
+    for m, why in res.skipped.items():
+        s.paragraph(f"{m}: not run here ({why}).")
+    s.images_row([(k, v) for k, v in res.images.items()], name="denoised")
+    if res.temporal:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 3.2))
+        for m, te in res.temporal.items():
+            ax.semilogy(range(1, len(te) + 1), te, label=m)
+        ax.set_xlabel("frame")
+        ax.set_ylabel("temporal error")
+        ax.set_title("static sequence")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        s.figure("temporal_error", fig, caption="temporal error per frame (static camera)")
+
+
 @register_section("timings", order=90)
 def section_timings(ctx: DemoContext, report: Report) -> None:
     info = backend.info()
