@@ -105,6 +105,50 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
     }
 
 
+@benchmark("denoisers")
+def denoisers(ctx: BenchContext) -> dict:
+    """Steady-state time per frame of each denoiser on the same glossy-cornell frames (the
+    stateful filters warm up on a short sequence first, so their history is full), measured
+    interleaved in one run; ratios against OIDN and against plain a-trous."""
+    import drjit as dr
+
+    from . import denoise, render, scenes
+    from .experiments import _available
+
+    setup = scenes.load("glossy-cornell", size=ctx.size)
+    r = render.Renderer(setup)
+    frames = [r.render(i) for i in range(4)]
+    configs = {
+        "svgf": ("svgf", {}),
+        "svgf-paper-2-signals": ("svgf", {"signals": "direct-indirect"}),
+        "svgf-1-signal": ("svgf", {"signals": "single"}),
+        "atrous": ("atrous", {}),
+        "atrous-temporal": ("atrous-temporal", {}),
+        "oidn": ("oidn", {}),
+    }
+    runners = {}
+    for name, (method, params) in configs.items():
+        if _available(method):
+            continue
+        d = denoise.make(method, **params)
+        for f in frames[:3]:
+            dr.eval(d(f))
+        runners[name] = d
+    res = {k: [] for k in runners}
+    for _ in range(3):
+        for name, d in runners.items():
+            res[name].append(timeit(lambda d=d: dr.eval(d(frames[3])), 1,
+                                    max(1, ctx.repeats // 3))["median_s"])
+    med = {k: statistics.median(v) for k, v in res.items()}
+    out = {"scene": "glossy-cornell", "size": list(ctx.size),
+           "seconds": med}
+    if "oidn" in med:
+        out["oidn_over"] = {k: med["oidn"] / v for k, v in med.items()}
+    if "atrous" in med:
+        out["cost_vs_atrous"] = {k: v / med["atrous"] for k, v in med.items()}
+    return out
+
+
 def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,
         repeats: int = 9, log: Callable[[str], None] = print) -> dict:
     """Run the named (default: all) benchmarks and return a JSON-able dict."""

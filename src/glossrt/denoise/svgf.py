@@ -159,30 +159,50 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
 
 
 def spatial_variance(grid: Grid, gb: GBuffer, moments: list[mi.Float],
-                     sigma_z: float = 1.0, sigma_n: float = 128.0,
-                     active: mi.Bool | bool = True) -> mi.Float:
+                     sigma_z: float = 1.0, sigma_n: float = 128.0) -> mi.Float:
     """7x7 bilateral estimate of the luminance variance from the moments, weighted by depth
     and world-space normal (Schied 2017, sec. 4.2: used while the history is short)."""
-    m1, m2 = mi.Float(0.0), mi.Float(0.0)
+    return spatial_variance_multi(grid, gb, [moments], sigma_z, sigma_n)[0]
+
+
+def spatial_variance_multi(grid: Grid, gb: GBuffer, moments: list, sigma_z: float = 1.0,
+                           sigma_n: float = 128.0, lanes: mi.UInt32 | None = None) -> list:
+    """:func:`spatial_variance` for several signals, sharing the geometric weights. Only the
+    pixels listed in ``lanes`` (default: all) are computed, the others get 0: after the
+    first frames few pixels have a short history, so the caller compacts them."""
+    size = grid.w * grid.h
+    lanes = grid.idx if lanes is None else lanes
+    px, py = mi.Int32(lanes % grid.w), mi.Int32(lanes // grid.w)
+    zp = dr.gather(mi.Float, gb.inv_z, lanes)
+    np_ = fetch(gb.normal, lanes)
+    gx, gy = dr.gather(mi.Float, gb.dzdx, lanes), dr.gather(mi.Float, gb.dzdy, lanes)
+    n_sig = len(moments)
+    m1 = [mi.Float(0.0) for _ in range(n_sig)]
+    m2 = [mi.Float(0.0) for _ in range(n_sig)]
     w_sum = mi.Float(0.0)
     for dy in range(-3, 4):
         for dx in range(-3, 4):
-            qx, qy = grid.x + dx, grid.y + dy
-            inside = grid.inside(qx, qy) & gb.hit & active
+            qx, qy = px + dx, py + dy
+            inside = grid.inside(qx, qy) & (zp > 0)
             q = grid.index(qx, qy)
             z_q = dr.gather(mi.Float, gb.inv_z, q, inside)
             n_q = fetch(gb.normal, q, inside)
-            mesh_q = dr.gather(mi.Float, gb.mesh, q, inside)
-            plane = dr.abs(gb.dzdx * dx + gb.dzdy * dy)
-            w_z = dr.exp(-dr.abs(gb.inv_z - z_q) / (sigma_z * plane + 1e-3 * gb.inv_z + 1e-12))
-            cos = gb.normal[0] * n_q[0] + gb.normal[1] * n_q[1] + gb.normal[2] * n_q[2]
-            w = dr.select(inside & (mesh_q > 0), w_z * pow_int(dr.maximum(cos, 0.0), sigma_n),
+            plane = dr.abs(gx * dx + gy * dy)
+            w_z = dr.exp(-dr.abs(zp - z_q) / (sigma_z * plane + 1e-3 * zp + 1e-12))
+            cos = np_[0] * n_q[0] + np_[1] * n_q[1] + np_[2] * n_q[2]
+            w = dr.select(inside & (z_q > 0), w_z * pow_int(dr.maximum(cos, 0.0), sigma_n),
                           0.0)
-            m1 += w * dr.gather(mi.Float, moments[0], q, inside)
-            m2 += w * dr.gather(mi.Float, moments[1], q, inside)
+            for k in range(n_sig):
+                m1[k] += w * dr.gather(mi.Float, moments[k][0], q, inside)
+                m2[k] += w * dr.gather(mi.Float, moments[k][1], q, inside)
             w_sum += w
-    m1, m2 = m1 / dr.maximum(w_sum, 1e-6), m2 / dr.maximum(w_sum, 1e-6)
-    return dr.maximum(m2 - dr.square(m1), 0.0)
+    inv = dr.rcp(dr.maximum(w_sum, 1e-6))
+    out = []
+    for a, b in zip(m1, m2, strict=True):
+        full = dr.zeros(mi.Float, size)
+        dr.scatter(full, dr.maximum(b * inv - dr.square(a * inv), 0.0), lanes)
+        out.append(full)
+    return out
 
 
 def _zeros(size: int) -> mi.Float:
@@ -223,12 +243,11 @@ class SVGFParams:
     sigma_x: float = 0.3
 
 
-def _pipeline(frame_ch: dict, hist: History, p: SVGFParams, w: int, h: int):
-    """One frame of the filter: returns (rgb channels, new history, non-finite count)."""
+def _accumulate(frame_ch: dict, hist: History, p: SVGFParams, w: int, h: int):
+    """Stage 1: demodulate and accumulate temporally. Returns colours, moments, albedos,
+    history length, the 'young history' mask and the non-finite input count."""
     grid = Grid(w, h)
-    gb = GBuffer(
-        normal=frame_ch["normal"], inv_z=frame_ch["inv_z"], dzdx=frame_ch["dzdx"],
-        dzdy=frame_ch["dzdy"], mesh=frame_ch["mesh"], position=frame_ch.get("position"))
+    gb = _gbuffer(frame_ch)
     colors, moments, albedos = [], [], []
     bad = mi.UInt32(0)
     for rad, alb, b in frame_ch["signals"]:
@@ -243,19 +262,26 @@ def _pipeline(frame_ch: dict, hist: History, p: SVGFParams, w: int, h: int):
                                             moments, p.alpha, p.moments_alpha)
     else:
         length = dr.ones(mi.Float, w * h)
+    young = (length < MIN_TEMPORAL_HISTORY) & gb.hit
+    return colors, moments, albedos, length, young, dr.sum(bad)
+
+
+def _reconstruct(frame_ch: dict, colors, moments, albedos, length, lanes, p: SVGFParams,
+                 w: int, h: int):
+    """Stage 2: variance (temporal, or spatial at the pixels in ``lanes``), the a-trous
+    levels, remodulation. Returns the RGB channels and the new history."""
+    grid = Grid(w, h)
+    gb = _gbuffer(frame_ch)
     out = [mi.Float(e) for e in frame_ch["emission"]]
     n_sig = len(colors)
     if p.spatial == "svgf":
-        variances = []
-        for k in range(n_sig):
-            var_t = dr.maximum(moments[k][1] - dr.square(moments[k][0]), 0.0)
-            if p.variance == "spatial":
-                var = spatial_variance(grid, gb, moments[k], p.sigma_z, p.sigma_n)
-            else:
-                young = length < MIN_TEMPORAL_HISTORY
-                var = dr.select(young, spatial_variance(grid, gb, moments[k], p.sigma_z,
-                                                        p.sigma_n, young), var_t)
-            variances.append(var)
+        spatial = spatial_variance_multi(grid, gb, moments, p.sigma_z, p.sigma_n, lanes)
+        if p.variance == "spatial":
+            variances = spatial
+        else:
+            young = length < MIN_TEMPORAL_HISTORY
+            variances = [dr.select(young, v_s, dr.maximum(m[1] - dr.square(m[0]), 0.0))
+                         for v_s, m in zip(spatial, moments, strict=True)]
     c = colors
     feedback = colors
     for level in range(p.levels):
@@ -272,10 +298,15 @@ def _pipeline(frame_ch: dict, hist: History, p: SVGFParams, w: int, h: int):
             feedback = c
     for k in range(n_sig):
         out = add(out, remodulate(c[k], albedos[k]))
-    new_colors = feedback
-    new_hist = History(color=new_colors, moments=moments, length=length, normal=gb.normal,
+    new_hist = History(color=feedback, moments=moments, length=length, normal=gb.normal,
                        inv_z=gb.inv_z, mesh=gb.mesh)
-    return out, new_hist, dr.sum(bad)
+    return out, new_hist
+
+
+def _gbuffer(frame_ch: dict) -> GBuffer:
+    return GBuffer(normal=frame_ch["normal"], inv_z=frame_ch["inv_z"], dzdx=frame_ch["dzdx"],
+                   dzdy=frame_ch["dzdy"], mesh=frame_ch["mesh"],
+                   position=frame_ch.get("position"))
 
 
 class SVGF:
@@ -297,7 +328,10 @@ class SVGF:
         if self.params.variance not in ("temporal", "spatial"):
             raise GlossrtError("variance must be 'temporal' or 'spatial'")
         self.frozen = frozen
-        self._step = dr.freeze(_pipeline) if frozen else _pipeline
+        # two frozen stages: the compaction of young-history pixels between them has a
+        # data-dependent size, which a single frozen function would re-record every frame
+        self._accumulate = dr.freeze(_accumulate) if frozen else _accumulate
+        self._reconstruct = dr.freeze(_reconstruct) if frozen else _reconstruct
         self.nonfinite = 0
         self.reset()
 
@@ -347,7 +381,12 @@ class SVGF:
         if self.history is None:
             ch["motion"] = [_zeros(w * h) + 1e9 for _ in range(2)]  # nothing to reproject onto
             dr.make_opaque(ch["motion"])
-        out, self.history, bad = self._step(ch, hist, self.params, w, h)
+        p = self.params
+        colors, moments, albedos, length, young, bad = self._accumulate(ch, hist, p, w, h)
+        # pixels that need the spatial variance estimate, compacted (few in steady state)
+        lanes = None if p.variance == "spatial" else dr.compress(young)
+        out, self.history = self._reconstruct(ch, colors, moments, albedos, length, lanes, p,
+                                              w, h)
         self.nonfinite += int(bad[0]) + int(dr.sum(bad_e)[0])
         self._camera = frame.camera
         self.frames += 1
