@@ -11,7 +11,7 @@ from .. import backend
 backend.ensure()
 
 from ..errors import GlossrtError  # noqa: E402
-from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous, taa  # noqa: E402
+from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa  # noqa: E402
 
 METHODS = ("svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn", "optix")
 
@@ -37,7 +37,7 @@ def make(method: str, **params):
     if method == "svgf-spatial-variance":
         return SVGF(variance="spatial", **params)
     if method == "atrous":
-        return _PerFrame(lambda f: atrous(f, **params))
+        return _PerFrame(lambda f: atrous_filter(f, **params))
     if method == "atrous-temporal":
         return ATrousTemporal(**params)
     if method == "oidn":
@@ -51,4 +51,4 @@ def make(method: str, **params):
     raise GlossrtError(f"unknown denoiser {method!r}; choose one of {', '.join(METHODS)}")
 
 
-__all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "atrous", "make", "taa"]
+__all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "atrous_filter", "make", "taa"]

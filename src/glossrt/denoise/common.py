@@ -103,7 +103,11 @@ def depth_gradient(grid: Grid, inv_z: mi.Float) -> tuple[mi.Float, mi.Float]:
     for dx, dy in ((1, 0), (0, 1)):
         f = dr.gather(mi.Float, inv_z, grid.index(grid.x + dx, grid.y + dy)) - inv_z
         b = inv_z - dr.gather(mi.Float, inv_z, grid.index(grid.x - dx, grid.y - dy))
-        out.append(dr.select(dr.abs(f) < dr.abs(b), f, b))
+        # at the image border only the difference that exists counts
+        f_ok = grid.inside(grid.x + dx, grid.y + dy)
+        b_ok = grid.inside(grid.x - dx, grid.y - dy)
+        use_f = f_ok & (~b_ok | (dr.abs(f) < dr.abs(b)))
+        out.append(dr.select(use_f, f, dr.select(b_ok, b, 0.0)))
     return out[0], out[1]
 
 

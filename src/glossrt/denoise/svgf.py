@@ -171,7 +171,8 @@ def spatial_variance_multi(grid: Grid, gb: GBuffer, moments: list, sigma_z: floa
     pixels listed in ``lanes`` (default: all) are computed, the others get 0: after the
     first frames few pixels have a short history, so the caller compacts them."""
     size = grid.w * grid.h
-    lanes = grid.idx if lanes is None else lanes
+    all_pixels = lanes is None
+    lanes = grid.idx if all_pixels else lanes
     px, py = mi.Int32(lanes % grid.w), mi.Int32(lanes // grid.w)
     zp = dr.gather(mi.Float, gb.inv_z, lanes)
     np_ = fetch(gb.normal, lanes)
@@ -197,6 +198,9 @@ def spatial_variance_multi(grid: Grid, gb: GBuffer, moments: list, sigma_z: floa
                 m2[k] += w * dr.gather(mi.Float, moments[k][1], q, inside)
             w_sum += w
     inv = dr.rcp(dr.maximum(w_sum, 1e-6))
+    if all_pixels:
+        return [dr.maximum(b * inv - dr.square(a * inv), 0.0) for a, b in zip(m1, m2,
+                                                                               strict=True)]
     out = []
     for a, b in zip(m1, m2, strict=True):
         full = dr.zeros(mi.Float, size)
@@ -385,6 +389,11 @@ class SVGF:
         colors, moments, albedos, length, young, bad = self._accumulate(ch, hist, p, w, h)
         # pixels that need the spatial variance estimate, compacted (few in steady state)
         lanes = None if p.variance == "spatial" else dr.compress(young)
+        if lanes is not None and dr.width(lanes) == 0:
+            # no young pixel: two dummy lanes (pixel 0, whose spatial value is then not
+            # selected) keep the arrays non-empty and away from width 1, which freeze treats
+            # as a different (scalar) configuration
+            lanes = dr.zeros(mi.UInt32, 2)
         out, self.history = self._reconstruct(ch, colors, moments, albedos, length, lanes, p,
                                               w, h)
         self.nonfinite += int(bad[0]) + int(dr.sum(bad_e)[0])
@@ -393,7 +402,7 @@ class SVGF:
         return merge(out, h, w)
 
 
-def atrous(frame, levels: int = 5, sigma_rt: float = 0.5, sigma_n: float = 0.3,
+def atrous_filter(frame, levels: int = 5, sigma_rt: float = 0.5, sigma_n: float = 0.3,
            sigma_x: float = 0.3, signals: str = "separate") -> mi.TensorXf:
     """Edge-avoiding a-trous (Dammertz et al. 2010) per frame, no temporal accumulation:
     the demodulated signals are filtered with global colour/normal/position sigmas."""
