@@ -61,7 +61,8 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
     computed once per tap and shared; colour + variance of a signal are gathered from one
     interleaved array (one cache line per tap)."""
     n_sig = len(colors)
-    # interleaved (r, g, b, var) per signal and (nx, ny, nz, 1/z) for the geometry
+    # interleaved (r, g, b, var) per signal and (nx, ny, nz, 1/z) for the geometry, read
+    # with one packet gather per tap (Dr.Jit's PacketOps: 4 contiguous floats at once)
     packed = [dr.ravel(mi.Vector4f(c[0], c[1], c[2], v)) for c, v in
               zip(colors, variances, strict=True)]
     geo = dr.ravel(mi.Vector4f(gb.normal[0], gb.normal[1], gb.normal[2], gb.inv_z))
@@ -81,7 +82,7 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
             qx, qy = grid.x + dx * step, grid.y + dy * step
             inside = grid.inside(qx, qy) & hit_p
             q4 = grid.index(qx, qy) * 4
-            nq = [dr.gather(mi.Float, geo, q4 + k, inside) for k in range(4)]
+            nq = dr.gather(mi.Vector4f, geo, q4 // 4)  # packet gather; q is clamped: valid
             z_q = nq[3]
             # Schied 2017, eq. 3 (on 1/z, an affine function of clip-space depth)
             plane = dr.abs(gb.dzdx * (dx * step) + gb.dzdy * (dy * step))
@@ -91,14 +92,15 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
             w_zn = dr.select(inside & (z_q > 0), w_zn, 0.0)  # never across into background
             h = H5[dx + 2] * H5[dy + 2]
             for k in range(n_sig):
-                cq = [dr.gather(mi.Float, packed[k], q4 + j, inside) for j in range(4)]
+                cq = dr.gather(mi.Vector4f, packed[k], q4 // 4)
                 w = w_zn
                 if lum_weights:
                     # Schied 2017, eq. 5
-                    w = w * dr.exp(-dr.abs(lum_p[k] - luminance(cq[:3])) * inv_den_l[k])
+                    l_q = luminance([cq[0], cq[1], cq[2]])
+                    w = w * dr.exp(-dr.abs(lum_p[k] - l_q) * inv_den_l[k])
                 hw = h * w
                 sum_w[k] += hw
-                acc[k] = [a + hw * c for a, c in zip(acc[k], cq[:3], strict=True)]
+                acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
                 acc_var[k] += dr.square(hw) * cq[3]
     out, out_var = [], []
     for k in range(n_sig):

@@ -139,19 +139,27 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
     all_taps = [(q, dr.select(bilinear_ok, w, 0.0)) for q, w in taps] + [
         (q, dr.select(bilinear_ok, 0.0, w)) for q, w in taps3]
 
-    def resample(chs: Img) -> Img:
-        out = [dr.zeros(mi.Float, dr.width(grid.idx)) for _ in chs]
+    def resample(packed: mi.Float, width: int) -> list:
+        """Weighted sum of the taps of an interleaved array of ``width`` (1 or 4) channels."""
+        out = None
         for q, w in all_taps:
-            vals = fetch(chs, q, w > 0)
-            out = [o + w * v for o, v in zip(out, vals, strict=True)]
+            if width == 4:
+                v = dr.gather(mi.Vector4f, packed, q)  # packet gather (q is clamped: valid)
+                vals = [v[0], v[1], v[2], v[3]]
+            else:
+                vals = [dr.gather(mi.Float, packed, q)]
+            out = [w * x for x in vals] if out is None else [
+                o + w * x for o, x in zip(out, vals, strict=True)]
         return [o * norm for o in out]
 
-    length = dr.select(success, resample([prev.length])[0] + 1.0, 1.0)
+    length = dr.select(success, resample(prev.length, 1)[0] + 1.0, 1.0)
     a_c = dr.select(success, dr.maximum(alpha, dr.rcp(length)), 1.0)
     a_m = dr.select(success, dr.maximum(moments_alpha, dr.rcp(length)), 1.0)
     out_c, out_m = [], []
     for c, m, hc, hm in zip(colors, moments, prev.color, prev.moments, strict=True):
-        pc, pm = resample(hc), resample(hm)
+        # (r, g, b, mu1) interleaved, mu2 on its own
+        r4 = resample(dr.ravel(mi.Vector4f(hc[0], hc[1], hc[2], hm[0])), 4)
+        pc, pm = r4[:3], [r4[3], resample(hm[1], 1)[0]]
         # Schied 2017, eq. (temporal EMA): C'_i = alpha C_i + (1 - alpha) C'_{i-1}
         out_c.append([dr.lerp(p, x, a_c) for p, x in zip(pc, c, strict=True)])
         out_m.append([dr.lerp(p, x, a_m) for p, x in zip(pm, m, strict=True)])
