@@ -88,17 +88,18 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
             plane = dr.abs(gb.dzdx * (dx * step) + gb.dzdy * (dy * step))
             a_z = dr.abs(gb.inv_z - z_q) / (sigma_z * plane + eps_z)
             cos = gb.normal[0] * nq[0] + gb.normal[1] * nq[1] + gb.normal[2] * nq[2]
-            w_zn = dr.exp(-a_z) * pow_int(dr.maximum(cos, 0.0), sigma_n)  # eq. 3 * eq. 4
-            w_zn = dr.select(inside & (z_q > 0), w_zn, 0.0)  # never across into background
+            w_n = pow_int(dr.maximum(cos, 0.0), sigma_n)  # Schied 2017, eq. 4
+            # h(q) and the background test folded into w_n; w_z's exp is merged with w_l's
             h = H5[dx + 2] * H5[dy + 2]
+            w_n = dr.select(inside & (z_q > 0), h * w_n, 0.0)  # never across into background
             for k in range(n_sig):
                 cq = dr.gather(mi.Vector4f, packed[k], q4 // 4)
-                w = w_zn
                 if lum_weights:
-                    # Schied 2017, eq. 5
+                    # Schied 2017, eq. 3 * eq. 5: exp(-a_z) exp(-a_l) = exp(-(a_z + a_l))
                     l_q = luminance([cq[0], cq[1], cq[2]])
-                    w = w * dr.exp(-dr.abs(lum_p[k] - l_q) * inv_den_l[k])
-                hw = h * w
+                    hw = w_n * dr.exp(-(a_z + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
+                else:
+                    hw = w_n * dr.exp(-a_z)
                 sum_w[k] += hw
                 acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
                 acc_var[k] += dr.square(hw) * cq[3]
