@@ -28,6 +28,17 @@ def gaussian3x3(grid: Grid, v: mi.Float) -> mi.Float:
     return acc
 
 
+def atrous_taps(grid: Grid, step: int, active: mi.Bool):
+    """The 24 off-centre taps of a 5x5 a-trous level with hole size ``step``: yields
+    (dx, dy, clamped neighbour index, whether the neighbour is inside and ``active``)."""
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            if dx == 0 and dy == 0:
+                continue
+            qx, qy = grid.x + dx * step, grid.y + dy * step
+            yield dx, dy, grid.index(qx, qy), grid.inside(qx, qy) & active
+
+
 def pow_int(x: mi.Float, n: float) -> mi.Float:
     """x**n by repeated squaring when n is a small integer (w_n's 128 is 7 squarings,
     far cheaper than exp(n log x)); dr.power otherwise."""
@@ -75,34 +86,28 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
     acc = [[h0 * ch for ch in c] for c in colors]
     acc_var = [mi.Float(h0 * h0) * v for v in variances]
     eps_z = EPS_Z * gb.inv_z + 1e-12
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            if dx == 0 and dy == 0:
-                continue
-            qx, qy = grid.x + dx * step, grid.y + dy * step
-            inside = grid.inside(qx, qy) & hit_p
-            q4 = grid.index(qx, qy) * 4
-            nq = dr.gather(mi.Vector4f, geo, q4 // 4)  # packet gather; q is clamped: valid
-            z_q = nq[3]
-            # Schied 2017, eq. 3 (on 1/z, an affine function of clip-space depth)
-            plane = dr.abs(gb.dzdx * (dx * step) + gb.dzdy * (dy * step))
-            a_z = dr.abs(gb.inv_z - z_q) / (sigma_z * plane + eps_z)
-            cos = gb.normal[0] * nq[0] + gb.normal[1] * nq[1] + gb.normal[2] * nq[2]
-            w_n = pow_int(dr.maximum(cos, 0.0), sigma_n)  # Schied 2017, eq. 4
-            # h(q) and the background test folded into w_n; w_z's exp is merged with w_l's
-            h = H5[dx + 2] * H5[dy + 2]
-            w_n = dr.select(inside & (z_q > 0), h * w_n, 0.0)  # never across into background
-            for k in range(n_sig):
-                cq = dr.gather(mi.Vector4f, packed[k], q4 // 4)
-                if lum_weights:
-                    # Schied 2017, eq. 3 * eq. 5: exp(-a_z) exp(-a_l) = exp(-(a_z + a_l))
-                    l_q = luminance([cq[0], cq[1], cq[2]])
-                    hw = w_n * dr.exp(-(a_z + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
-                else:
-                    hw = w_n * dr.exp(-a_z)
-                sum_w[k] += hw
-                acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
-                acc_var[k] += dr.square(hw) * cq[3]
+    for dx, dy, q, inside in atrous_taps(grid, step, hit_p):
+        nq = dr.gather(mi.Vector4f, geo, q)  # packet gather; q is clamped: valid
+        z_q = nq[3]
+        # Schied 2017, eq. 3 (on 1/z, an affine function of clip-space depth)
+        plane = dr.abs(gb.dzdx * (dx * step) + gb.dzdy * (dy * step))
+        a_z = dr.abs(gb.inv_z - z_q) / (sigma_z * plane + eps_z)
+        cos = gb.normal[0] * nq[0] + gb.normal[1] * nq[1] + gb.normal[2] * nq[2]
+        w_n = pow_int(dr.maximum(cos, 0.0), sigma_n)  # Schied 2017, eq. 4
+        # h(q) and the background test folded into w_n; w_z's exp is merged with w_l's
+        h = H5[dx + 2] * H5[dy + 2]
+        w_n = dr.select(inside & (z_q > 0), h * w_n, 0.0)  # never across into background
+        for k in range(n_sig):
+            cq = dr.gather(mi.Vector4f, packed[k], q)
+            if lum_weights:
+                # Schied 2017, eq. 3 * eq. 5: exp(-a_z) exp(-a_l) = exp(-(a_z + a_l))
+                l_q = luminance([cq[0], cq[1], cq[2]])
+                hw = w_n * dr.exp(-(a_z + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
+            else:
+                hw = w_n * dr.exp(-a_z)
+            sum_w[k] += hw
+            acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
+            acc_var[k] += dr.square(hw) * cq[3]
     out, out_var = [], []
     for k in range(n_sig):
         inv = dr.rcp(sum_w[k])
@@ -121,25 +126,19 @@ def dammertz_level(grid: Grid, color: Img, gb: GBuffer, step: int, sigma_rt: flo
     sum_w = mi.Float(h0)
     acc = [h0 * c for c in color]
     inv_rt, inv_n, inv_x = 1 / sigma_rt**2, 1 / sigma_n**2, 1 / sigma_x**2
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            if dx == 0 and dy == 0:
-                continue
-            qx, qy = grid.x + dx * step, grid.y + dy * step
-            inside = grid.inside(qx, qy) & hit_p
-            q = grid.index(qx, qy)
-            c_q = fetch(color, q, inside)
-            n_q = fetch(gb.normal, q, inside)
-            x_q = fetch(gb.position, q, inside)
-            mesh_q = dr.gather(mi.Float, gb.mesh, q, inside)
-            d_c = sum(dr.square(a - b) for a, b in zip(color, c_q, strict=True))
-            # Dammertz: the normal distance is divided by the squared step width
-            d_n = sum(dr.square(a - b) for a, b in zip(gb.normal, n_q, strict=True)) / (
-                step * step)
-            d_x = sum(dr.square(a - b) for a, b in zip(gb.position, x_q, strict=True))
-            w = dr.exp(-d_c * inv_rt) * dr.exp(-d_n * inv_n) * dr.exp(-d_x * inv_x)
-            w = dr.select(inside & (mesh_q > 0), w, 0.0)
-            hw = (H5[dx + 2] * H5[dy + 2]) * w
-            sum_w += hw
-            acc = [a + hw * c for a, c in zip(acc, c_q, strict=True)]
+    for dx, dy, q, inside in atrous_taps(grid, step, hit_p):
+        c_q = fetch(color, q, inside)
+        n_q = fetch(gb.normal, q, inside)
+        x_q = fetch(gb.position, q, inside)
+        mesh_q = dr.gather(mi.Float, gb.mesh, q, inside)
+        d_c = sum(dr.square(a - b) for a, b in zip(color, c_q, strict=True))
+        # Dammertz: the normal distance is divided by the squared step width
+        d_n = sum(dr.square(a - b) for a, b in zip(gb.normal, n_q, strict=True)) / (
+            step * step)
+        d_x = sum(dr.square(a - b) for a, b in zip(gb.position, x_q, strict=True))
+        w = dr.exp(-d_c * inv_rt) * dr.exp(-d_n * inv_n) * dr.exp(-d_x * inv_x)
+        w = dr.select(inside & (mesh_q > 0), w, 0.0)
+        hw = (H5[dx + 2] * H5[dy + 2]) * w
+        sum_w += hw
+        acc = [a + hw * c for a, c in zip(acc, c_q, strict=True)]
     return [dr.select(hit_p, a / sum_w, c) for a, c in zip(acc, color, strict=True)]
