@@ -11,7 +11,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .common import H5, GBuffer, Grid, Img, fetch, luminance
+from .common import H5, GBuffer, Grid, Img, luminance
 
 EPS_Z = 1e-3  # relative: |d(1/z)| below 1e-3 of 1/z counts as "on the plane"
 EPS_L = 1e-10
@@ -121,24 +121,37 @@ def dammertz_level(grid: Grid, color: Img, gb: GBuffer, step: int, sigma_rt: flo
                    sigma_n: float, sigma_x: float) -> Img:
     """One level of Dammertz et al. 2010: weights exp(-|dc|^2/sigma_rt^2) *
     exp(-|dn|^2/sigma_n^2) * exp(-|dx|^2/sigma_x^2) with global sigmas (their eq. 5-6)."""
+    return dammertz_level_multi(grid, [color], gb, step, sigma_rt, sigma_n, sigma_x)[0]
+
+
+def dammertz_level_multi(grid: Grid, colors: list, gb: GBuffer, step: int, sigma_rt: float,
+                         sigma_n: float, sigma_x: float) -> list:
+    """:func:`dammertz_level` for several signals: the normal and position weights are
+    computed once per tap and shared, data are read with 4-wide packet gathers (as in
+    :func:`svgf_level_multi`, so that the two are compared on equal terms)."""
     hit_p = gb.hit
     h0 = H5[2] * H5[2]
-    sum_w = mi.Float(h0)
-    acc = [h0 * c for c in color]
+    sum_w = [mi.Float(h0) for _ in colors]
+    acc = [[h0 * ch for ch in c] for c in colors]
     inv_rt, inv_n, inv_x = 1 / sigma_rt**2, 1 / sigma_n**2, 1 / sigma_x**2
+    n, x = gb.normal, gb.position
+    geo_a = dr.ravel(mi.Vector4f(n[0], n[1], n[2], x[0]))
+    geo_b = dr.ravel(mi.Vector4f(x[1], x[2], gb.mesh, 0.0))
+    packed = [dr.ravel(mi.Vector4f(c[0], c[1], c[2], 0.0)) for c in colors]
     for dx, dy, q, inside in atrous_taps(grid, step, hit_p):
-        c_q = fetch(color, q, inside)
-        n_q = fetch(gb.normal, q, inside)
-        x_q = fetch(gb.position, q, inside)
-        mesh_q = dr.gather(mi.Float, gb.mesh, q, inside)
-        d_c = sum(dr.square(a - b) for a, b in zip(color, c_q, strict=True))
+        ga = dr.gather(mi.Vector4f, geo_a, q)  # q is clamped: always valid
+        gb_ = dr.gather(mi.Vector4f, geo_b, q)
         # Dammertz: the normal distance is divided by the squared step width
-        d_n = sum(dr.square(a - b) for a, b in zip(gb.normal, n_q, strict=True)) / (
+        d_n = (dr.square(n[0] - ga[0]) + dr.square(n[1] - ga[1]) + dr.square(n[2] - ga[2])) / (
             step * step)
-        d_x = sum(dr.square(a - b) for a, b in zip(gb.position, x_q, strict=True))
-        w = dr.exp(-d_c * inv_rt) * dr.exp(-d_n * inv_n) * dr.exp(-d_x * inv_x)
-        w = dr.select(inside & (mesh_q > 0), w, 0.0)
-        hw = (H5[dx + 2] * H5[dy + 2]) * w
-        sum_w += hw
-        acc = [a + hw * c for a, c in zip(acc, c_q, strict=True)]
-    return [dr.select(hit_p, a / sum_w, c) for a, c in zip(acc, color, strict=True)]
+        d_x = dr.square(x[0] - ga[3]) + dr.square(x[1] - gb_[0]) + dr.square(x[2] - gb_[1])
+        h = H5[dx + 2] * H5[dy + 2]
+        w_g = dr.select(inside & (gb_[2] > 0), h * dr.exp(-(d_n * inv_n + d_x * inv_x)), 0.0)
+        for k, c in enumerate(colors):
+            cq = dr.gather(mi.Vector4f, packed[k], q)
+            d_c = dr.square(c[0] - cq[0]) + dr.square(c[1] - cq[1]) + dr.square(c[2] - cq[2])
+            hw = w_g * dr.exp(-d_c * inv_rt)
+            sum_w[k] += hw
+            acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
+    return [[dr.select(hit_p, a / sw, ch) for a, ch in zip(ak, c, strict=True)]
+            for ak, sw, c in zip(acc, sum_w, colors, strict=True)]

@@ -25,7 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import GlossrtError
-from .atrous import dammertz_level, pow_int, svgf_level_multi
+from .atrous import dammertz_level_multi, pow_int, svgf_level_multi
 from .common import (
     GBuffer,
     Grid,
@@ -303,8 +303,8 @@ def _reconstruct(frame_ch: dict, colors, moments, albedos, length, lanes, p: SVG
                                             p.sigma_n, p.sigma_l)
             dr.eval(c, variances)  # a kernel boundary per level
         else:
-            c = [dammertz_level(grid, ck, gb, step, p.sigma_rt * 2.0**-level, p.sigma_dn,
-                                p.sigma_x) for ck in c]
+            c = dammertz_level_multi(grid, c, gb, step, p.sigma_rt * 2.0**-level,
+                                     p.sigma_dn, p.sigma_x)
             dr.eval(c)
         if level == p.feedback_level:
             feedback = c
