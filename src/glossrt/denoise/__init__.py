@@ -11,6 +11,7 @@ from .. import backend
 backend.ensure()
 
 from ..errors import GlossrtError  # noqa: E402
+from .bilateral import bilateral  # noqa: E402  (the function; the module stays importable)
 from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa  # noqa: E402
 
 METHODS = ("svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn", "optix")
@@ -51,4 +52,5 @@ def make(method: str, **params):
     raise GlossrtError(f"unknown denoiser {method!r}; choose one of {', '.join(METHODS)}")
 
 
-__all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "atrous_filter", "make", "taa"]
+__all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "atrous_filter", "bilateral", "make",
+           "taa"]
