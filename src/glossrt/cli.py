@@ -229,8 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
             "glossrt denoise out/cornell --method svgf --out out/cornell-svgf")
     p.add_argument("in_dir", help="folder of frame EXRs (glossrt's or any following FORMATS.md)")
     p.add_argument("--method", default="svgf",
-                   choices=["svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn",
-                            "optix"])
+                   choices=["svgf", "svgf-lobe", "svgf-spatial-variance", "atrous",
+                            "atrous-temporal", "oidn", "optix"])
     p.add_argument("--out", required=True, help="output folder")
 
     p = add("experiment", cmd_experiment,

@@ -133,7 +133,9 @@ def section_denoisers(ctx: DemoContext, report: Report) -> None:
         "first (frozen kernels replay) and its temporal error on a static 30-frame sequence "
         "(mean absolute luminance difference of consecutive frames, second half; Schied "
         "2017, fig. 10). SVGF: Schied et al. 2017 with 4 signals (direct/indirect x "
-        "diffuse/specular); atrous: Dammertz et al. 2010 per frame; atrous-temporal: the same "
+        "diffuse/specular); svgf-lobe: the same with Tokuyoshi 2015's specular-lobe weight "
+        "in place of w_n for the specular signals; atrous: Dammertz et al. 2010 per frame; "
+        "atrous-temporal: the same "
         "after SVGF's temporal accumulation; oidn: Intel Open Image Denoise per frame.",
     )
     s.table(DenoiserResults.COLUMNS, res.table())

@@ -15,7 +15,8 @@ import numpy as np
 
 from . import metrics
 
-DEFAULT_METHODS = ("svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn")
+DEFAULT_METHODS = ("svgf", "svgf-lobe", "svgf-spatial-variance", "atrous", "atrous-temporal",
+                   "oidn")
 
 
 @dataclass

@@ -14,7 +14,8 @@ from ..errors import GlossrtError  # noqa: E402
 from .bilateral import bilateral  # noqa: E402  (the function; the module stays importable)
 from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa  # noqa: E402
 
-METHODS = ("svgf", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn", "optix")
+METHODS = ("svgf", "svgf-lobe", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn",
+           "optix")
 
 
 class _PerFrame:
@@ -35,6 +36,8 @@ def make(method: str, **params):
     """A denoiser by name: ``__call__(frame) -> mi.TensorXf`` and ``reset()``."""
     if method == "svgf":
         return SVGF(**params)
+    if method == "svgf-lobe":
+        return SVGF(weights="lobe", **params)
     if method == "svgf-spatial-variance":
         return SVGF(variance="spatial", **params)
     if method == "atrous":

@@ -67,10 +67,13 @@ def svgf_level(grid: Grid, color: Img, var: mi.Float, gb: GBuffer, step: int,
 
 def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, step: int,
                      sigma_z: float = 1.0, sigma_n: float = 128.0, sigma_l: float = 4.0,
-                     lum_weights: bool = True) -> tuple[list, list]:
+                     lum_weights: bool = True, lobes=None) -> tuple[list, list]:
     """:func:`svgf_level` for several signals at once: the geometric weights w_z * w_n are
     computed once per tap and shared; colour + variance of a signal are gathered from one
-    interleaved array (one cache line per tap)."""
+    interleaved array (one cache line per tap).
+
+    ``lobes = (axis (3 Floats), sharpness, use_lobe (list of bool per signal), beta, kappa)``
+    replaces w_n by Tokuyoshi 2015's lobe weight for the signals marked True."""
     n_sig = len(colors)
     # interleaved (r, g, b, var) per signal and (nx, ny, nz, 1/z) for the geometry, read
     # with one packet gather per tap (Dr.Jit's PacketOps: 4 contiguous floats at once)
@@ -86,6 +89,11 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
     acc = [[h0 * ch for ch in c] for c in colors]
     acc_var = [mi.Float(h0 * h0) * v for v in variances]
     eps_z = EPS_Z * gb.inv_z + 1e-12
+    if lobes is not None:
+        from ..brdf.sg import lobe_weight
+
+        axis_p, lam_p, use_lobe, beta, kappa = lobes
+        lobe_packed = dr.ravel(mi.Vector4f(axis_p[0], axis_p[1], axis_p[2], lam_p))
     for dx, dy, q, inside in atrous_taps(grid, step, hit_p):
         nq = dr.gather(mi.Vector4f, geo, q)  # packet gather; q is clamped: valid
         z_q = nq[3]
@@ -96,15 +104,24 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
         w_n = pow_int(dr.maximum(cos, 0.0), sigma_n)  # Schied 2017, eq. 4
         # h(q) and the background test folded into w_n; w_z's exp is merged with w_l's
         h = H5[dx + 2] * H5[dy + 2]
-        w_n = dr.select(inside & (z_q > 0), h * w_n, 0.0)  # never across into background
+        valid_q = inside & (z_q > 0)  # never across into background
+        w_n = dr.select(valid_q, h * w_n, 0.0)
+        if lobes is not None:
+            lq = dr.gather(mi.Vector4f, lobe_packed, q)
+            xi_q = mi.Vector3f(lq[0], lq[1], lq[2])
+            xi_p = mi.Vector3f(axis_p[0], axis_p[1], axis_p[2])
+            # Tokuyoshi 2015, sec. 4.2 (closed form): the lobe weight in place of w_n
+            w_lobe = dr.select(valid_q, h * lobe_weight(xi_p, lam_p, xi_q, lq[3], beta, kappa,
+                                                        approx=True), 0.0)
         for k in range(n_sig):
             cq = dr.gather(mi.Vector4f, packed[k], q)
+            w_g = w_lobe if (lobes is not None and use_lobe[k]) else w_n
             if lum_weights:
                 # Schied 2017, eq. 3 * eq. 5: exp(-a_z) exp(-a_l) = exp(-(a_z + a_l))
                 l_q = luminance([cq[0], cq[1], cq[2]])
-                hw = w_n * dr.exp(-(a_z + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
+                hw = w_g * dr.exp(-(a_z + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
             else:
-                hw = w_n * dr.exp(-a_z)
+                hw = w_g * dr.exp(-a_z)
             sum_w[k] += hw
             acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
             acc_var[k] += dr.square(hw) * cq[3]

@@ -249,6 +249,11 @@ class SVGFParams:
     variance: str = "temporal"  # or "spatial": always the 7x7 estimate
     spatial: str = "svgf"  # or "dammertz": the a-trous-temporal baseline
     temporal: bool = True
+    # "normal": the paper's w_n; "lobe": Tokuyoshi 2015's specular-lobe weight instead of w_n
+    # for the specular signals (beyond the papers; needs signals="separate")
+    weights: str = "normal"
+    beta: float = 20.0
+    kappa: float = 100.0
     # Dammertz 2010 weights (used when spatial == "dammertz")
     sigma_rt: float = 0.5
     sigma_dn: float = 0.3
@@ -299,8 +304,12 @@ def _reconstruct(frame_ch: dict, colors, moments, albedos, length, lanes, p: SVG
     for level in range(p.levels):
         step = 1 << level
         if p.spatial == "svgf":
+            lobes = None
+            if p.weights == "lobe":
+                lobes = (frame_ch["lobe_axis"], frame_ch["lobe_sharpness"],
+                         [bool(s) for s in frame_ch["specular"]], p.beta, p.kappa)
             c, variances = svgf_level_multi(grid, c, variances, gb, step, p.sigma_z,
-                                            p.sigma_n, p.sigma_l)
+                                            p.sigma_n, p.sigma_l, lobes=lobes)
             dr.eval(c, variances)  # a kernel boundary per level
         else:
             c = dammertz_level_multi(grid, c, gb, step, p.sigma_rt * 2.0**-level,
@@ -339,6 +348,10 @@ class SVGF:
             raise GlossrtError(f"signals must be one of {sorted(SIGNAL_SETS)}")
         if self.params.variance not in ("temporal", "spatial"):
             raise GlossrtError("variance must be 'temporal' or 'spatial'")
+        if self.params.weights not in ("normal", "lobe"):
+            raise GlossrtError("weights must be 'normal' or 'lobe'")
+        if self.params.weights == "lobe" and self.params.signals != "separate":
+            raise GlossrtError("weights='lobe' needs signals='separate' (a lobe per signal)")
         self.frozen = frozen
         # two frozen stages: the compaction of young-history pixels between them has a
         # data-dependent size, which a single frozen function would re-record every frame
@@ -362,6 +375,8 @@ class SVGF:
         names.update(GEOMETRY)
         if self.params.spatial == "dammertz":
             names.add("position")
+        if self.params.weights == "lobe":
+            names.update(("position", "roughness"))
         return tuple(sorted(names))
 
     def _is_cut(self, frame) -> bool:
@@ -370,6 +385,22 @@ class SVGF:
         a, b = np.asarray(self._camera.to_world), np.asarray(frame.prev_camera.to_world)
         return not (np.allclose(a, b, atol=1e-5) and
                     abs(self._camera.fov - frame.prev_camera.fov) < 1e-6)
+
+    def _lobes(self, frame, gb: GBuffer) -> dict:
+        """Each pixel's GGX lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009)."""
+        from ..brdf.sg import ggx_lobe_to_sg
+
+        if frame.camera is None:
+            raise GlossrtError(f"{frame.where}: weights='lobe' needs the camera (glossrt header)"
+                               " to know the view direction")
+        cam = mi.Point3f(*(float(v) for v in np.asarray(frame.camera.to_world)[:3, 3]))
+        pos = mi.Point3f(*split(frame["position"]))
+        wo = dr.normalize(cam - pos)
+        n = mi.Vector3f(*gb.normal)
+        axis, lam = ggx_lobe_to_sg(n, wo, split(frame["roughness"])[0])
+        return {"lobe_axis": [axis[0], axis[1], axis[2]], "lobe_sharpness": lam,
+                "specular": [1.0 if "specular" in rad[0] else 0.0
+                             for rad, _ in SIGNAL_SETS[self.params.signals]]}
 
     def __call__(self, frame) -> mi.TensorXf:
         check_frame(frame, self.needs)
@@ -389,6 +420,8 @@ class SVGF:
         }
         if gb.position is not None:
             ch["position"] = gb.position
+        if self.params.weights == "lobe":
+            ch.update(self._lobes(frame, gb))
         hist = self.history or _empty_history(len(ch["signals"]), w * h)
         if self.history is None:
             ch["motion"] = [_zeros(w * h) + 1e9 for _ in range(2)]  # nothing to reproject onto
