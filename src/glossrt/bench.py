@@ -120,6 +120,7 @@ def denoisers(ctx: BenchContext) -> dict:
     frames = [r.render(i) for i in range(4)]
     configs = {
         "svgf": ("svgf", {}),
+        "svgf-lobe": ("svgf-lobe", {}),
         "svgf-paper-2-signals": ("svgf", {"signals": "direct-indirect"}),
         "svgf-1-signal": ("svgf", {"signals": "single"}),
         "atrous": ("atrous", {}),
