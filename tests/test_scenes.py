@@ -242,16 +242,23 @@ def _check_frame(frame, setup):
     assert np.all(frame.numpy("color") >= 0)
 
 
-@pytest.mark.parametrize("plugin", sorted(BSDFS))
-def test_xml_bsdf_renders(tmp_path, plugin):
-    xml, alpha, has_diffuse = BSDFS[plugin]
-    body = FLOOR + sphere(xml) + AREA_LIGHT + CONSTANT
+def _render_object(tmp_path, body):
+    """Render an XML scene body at 1 spp and as a reference, check both frames, and return the
+    reference frame with the mask of the shape with id "object" (seen by > 10 pixels)."""
     setup = scenes.load(write(tmp_path, scene_xml(body)), size=SIZE)
     r = Renderer(setup)
     for f in (r.render(0), r.render_reference(0, spp=8)):
         _check_frame(f, setup)
     obj = f.numpy("mesh_id")[..., 0] == setup.shape_index["object"]
     assert obj.sum() > 10
+    return f, obj
+
+
+@pytest.mark.parametrize("plugin", sorted(BSDFS))
+def test_xml_bsdf_renders(tmp_path, plugin):
+    xml, alpha, has_diffuse = BSDFS[plugin]
+    body = FLOOR + sphere(xml) + AREA_LIGHT + CONSTANT
+    f, obj = _render_object(tmp_path, body)
     assert f.numpy("color")[obj].mean() > 0  # lit
     np.testing.assert_allclose(f.numpy("roughness")[..., 0][obj], alpha, rtol=1e-6)
     assert bool(np.any(f.numpy("albedo_diffuse")[obj] > 0)) == has_diffuse
@@ -308,12 +315,7 @@ def test_xml_emitter_renders(tmp_path, plugin):
     bsdf = ('<bsdf type="roughplastic"><float name="alpha" value="0.3"/>'
             '<rgb name="diffuse_reflectance" value="0.5, 0.5, 0.5"/></bsdf>')
     body = FLOOR + sphere(bsdf) + EMITTERS[plugin]
-    setup = scenes.load(write(tmp_path, scene_xml(body)), size=SIZE)
-    r = Renderer(setup)
-    for f in (r.render(0), r.render_reference(0, spp=8)):
-        _check_frame(f, setup)
-    obj = f.numpy("mesh_id")[..., 0] == setup.shape_index["object"]
-    assert obj.sum() > 10
+    f, obj = _render_object(tmp_path, body)
     assert f.numpy("direct_diffuse")[obj].mean() > 0
     assert f.numpy("direct_specular")[obj].mean() > 0
     bg = f.numpy("mesh_id")[..., 0] == 0

@@ -90,6 +90,8 @@ def cmd_render(args) -> int:
 def cmd_denoise(args) -> int:
     import time
 
+    import drjit as dr
+
     from . import denoise
     from .frame import Frame, load_sequence
     from .progress import Progress
@@ -104,8 +106,6 @@ def cmd_denoise(args) -> int:
         for k, f in enumerate(frames):
             t0 = time.perf_counter()
             img = d(f)
-            import drjit as dr
-
             dr.eval(img)
             dr.sync_thread()
             seconds.append(time.perf_counter() - t0)

@@ -30,13 +30,18 @@ from ..frame import Frame  # noqa: E402
 from ..scenes import SceneSetup  # noqa: E402
 from . import integrator as _integrator  # noqa: E402,F401  (registers "glossrt")
 from .motion import MotionInputs  # noqa: E402
-from .pathtracer import RADIANCE_OUT, ShapeTable, trace_pixels  # noqa: E402
+from .pathtracer import (  # noqa: E402
+    RADIANCE_OUT,
+    UNBOUNDED_DEPTH,
+    ShapeTable,
+    resolve_max_depth,
+    trace_pixels,
+)
 
 GBUFFER_OUT = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "roughness",
                "mesh_id", "motion")
 COMPONENTS = {"depth": 1, "roughness": 1, "mesh_id": 1, "motion": 2}
 REFERENCE_SALT = 0x5EED
-UNBOUNDED_DEPTH = 1 << 30
 #: lanes per launch when rendering references (pixels x samples)
 MAX_LANES = 1 << 21
 
@@ -78,10 +83,10 @@ class Renderer:
                  frozen: bool = True):
         self.setup = setup
         md = int(max_depth if max_depth is not None else (setup.max_depth or 3))
-        if md == 0 or md < -1:
-            raise GlossrtError(f"max_depth must be >= 1, or -1 for unbounded; got {md}")
-        #: Mitsuba's convention: -1 = unbounded (Russian roulette ends the paths)
-        self.max_depth = UNBOUNDED_DEPTH if md == -1 else md
+        try:
+            self.max_depth = resolve_max_depth(md)
+        except ValueError as e:
+            raise GlossrtError(str(e)) from None
         self.seed = seed
         self.frozen = frozen
         self.shapes = ShapeTable(setup.scene)
@@ -153,7 +158,7 @@ class Renderer:
             seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
             out = self.trace(frame, lane // kk, seeds, frozen=False)
             bad += int(out["nonfinite"][0])
-            for name in RADIANCE_OUT + ("color",):
+            for name in RADIANCE_OUT:
                 # lanes are pixel-major: pixel p owns lanes p*kk .. p*kk+kk-1
                 v = dr.unravel(mi.Color3f, out[name])
                 part = dr.ravel(mi.Color3f(*(dr.block_sum(v[c], kk) for c in range(3))))
@@ -169,6 +174,7 @@ class Renderer:
             if progress is not None:
                 progress(done, spp)
         channels = {k_: mi.TensorXf(v / spp, (h, w, 3)) for k_, v in sums.items()}
+        channels["color"] = mi.TensorXf(sum(sums[n] for n in RADIANCE_OUT) / spp, (h, w, 3))
         channels.update(gbuf)
         return self._frame(frame, channels, spp, bad, time.perf_counter() - t0, reference=True)
 

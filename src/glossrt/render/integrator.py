@@ -17,7 +17,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .pathtracer import RADIANCE_OUT, ShapeTable, gbuffer, shade
+from .pathtracer import RADIANCE_OUT, ShapeTable, gbuffer, resolve_max_depth, shade
 
 #: AOV layers in output order, with their components (Mitsuba names them layer.component)
 AOV_LAYERS = (
@@ -32,8 +32,7 @@ class GlossrtIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        md = int(props.get("max_depth", 3))
-        self.max_depth = 1 << 30 if md < 0 else md  # Mitsuba: -1 = unbounded
+        self.max_depth = resolve_max_depth(int(props.get("max_depth", 3)))
         self._tables: dict[int, ShapeTable] = {}
         from ..brdf.ggx import SpecularAlbedoTable
 

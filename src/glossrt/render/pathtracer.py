@@ -25,10 +25,21 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from ..scenes import stable_shapes
+
 #: Lobe masks: diffuse, and everything that is not diffuse (glossy + delta).
 DIFFUSE_MASK = int(mi.BSDFFlags.Diffuse)
 SPECULAR_MASK = int(mi.BSDFFlags.All) & ~DIFFUSE_MASK
 RR_DEPTH = 5
+#: what Mitsuba's max_depth = -1 ("no limit") becomes: Russian roulette ends the paths
+UNBOUNDED_DEPTH = 1 << 30
+
+
+def resolve_max_depth(max_depth: int) -> int:
+    """Mitsuba's convention: -1 = unbounded; 0 or below -1 is an error."""
+    if max_depth == 0 or max_depth < -1:
+        raise ValueError(f"max_depth must be >= 1, or -1 for unbounded; got {max_depth}")
+    return UNBOUNDED_DEPTH if max_depth == -1 else max_depth
 
 RADIANCE_OUT = ("emission", "direct_diffuse", "direct_specular", "indirect_diffuse",
                 "indirect_specular")
@@ -164,18 +175,6 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int) -> ShadeResul
         si=si0,
         bsdf=bsdf0,
     )
-
-
-def stable_shapes(scene: mi.Scene) -> list:
-    """``scene.shapes()`` in an order that does not change between loads of the same scene
-    (Mitsuba's own order varies from load to load), so ``mesh_id`` is reproducible."""
-
-    def key(s):
-        b = s.bbox()
-        return (s.id(), s.class_name(), tuple(float(b.min[i]) for i in range(3)),
-                tuple(float(b.max[i]) for i in range(3)))
-
-    return sorted(scene.shapes(), key=key)
 
 
 class ShapeTable:

@@ -91,6 +91,18 @@ def translation(v) -> Matrix:
     return m
 
 
+def stable_shapes(scene: mi.Scene) -> list:
+    """``scene.shapes()`` in an order that does not change between loads of the same scene
+    (Mitsuba's own order varies from load to load), so ``mesh_id`` is reproducible."""
+
+    def key(s):
+        b = s.bbox()
+        return (s.id(), s.class_name(), tuple(float(b.min[i]) for i in range(3)),
+                tuple(float(b.max[i]) for i in range(3)))
+
+    return sorted(scene.shapes(), key=key)
+
+
 class SceneSetup:
     """A loaded scene, glossrt's sensor for it, and its animation."""
 
@@ -149,8 +161,6 @@ class SceneSetup:
         self.object_paths = dict(object_paths or {})
         self.params = mi.traverse(scene)
         self._rest: dict[str, tuple[str, object]] = {}
-        from ..render.pathtracer import stable_shapes
-
         #: shapes in mesh_id order (1-based); stable across loads of the same scene
         self.shapes = stable_shapes(scene)
         shapes = {s.id(): s for s in self.shapes}
