@@ -143,12 +143,13 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
         """Weighted sum of the taps of an interleaved array of ``width`` (1 or 4) channels."""
         out = None
         for q, w in all_taps:
-            used = w > 0  # at most 4 of the 13 taps contribute: load only those
+            # unmasked on purpose: masked packet gathers abort inside dr.freeze (Dr.Jit 1.5,
+            # seen on a cold kernel cache); q is clamped, so every load is valid
             if width == 4:
-                v = dr.gather(mi.Vector4f, packed, q, used)  # packet gather
+                v = dr.gather(mi.Vector4f, packed, q)  # packet gather
                 vals = [v[0], v[1], v[2], v[3]]
             else:
-                vals = [dr.gather(mi.Float, packed, q, used)]
+                vals = [dr.gather(mi.Float, packed, q)]
             out = [w * x for x in vals] if out is None else [
                 o + w * x for o, x in zip(out, vals, strict=True)]
         return [o * norm for o in out]
