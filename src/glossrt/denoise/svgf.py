@@ -25,6 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import GlossrtError
+from ..jit import no_gc
 from .atrous import dammertz_level_multi, pow_int, svgf_level_multi
 from .common import (
     GBuffer,
@@ -429,7 +430,8 @@ class SVGF:
             ch["motion"] = [_zeros(w * h) + 1e9 for _ in range(2)]  # nothing to reproject onto
             dr.make_opaque(ch["motion"])
         p = self.params
-        colors, moments, albedos, length, young, bad = self._accumulate(ch, hist, p, w, h)
+        with no_gc():
+            colors, moments, albedos, length, young, bad = self._accumulate(ch, hist, p, w, h)
         # pixels that need the spatial variance estimate, compacted (few in steady state)
         lanes = None if p.variance == "spatial" else dr.compress(young)
         if lanes is not None and dr.width(lanes) == 0:
@@ -437,8 +439,9 @@ class SVGF:
             # selected) keep the arrays non-empty and away from width 1, which freeze treats
             # as a different (scalar) configuration
             lanes = dr.zeros(mi.UInt32, 2)
-        out, self.history = self._reconstruct(ch, colors, moments, albedos, length, lanes, p,
-                                              w, h)
+        with no_gc():
+            out, self.history = self._reconstruct(ch, colors, moments, albedos, length, lanes,
+                                                  p, w, h)
         self.nonfinite += int(bad[0]) + int(dr.sum(bad_e)[0])
         self._camera = frame.camera
         self.frames += 1

@@ -27,6 +27,7 @@ import mitsuba as mi  # noqa: E402
 from ..brdf.ggx import SpecularAlbedoTable  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..frame import Frame  # noqa: E402
+from ..jit import no_gc  # noqa: E402
 from ..scenes import SceneSetup  # noqa: E402
 from . import integrator as _integrator  # noqa: E402,F401  (registers "glossrt")
 from .motion import MotionInputs  # noqa: E402
@@ -107,10 +108,11 @@ class Renderer:
         self.setup.set_frame(frame)
         frozen = self.frozen if frozen is None else frozen
         fn = _trace_frozen if frozen else _trace
-        out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.table,
-                 self._motion_inputs(frame), pixel, seed, self.width, self.height,
-                 self.max_depth)
-        dr.eval(out)
+        with no_gc():
+            out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.table,
+                     self._motion_inputs(frame), pixel, seed, self.width, self.height,
+                     self.max_depth)
+            dr.eval(out)
         return out
 
     def render_pixels(self, frame: int, pixels, seed: int | None = None) -> dict[str, np.ndarray]:

@@ -1,0 +1,24 @@
+"""Helpers around Dr.Jit that several modules need."""
+
+from __future__ import annotations
+
+import gc
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+
+@contextmanager
+def no_gc() -> Iterator[None]:
+    """Keep Python's cyclic garbage collector out of a ``dr.freeze`` call.
+
+    A collection that runs while a frozen function records or replays can free Dr.Jit
+    variables of unrelated, unreachable objects (e.g. an earlier filter's history), and
+    Dr.Jit 1.5 then aborts the process ("Fatal Python error: Aborted", seen in CI on a cold
+    kernel cache). Reference counting still frees objects as usual meanwhile."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
