@@ -13,6 +13,12 @@ backend.ensure()
 from ..errors import GlossrtError  # noqa: E402
 from .bilateral import bilateral  # noqa: E402  (the function; the module stays importable)
 from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa  # noqa: E402
+from .upsampling import (  # noqa: E402  (module glossrt.denoise.upsampling)
+    SpatioTemporalUpsampler,
+    adaptive_resample,
+    jitter_sequence,
+    upsample,
+)
 
 METHODS = ("svgf", "svgf-lobe", "svgf-spatial-variance", "atrous", "atrous-temporal", "oidn",
            "optix")
@@ -55,5 +61,6 @@ def make(method: str, **params):
     raise GlossrtError(f"unknown denoiser {method!r}; choose one of {', '.join(METHODS)}")
 
 
-__all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "atrous_filter", "bilateral", "make",
-           "taa"]
+__all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "SpatioTemporalUpsampler",
+           "adaptive_resample", "atrous_filter", "bilateral", "jitter_sequence", "make", "taa",
+           "upsample"]

@@ -43,6 +43,8 @@ GBUFFER_OUT = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth
                "mesh_id", "motion")
 COMPONENTS = {"depth": 1, "roughness": 1, "mesh_id": 1, "motion": 2}
 REFERENCE_SALT = 0x5EED
+#: seeds of multi-sample pixel subsets (:meth:`Renderer.render_pixels` with spp > 1)
+PIXELS_SALT = 0xADA9
 #: lanes per launch when rendering references (pixels x samples)
 MAX_LANES = 1 << 21
 
@@ -63,13 +65,24 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
     return x
 
 
-def _trace(scene, sensor, shapes, table, motion_inputs, pixel, seed, width, height, max_depth):
+def _trace(scene, sensor, shapes, table, motion_inputs, pixel, seed, width, height, max_depth,
+           jitter):
     out = trace_pixels(scene, sensor, shapes, table, motion_inputs, pixel, seed, width, height,
-                       max_depth)
+                       max_depth, jitter)
     return {k: _flat(v) for k, v in out.items()}
 
 
 _trace_frozen = dr.freeze(_trace)
+
+
+def _check_jitter(jitter) -> tuple[float, float]:
+    try:
+        jx, jy = (float(v) for v in jitter)
+    except (TypeError, ValueError):
+        raise GlossrtError(f"jitter must be (x, y) in pixels, got {jitter!r}") from None
+    if not (-0.5 <= jx < 0.5 and -0.5 <= jy < 0.5):
+        raise GlossrtError(f"jitter must lie in [-0.5, 0.5) pixels, got {(jx, jy)}")
+    return jx, jy
 
 
 class Renderer:
@@ -102,41 +115,71 @@ class Renderer:
                             self.setup.object_transforms(prev), self.n_meshes)
 
     def trace(self, frame: int, pixel: mi.UInt32, seed: mi.UInt32,
-              frozen: bool | None = None) -> dict:
+              frozen: bool | None = None, jitter: tuple[float, float] = (0.0, 0.0)) -> dict:
         """Poses ``frame`` and returns every channel (interleaved flat arrays) for the pixel
-        indices ``pixel`` with per-lane (or one opaque) seed."""
+        indices ``pixel`` with per-lane (or one opaque) seed; primary rays pass through
+        pixel centre + ``jitter`` (pixels)."""
         self.setup.set_frame(frame)
         frozen = self.frozen if frozen is None else frozen
         fn = _trace_frozen if frozen else _trace
+        jx, jy = _check_jitter(jitter)
+        offset = mi.Point2f(dr.opaque(mi.Float, jx), dr.opaque(mi.Float, jy))
         with no_gc():
             out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.table,
                      self._motion_inputs(frame), pixel, seed, self.width, self.height,
-                     self.max_depth)
+                     self.max_depth, offset)
             dr.eval(out)
         return out
 
-    def render_pixels(self, frame: int, pixels, seed: int | None = None) -> dict[str, np.ndarray]:
-        """1 spp channels for a subset of pixels (indices y*W + x) of ``frame``: name ->
-        (N, C) NumPy arrays, equal to those pixels' values in :meth:`render`."""
+    def render_pixels(self, frame: int, pixels, seed: int | None = None,
+                      spp: int = 1) -> dict[str, np.ndarray]:
+        """Channels for a subset of pixels (indices y*W + x) of ``frame``: name -> (N, C)
+        NumPy arrays. With ``spp=1`` they equal those pixels' values in :meth:`render`; with
+        ``spp > 1`` the radiance is the mean of ``spp`` independent samples (seeds of their
+        own, independent of :meth:`render_reference`'s) and the G-buffer is unchanged."""
         idx = np.asarray(pixels, dtype=np.int64).ravel()
         if idx.size and (idx.min() < 0 or idx.max() >= self.width * self.height):
             raise ValueError(f"pixel indices must lie in [0, {self.width * self.height})")
+        if spp < 1:
+            raise ValueError(f"spp must be >= 1, got {spp}")
+        if idx.size == 0:
+            idx = np.zeros(0, np.int64)
         s = frame_seed(frame, self.seed if seed is None else seed)
-        out = self.trace(frame, mi.UInt32(idx.astype(np.uint32)), dr.opaque(mi.UInt32, s),
-                         frozen=False)
+        if spp == 1:
+            out = self.trace(frame, mi.UInt32(idx.astype(np.uint32)), dr.opaque(mi.UInt32, s),
+                             frozen=False)
+            out.pop("nonfinite")
+            return {k: np.array(v).reshape(idx.size, -1) for k, v in out.items()}
+        base = frame_seed(frame, self.seed if seed is None else seed, PIXELS_SALT)
+        lanes = np.repeat(idx, spp).astype(np.uint32)  # pixel-major
+        sample = dr.arange(mi.UInt32, lanes.size) % spp
+        seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
+        out = self.trace(frame, mi.UInt32(lanes), seeds, frozen=False)
         out.pop("nonfinite")
-        return {k: np.array(v).reshape(idx.size, -1) for k, v in out.items()}
+        res = {}
+        for k, v in out.items():
+            a = np.array(v).reshape(idx.size, spp, -1)
+            res[k] = a.mean(axis=1) if k in RADIANCE_OUT or k == "color" else a[:, 0]
+        return res
 
     # -- frames --------------------------------------------------------------------------
-    def render(self, frame: int, seed: int | None = None) -> Frame:
-        """The 1 spp Frame ``frame`` (G-buffer, separated radiance, motion vectors)."""
+    def render(self, frame: int, seed: int | None = None,
+               jitter: tuple[float, float] = (0.0, 0.0)) -> Frame:
+        """The 1 spp Frame ``frame`` (G-buffer, separated radiance, motion vectors).
+        ``jitter``: sub-pixel offset (x, y) of every primary ray from its pixel centre, in
+        pixels within [-0.5, 0.5) (e.g. for spatio-temporal upsampling); recorded in
+        ``meta["jitter"]``."""
         w, h = self.width, self.height
         t0 = time.perf_counter()
         s = frame_seed(frame, self.seed if seed is None else seed)
-        out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s))
+        out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
+                         jitter=jitter)
         bad = int(out.pop("nonfinite")[0])
         channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
-        return self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
+        f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
+        if tuple(jitter) != (0.0, 0.0):
+            f.meta["jitter"] = [float(jitter[0]), float(jitter[1])]
+        return f
 
     def render_reference(self, frame: int, spp: int, seed: int | None = None,
                          progress: Callable[[int, int], None] | None = None) -> Frame:

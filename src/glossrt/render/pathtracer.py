@@ -258,13 +258,16 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
 
 def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable, table,
                  motion_inputs, pixel: mi.UInt32, seed: mi.UInt32, width: int, height: int,
-                 max_depth: int) -> dict:
+                 max_depth: int, jitter: mi.Point2f | None = None) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
-    radiance values were not finite and were replaced by 0 (see the package docstring)."""
+    radiance values were not finite and were replaced by 0 (see the package docstring).
+    ``jitter`` (pixels, in [-0.5, 0.5)) moves every primary ray off the pixel centre."""
     from .motion import motion
 
     x = mi.Float(pixel % width) + 0.5
     y = mi.Float(pixel // width) + 0.5
+    if jitter is not None:
+        x, y = x + jitter.x, y + jitter.y
     pos = mi.Point2f(x / width, y / height)
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)

@@ -1,0 +1,347 @@
+"""Joint bilateral upsampling, spatio-temporal upsampling and adaptive re-sampling of
+low-resolution indirect light with normal-aware or specular-lobe-aware weights
+(Tokuyoshi 2015, secs. 5.3-5.4; after Kopf et al. 2007 and Herzog et al. 2010).
+
+A typical pipeline renders the full-resolution G-buffer and direct light, and the indirect
+light at 1/2 or 1/4 resolution (a second :class:`~glossrt.render.Renderer` on the same scene
+at the smaller size, which also gives the low-resolution G-buffer)::
+
+    from glossrt import render, scenes
+    from glossrt.denoise import upsample
+    full = render.Renderer(scenes.load("roughness-map", size=(320, 240))).render(0)
+    low_r = render.Renderer(scenes.load("roughness-map", size=(80, 60)))
+    low = low_r.render_reference(0, spp=64)  # or a denoised 1 spp render
+    rgb = upsample(full, low, weight="lobe")
+
+**Joint bilateral upsampling** (Kopf 2007, the weights of Tokuyoshi 2015 sec. 2.2 / 4.2): a
+full-resolution pixel ``p`` at low-resolution coordinates ``u(p) = (p + 0.5) / f - 0.5 -
+jitter`` averages the low-resolution samples ``q`` of the ``2r x 2r`` window around ``u(p)``::
+
+    I'(p) = sum_q W(p, q) I_low(q) / sum_q W(p, q)                      (Tokuyoshi eq. 1)
+    W(p, q) = exp(-|u(p) - q|^2 / (2 sigma_s^2)) w_z(p, q) w_dir(p, q)
+
+with the depth weight and ``w_dir`` = the normal weight or, for specular channels with
+``weight="lobe"``, the lobe weight, exactly as in :func:`glossrt.denoise.bilateral` but with
+the *full-resolution* pixel's G-buffer on one side and the *low-resolution* sample's on the
+other. Each listed radiance component is demodulated by the low-resolution albedo, upsampled,
+and remodulated by the full-resolution albedo; every other component comes from the
+full-resolution frame. ``sigma_s`` is in low-resolution pixels (default 1, window ``r = 2``:
+4x4 samples), glossrt's choice as the paper gives none.
+
+Where no sample in the window is similar (every guide weight underflows) the estimate falls
+back to the purely spatial average, which may mix surfaces: those are the pixels that the
+normalised weight sum ``sum W / sum f`` (returned with ``return_weights=True``) flags and that
+:func:`adaptive_resample` re-renders (sec. 5.4: re-sampling where the denominator of eq. 1
+is small).
+
+**Spatio-temporal upsampling** (:class:`SpatioTemporalUpsampler`, after Herzog et al. 2010):
+the previous full-resolution result (demodulated) is reprojected with the frame's motion
+vectors, with SVGF's per-tap consistency tests (depth, normal, mesh id) and 3x3 fallback
+(:func:`glossrt.denoise.svgf.reproject`), and blended with the current spatial upsample by an
+exponential moving average, ``a = max(alpha, 1 / history length)``. Rendering the
+low-resolution frames with a sub-pixel jitter that cycles over frames
+(``Renderer.render(jitter=...)``, see :func:`jitter_sequence`) lets the history collect
+samples at every sub-position, as Herzog's method does.
+
+Reads: the full frame's radiance components, albedos, ``normal``, ``depth``, ``mesh_id`` (and
+``position``, ``roughness``, camera for lobes; ``motion`` for the temporal upsampler); the low
+frame's listed components, albedos, ``normal``, ``depth``, ``mesh_id`` (and ``position``,
+``roughness``, camera for lobes) and ``meta["jitter"]`` when present.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..brdf.sg import ggx_lobe_to_sg, lobe_weight
+from ..errors import FrameError, GlossrtError
+from ..frame import RADIANCE
+from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2, WEIGHTS, view_directions
+from .common import Grid, check_frame, demodulate, merge, remodulate, split
+
+#: default screen kernel in *low-resolution* pixels, and the window half width (2r x 2r taps)
+SIGMA_S = 1.0
+RADIUS = 2
+#: default blending factor of the spatio-temporal upsampler (as SVGF's colour alpha)
+ALPHA = 0.2
+#: default threshold on the normalised weight sum below which pixels are re-rendered
+THRESHOLD = 0.05
+#: guide weights are floored at this fraction of the spatial weight (the spatial fallback)
+_FLOOR = 1e-6
+
+__all__ = ["ALPHA", "RADIUS", "SIGMA_S", "THRESHOLD", "SpatioTemporalUpsampler",
+           "adaptive_resample", "factor_of", "jitter_sequence", "upsample"]
+
+
+def factor_of(frame, low) -> int:
+    """The integer upsampling factor between ``low`` and ``frame`` (same in x and y)."""
+    fw, fh = frame.width / low.width, frame.height / low.height
+    if fw != fh or fw != int(fw) or fw < 1:
+        raise FrameError(
+            f"upsample: the full frame ({frame.width}x{frame.height}) must be an integer "
+            f"multiple (the same in x and y) of the low-resolution frame "
+            f"({low.width}x{low.height})")
+    return int(fw)
+
+
+def jitter_sequence(factor: int, index: int) -> tuple[float, float]:
+    """Sub-pixel jitter (low-resolution pixels) of frame ``index`` that makes the low
+    -resolution samples land on each of the ``factor^2`` full-resolution pixel centres of a
+    low-resolution pixel in turn (a cycle of ``factor^2`` frames)."""
+    if factor < 1:
+        raise GlossrtError(f"factor must be >= 1, got {factor}")
+    k = index % (factor * factor)
+    i, j = k % factor, k // factor
+    # full pixel centre i of the low pixel: (i + 0.5) / f - 0.5 relative to the low centre
+    return ((i + 0.5) / factor - 0.5, (j + 0.5) / factor - 0.5)
+
+
+def _albedo_name(channel: str) -> str:
+    if channel not in RADIANCE or channel == "emission":
+        raise GlossrtError(
+            f"upsample: cannot upsample {channel!r}; choose among "
+            f"{', '.join(c for c in RADIANCE if c != 'emission')}")
+    return "albedo_specular" if channel.endswith("specular") else "albedo_diffuse"
+
+
+@dataclass
+class _Guides:
+    """Per-pixel guidance of one frame: hit mask, depth, normal and (optionally) the SG of
+    the GGX lobe (Tokuyoshi 2015, sec. 4.2, Wang et al.'s warp)."""
+
+    hit: mi.Bool
+    z: mi.Float
+    normal: mi.Vector3f
+    xi: mi.Vector3f | None = None
+    lam: mi.Float | None = None
+
+    @staticmethod
+    def of(frame, lobes: bool) -> _Guides:
+        n = mi.Vector3f(*split(frame["normal"]))
+        z = split(frame["depth"])[0]
+        hit = (split(frame["mesh_id"])[0] > 0) & dr.isfinite(z) & (z > 0)
+        g = _Guides(hit, dr.select(hit, z, -1.0), n)
+        if lobes:
+            pos = split(frame["position"])
+            alpha = split(frame["roughness"])[0]
+            xi, lam = ggx_lobe_to_sg(n, view_directions(frame, pos), alpha)
+            g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
+            g.lam = dr.select(hit, lam, 1.0)
+        return g
+
+
+def _check(frame, low, channels, weight) -> tuple[tuple, dict, bool]:
+    if weight not in WEIGHTS:
+        raise GlossrtError(f"upsample: unknown weight {weight!r}; choose one of "
+                           f"{', '.join(WEIGHTS)}")
+    channels = tuple(dict.fromkeys(channels))
+    albedo_of = {c: _albedo_name(c) for c in channels}
+    use_lobe = weight == "lobe" and any(c.endswith("specular") for c in channels)
+    geo = ["normal", "depth", "mesh_id"] + (["position", "roughness"] if use_lobe else [])
+    check_frame(frame, [*RADIANCE, *sorted(set(albedo_of.values())), *geo])
+    check_frame(low, [*channels, *sorted(set(albedo_of.values())), *geo])
+    factor_of(frame, low)
+    return channels, albedo_of, use_lobe
+
+
+def _low_jitter(low) -> tuple[float, float]:
+    j = (low.meta or {}).get("jitter", (0.0, 0.0))
+    try:
+        jx, jy = (float(v) for v in j)
+    except (TypeError, ValueError):
+        raise FrameError(f"{low.where}: meta 'jitter' must be [x, y], got {j!r}") from None
+    return jx, jy
+
+
+def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, sigma_n2,
+                    beta, kappa, approx, sigma_z2):
+    """Upsampled demodulated illumination per channel (full resolution) and the normalised
+    weight sum per channel."""
+    f = factor_of(frame, low)
+    grid, lgrid = Grid(frame.width, frame.height), Grid(low.width, low.height)
+    jx, jy = _low_jitter(low)
+    hi = _Guides.of(frame, use_lobe)
+    lo = _Guides.of(low, use_lobe)
+    # position of each full-resolution pixel centre in low-resolution pixel-index units
+    u = (mi.Float(grid.x) + 0.5) / f - 0.5 - jx
+    v = (mi.Float(grid.y) + 0.5) / f - 0.5 - jy
+    x0, y0 = mi.Int32(dr.floor(u)), mi.Int32(dr.floor(v))
+
+    # packed low-resolution data: one packet gather per tap
+    geo = dr.ravel(mi.Vector4f(lo.normal[0], lo.normal[1], lo.normal[2], lo.z))
+    lobes = dr.ravel(mi.Vector4f(lo.xi[0], lo.xi[1], lo.xi[2], lo.lam)) if use_lobe else None
+    packed, specular = [], []
+    for c in channels:
+        illum = demodulate(split(low[c]), split(low[albedo_of[c]]))
+        packed.append(dr.ravel(mi.Vector4f(illum[0], illum[1], illum[2], 0.0)))
+        specular.append(c.endswith("specular"))
+    dr.eval(geo, lobes, packed)
+
+    inv_2s2 = 1.0 / (2.0 * sigma_s * sigma_s)
+    sums = [mi.Float(0.0) for _ in channels]
+    accs = [[mi.Float(0.0)] * 3 for _ in channels]
+    spatial_sum = mi.Float(0.0)
+    for dy in range(-radius + 1, radius + 1):
+        for dx in range(-radius + 1, radius + 1):
+            qx, qy = x0 + dx, y0 + dy
+            inside = lgrid.inside(qx, qy)
+            q = lgrid.index(qx, qy)
+            g = dr.gather(mi.Vector4f, geo, q)
+            # Kopf 2007: spatial Gaussian on the low-resolution grid
+            d2 = dr.square(mi.Float(qx) - u) + dr.square(mi.Float(qy) - v)
+            w_sp = dr.select(inside, dr.exp(-d2 * inv_2s2), 0.0)
+            spatial_sum += w_sp
+            valid = inside & hi.hit & (g[3] > 0)  # never a background sample
+            log_w = mi.Float(0.0)
+            if sigma_z2 is not None:
+                # Tokuyoshi 2015, sec. 2.2: w_z, on the depth relative to z_p
+                log_w = -dr.square((hi.z - g[3]) / hi.z) / (2.0 * sigma_z2)
+            w_geo = dr.select(valid, w_sp * dr.exp(log_w), 0.0)
+            # sec. 2.2: w_n = exp(-|n_p - n_q|^2 / (2 sigma_n^2))
+            dn2 = dr.squared_norm(hi.normal - mi.Vector3f(g[0], g[1], g[2]))
+            w_nrm = w_geo * dr.exp(-dn2 / (2.0 * sigma_n2))
+            if use_lobe:
+                lq = dr.gather(mi.Vector4f, lobes, q)
+                # sec. 4.2: the lobe weight between the full pixel's and the sample's lobes
+                w_lobe = w_geo * lobe_weight(hi.xi, hi.lam, mi.Vector3f(lq[0], lq[1], lq[2]),
+                                             lq[3], beta, kappa, approx)
+            for k, s in enumerate(packed):
+                wk = w_lobe if (use_lobe and specular[k]) else w_nrm
+                val = dr.gather(mi.Vector4f, s, q)
+                # eq. 1, with the spatial fallback floor (module docstring)
+                wk = wk + _FLOOR * w_sp
+                sums[k] += wk
+                accs[k] = [a + wk * val[j] for j, a in enumerate(accs[k])]
+        dr.eval(sums, accs, spatial_sum)
+    illum = [[a / dr.maximum(s, 1e-30) for a in acc] for acc, s in zip(accs, sums, strict=True)]
+    weights = [dr.maximum(s / dr.maximum(spatial_sum, 1e-30) - _FLOOR, 0.0) for s in sums]
+    return illum, weights, hi.hit
+
+
+def _compose(frame, channels, albedo_of, illum, hit) -> list:
+    """Full-resolution RGB: unlisted components from ``frame`` plus the remodulated
+    upsampled ones (background pixels keep ``frame``'s own radiance)."""
+    out = [dr.zeros(mi.Float, frame.width * frame.height) for _ in range(3)]
+    for c in RADIANCE:
+        if c not in channels:
+            out = [o + r for o, r in zip(out, split(frame[c]), strict=True)]
+    for k, c in enumerate(channels):
+        mod = remodulate(illum[k], split(frame[albedo_of[c]]))
+        raw = split(frame[c])
+        out = [o + dr.select(hit, m, r) for o, m, r in zip(out, mod, raw, strict=True)]
+    return out
+
+
+def upsample(frame, low, weight: str = "normal",
+             channels: tuple[str, ...] = ("indirect_diffuse", "indirect_specular"),
+             radius: int = RADIUS, sigma_s: float = SIGMA_S, sigma_n2: float = SIGMA_N2,
+             beta: float = BETA, kappa: float | None = KAPPA, approx: bool = True,
+             sigma_z2: float | None = SIGMA_Z2, return_weights: bool = False):
+    """Joint bilateral upsampling of the ``channels`` of the low-resolution frame ``low`` to
+    the G-buffer of ``frame`` (see the module docstring); the other radiance components come
+    from ``frame``. Returns the RGB image (H, W, 3); with ``return_weights=True`` also the
+    normalised weight sums (H, W, len(channels)) in [0, 1] (0: no similar sample)."""
+    channels, albedo_of, use_lobe = _check(frame, low, channels, weight)
+    radius = int(radius)
+    if radius < 1 or not sigma_s > 0 or not sigma_n2 > 0:
+        raise GlossrtError("upsample: need radius >= 1, sigma_s > 0 and sigma_n2 > 0")
+    illum, weights, hit = _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius,
+                                          sigma_s, sigma_n2, beta, kappa, approx, sigma_z2)
+    img = merge(_compose(frame, channels, albedo_of, illum, hit), frame.height, frame.width)
+    if return_weights:
+        wts = [dr.select(hit, wk, 1.0) for wk in weights]  # background needs nothing
+        return img, merge(wts, frame.height, frame.width)
+    return img
+
+
+def adaptive_resample(renderer, frame_index: int, frame, image, weights,
+                      threshold: float = THRESHOLD,
+                      channels: tuple[str, ...] = ("indirect_diffuse", "indirect_specular"),
+                      spp: int = 1) -> tuple[mi.TensorXf, np.ndarray]:
+    """Tokuyoshi 2015, sec. 5.4: re-render at full resolution the pixels whose normalised
+    weight sum (any channel, from :func:`upsample` with ``return_weights=True``) is below
+    ``threshold``, with ``renderer`` (the full-resolution Renderer of ``frame``'s scene) at
+    ``spp`` samples; their listed channels replace the upsampled ones. Returns the new image
+    and the boolean (H, W) mask of re-rendered pixels."""
+    h, w = frame.height, frame.width
+    if (renderer.width, renderer.height) != (w, h):
+        raise GlossrtError(f"adaptive_resample: renderer is {renderer.width}x"
+                           f"{renderer.height}, the frame {w}x{h}")
+    img = np.array(image, dtype=np.float32).reshape(h, w, 3)
+    wts = np.array(weights, dtype=np.float32).reshape(h, w, -1)
+    if not math.isfinite(threshold) or threshold < 0:
+        raise GlossrtError(f"adaptive_resample: threshold must be >= 0, got {threshold}")
+    mask = np.min(wts, axis=-1) < threshold
+    idx = np.flatnonzero(mask)
+    if idx.size:
+        got = renderer.render_pixels(frame_index, idx, spp=spp)
+        rest = sum(frame.numpy(c).reshape(-1, 3)[idx] for c in RADIANCE if c not in channels)
+        flat = img.reshape(-1, 3)
+        flat[idx] = rest + sum(got[c] for c in channels)
+    return mi.TensorXf(img), mask
+
+
+class SpatioTemporalUpsampler:
+    """Spatio-temporal upsampling (Tokuyoshi 2015 sec. 5.3 after Herzog et al. 2010; see the
+    module docstring): ``up(frame, low) -> mi.TensorXf`` per frame, ``up.reset()`` on cuts.
+    Parameters are those of :func:`upsample` plus ``alpha`` (the blend of new samples)."""
+
+    def __init__(self, weight: str = "normal",
+                 channels: tuple[str, ...] = ("indirect_diffuse", "indirect_specular"),
+                 alpha: float = ALPHA, **params):
+        if not 0.0 < alpha <= 1.0:
+            raise GlossrtError(f"SpatioTemporalUpsampler: alpha must be in (0, 1], got {alpha}")
+        self.weight, self.channels, self.alpha = weight, tuple(channels), float(alpha)
+        self.params = dict(radius=RADIUS, sigma_s=SIGMA_S, sigma_n2=SIGMA_N2, beta=BETA,
+                           kappa=KAPPA, approx=True, sigma_z2=SIGMA_Z2)
+        unknown = set(params) - set(self.params)
+        if unknown:
+            raise GlossrtError(f"SpatioTemporalUpsampler: unknown parameters {sorted(unknown)}")
+        self.params.update(params)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the history (the next frame is the spatial upsample alone)."""
+        self._history = None
+        self._size = None
+
+    def __call__(self, frame, low) -> mi.TensorXf:
+        from .common import gbuffer
+        from .svgf import History, reproject
+
+        channels, albedo_of, use_lobe = _check(frame, low, self.channels, self.weight)
+        check_frame(frame, ["motion"])
+        p = self.params
+        illum, _, hit = _upsample_illum(frame, low, channels, albedo_of, use_lobe,
+                                        int(p["radius"]), p["sigma_s"], p["sigma_n2"],
+                                        p["beta"], p["kappa"], p["approx"], p["sigma_z2"])
+        size = (frame.width, frame.height)
+        grid = Grid(*size)
+        gb = gbuffer(frame, grid)
+        n = size[0] * size[1]
+        if self._history is None or self._size != size:
+            zero = dr.zeros(mi.Float, n)
+            prev = History(color=[[zero] * 3 for _ in channels],
+                           moments=[[zero, zero] for _ in channels],
+                           length=zero, normal=[zero] * 3, inv_z=zero, mesh=zero)
+        else:
+            prev = self._history
+        moments = [[dr.zeros(mi.Float, n)] * 2 for _ in channels]
+        # Herzog 2010 / Schied 2017 sec. 4.1: reprojected history, consistency-tested, blended
+        # with the new spatial estimate by an exponential moving average
+        blended, _, length = reproject(grid, gb, split(frame["motion"]), prev, illum, moments,
+                                       self.alpha, 1.0)
+        blended = [[dr.select(hit, b, 0.0) for b in bl] for bl in blended]
+        length = dr.select(hit, length, 0.0)
+        dr.eval(blended, length)
+        # moments are SVGF's; the upsampler keeps none (zeros satisfy reproject's interface)
+        self._history = History(color=blended, moments=moments, length=length,
+                                normal=gb.normal, inv_z=gb.inv_z, mesh=gb.mesh)
+        self._size = size
+        return merge(_compose(frame, channels, albedo_of, blended, hit),
+                     frame.height, frame.width)
