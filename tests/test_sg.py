@@ -364,3 +364,26 @@ def test_plot_fig3_writes_png(tmp_path):
     assert ex[0] == 1.0 and ap[0] == 1.0 and np.max(np.abs(ex - ap)) < 0.02
     ex, ap = curves[0.5]
     assert np.max(np.abs(ex - ap)) > 0.05  # the approximation is poor for broad lobes
+
+
+@pytest.mark.parametrize("beta", [20.0, 7.3, 1.0])
+def test_lobe_weight_factors_match_the_closed_form(beta):
+    """The per-tap split used by the filters (ratio by repeated squaring for integer beta/2)
+    against the sec. 4.2 closed form in float64, and against lobe_weight(approx=True)."""
+    rng = np.random.default_rng(7)
+    k = 300
+    xp, xq = _rand_dirs(rng, k), _rand_dirs(rng, k)
+    xq[:100] = xp[:100] + 0.05 * rng.normal(size=(100, 3))  # near neighbours: weights ~ 1
+    xq /= np.linalg.norm(xq, axis=1, keepdims=True)
+    lp, lq = 10 ** rng.uniform(-1, 5, k), 10 ** rng.uniform(-1, 5, k)
+    kappa = 100.0
+    a, b = lp * kappa / (lp + kappa), lq * kappa / (lq + kappa)
+    cos = np.sum(xp * xq, 1)
+    want = (2 * np.sqrt(a * b) / (a + b)) ** beta * np.exp(beta * a * b / (a + b) * (cos - 1))
+    ratio, log_g = sg.lobe_weight_factors(
+        _v(xp), sg.smoothed_sharpness(_f(lp), kappa), _v(xq),
+        sg.smoothed_sharpness(_f(lq), kappa), beta)
+    got = _np(ratio) * np.exp(_np(log_g))
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)
+    full = _np(sg.lobe_weight(_v(xp), _f(lp), _v(xq), _f(lq), beta, kappa, approx=True))
+    np.testing.assert_allclose(got, full, rtol=2e-4, atol=1e-7)

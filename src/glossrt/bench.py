@@ -150,6 +150,38 @@ def denoisers(ctx: BenchContext) -> dict:
     return out
 
 
+@benchmark("lobe-weights")
+def lobe_weights(ctx: BenchContext) -> dict:
+    """Cost of Tokuyoshi 2015's lobe weight over the normal weight at the same footprint,
+    interleaved in one run: the cross-bilateral filter (both indirect components, 13x13
+    window) and joint bilateral upsampling from 1/2 and 1/4 resolution (4x4 samples), on
+    ``roughness-map``. Target: lobe / normal <= 1.15."""
+    import drjit as dr
+
+    from . import render, scenes
+    from .denoise import bilateral, upsample
+
+    w, h = ctx.size
+    full = render.Renderer(scenes.load("roughness-map", size=(w, h))).render(0)
+    lows = {f: render.Renderer(scenes.load("roughness-map", size=(w // f, h // f))).render(0)
+            for f in (2, 4) if w % f == 0 and h % f == 0}
+    cases = {}
+    for weight in ("normal", "lobe"):
+        cases[f"bilateral-{weight}"] = lambda wt=weight: dr.eval(bilateral(full, weight=wt))
+        for f, low in lows.items():
+            cases[f"upsample-1/{f}-{weight}"] = (
+                lambda wt=weight, lo=low: dr.eval(upsample(full, lo, weight=wt)))
+    res = {k: [] for k in cases}
+    for _ in range(3):
+        for name, fn in cases.items():
+            res[name].append(timeit(fn, 1, max(1, ctx.repeats // 3))["median_s"])
+    med = {k: statistics.median(v) for k, v in res.items()}
+    ratios = {k.replace("-normal", ""): med[k.replace("-normal", "-lobe")] / v
+              for k, v in med.items() if k.endswith("-normal")}
+    return {"scene": "roughness-map", "size": [w, h], "seconds": med,
+            "ratio_lobe_vs_normal": ratios, "target_ratio": 1.15}
+
+
 def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,
         repeats: int = 9, log: Callable[[str], None] = print) -> dict:
     """Run the named (default: all) benchmarks and return a JSON-able dict."""

@@ -6,6 +6,8 @@ import gc
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import drjit as dr
+
 
 @contextmanager
 def no_gc() -> Iterator[None]:
@@ -22,3 +24,19 @@ def no_gc() -> Iterator[None]:
     finally:
         if enabled:
             gc.enable()
+
+
+def pow_int(x, n: float):
+    """``x**n`` by repeated squaring when ``n`` is a small positive integer (128 is 7
+    squarings, far cheaper than ``exp(n log x)``); ``dr.power`` otherwise."""
+    if float(n).is_integer() and 0 < n <= 1024:
+        n = int(n)
+        result, base = None, x
+        while n:
+            if n & 1:
+                result = base if result is None else result * base
+            n >>= 1
+            if n:
+                base = base * base
+        return result
+    return dr.power(x, n)

@@ -35,6 +35,8 @@ backend.ensure()
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402, F401  (variant set up by backend.ensure)
 
+from ..jit import pow_int  # noqa: E402
+
 __all__ = [
     "ALPHA_MIN",
     "COS_MIN",
@@ -46,12 +48,14 @@ __all__ = [
     "gaussian_weight",
     "ggx_lobe_to_sg",
     "lobe_weight",
+    "lobe_weight_factors",
     "phong_lobe_to_sg",
     "reflect",
     "sg_eval",
     "sg_integral",
     "sg_product_integral",
     "sg_product_integral_approx",
+    "smoothed_sharpness",
 ]
 
 #: Smallest roughness used by the lobe constructors (Mitsuba's microfacet ``ALPHA_MIN``).
@@ -214,7 +218,7 @@ def phong_lobe_to_sg(n, wo, s):
 # distribution-aware weights (Tokuyoshi 2015, sec. 3 and 4.2)
 
 
-def _smoothed_sharpness(lambda_, kappa):
+def smoothed_sharpness(lambda_, kappa):
     """``lambda_bar = lambda kappa / (lambda + kappa)``: the SG lobe convolved with the SG
     smoothing kernel ``b(w', w) ~ G(w', w, kappa)`` through eq. 7 (Tokuyoshi 2015, eq. 3 and
     sec. 4.2). ``kappa=None`` means no smoothing (``lambda_bar = lambda``)."""
@@ -229,7 +233,7 @@ def lobe_weight(xi_p, l_p, xi_q, l_q, beta=20.0, kappa=100.0, approx=False):
     """Specular-lobe-aware weight ``w(p, q) = q_pq^beta`` between two SG lobes.
 
     Tokuyoshi 2015, eqs. 3-5 with SG lobes (sec. 4.2): the lobes are smoothed by the SG kernel
-    of sharpness ``kappa`` (``lambda_bar``, see :func:`_smoothed_sharpness`), normalised so
+    of sharpness ``kappa`` (``lambda_bar``, see :func:`smoothed_sharpness`), normalised so
     that ``int p^2 = 1`` (eq. 4) and ``q = int p_p p_q`` (eq. 5), hence ``w(p, p) = 1`` and
     ``0 <= w <= 1``.
 
@@ -242,8 +246,8 @@ def lobe_weight(xi_p, l_p, xi_q, l_q, beta=20.0, kappa=100.0, approx=False):
 
     Both are evaluated in the log domain and clamped to ``[0, 1]``. ``kappa=None``: no
     smoothing. Defaults ``beta = 20``, ``kappa = 100`` are the paper's (sec. 5)."""
-    a = _smoothed_sharpness(l_p, kappa)
-    b = _smoothed_sharpness(l_q, kappa)
+    a = smoothed_sharpness(l_p, kappa)
+    b = smoothed_sharpness(l_q, kappa)
     if approx:
         s = a + b
         # Tokuyoshi 2015, sec. 4.2: q ~ 2 sqrt(a b) / (a + b) G(xi_p, xi_q, a b / (a + b));
@@ -257,6 +261,24 @@ def lobe_weight(xi_p, l_p, xi_q, l_q, beta=20.0, kappa=100.0, approx=False):
         )
     # Tokuyoshi 2015, sec. 3: w(i, j) = q_ij^beta
     return dr.exp(beta * dr.minimum(log_q, 0.0))
+
+
+def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
+    """The closed-form lobe weight (``lobe_weight(..., approx=True)``) split for filters that
+    evaluate it per tap: ``w = ratio * exp(log_g)``, from *smoothed* sharpnesses ``lb``
+    (:func:`smoothed_sharpness`, computed once per pixel rather than per tap).
+
+    Tokuyoshi 2015, sec. 4.2: ``ratio = (2 sqrt(lb_p lb_q) / (lb_p + lb_q))^beta =
+    (4 lb_p lb_q / (lb_p + lb_q)^2)^(beta / 2)`` (by repeated squaring when ``beta / 2`` is an
+    integer, as for the paper's 20) and ``log_g = beta lb_p lb_q / (lb_p + lb_q) (xi_p . xi_q -
+    1)``; a filter folds ``log_g`` into the exponent of its other Gaussian weights, so the
+    lobe weight costs one ``exp`` per tap."""
+    inv_s = dr.rcp(lb_p + lb_q)
+    r = lb_p * lb_q * inv_s
+    # 4 a b / (a + b)^2 <= 1 (AM-GM); clamp rounding
+    ratio = pow_int(dr.minimum(4.0 * r * inv_s, 1.0), 0.5 * beta)
+    # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
+    return ratio, (beta * r) * _cos_minus_one(xi_p, xi_q)
 
 
 def gaussian_weight(mu_p, var_p, mu_q, var_q, beta=20.0, kappa=100.0, dim=1):

@@ -11,7 +11,11 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..jit import pow_int
 from .common import H5, GBuffer, Grid, Img, luminance
+
+__all__ = ["atrous_taps", "dammertz_level", "dammertz_level_multi", "gaussian3x3", "pow_int",
+           "svgf_level", "svgf_level_multi"]
 
 EPS_Z = 1e-3  # relative: |d(1/z)| below 1e-3 of 1/z counts as "on the plane"
 EPS_L = 1e-10
@@ -37,22 +41,6 @@ def atrous_taps(grid: Grid, step: int, active: mi.Bool):
                 continue
             qx, qy = grid.x + dx * step, grid.y + dy * step
             yield dx, dy, grid.index(qx, qy), grid.inside(qx, qy) & active
-
-
-def pow_int(x: mi.Float, n: float) -> mi.Float:
-    """x**n by repeated squaring when n is a small integer (w_n's 128 is 7 squarings,
-    far cheaper than exp(n log x)); dr.power otherwise."""
-    if float(n).is_integer() and 0 < n <= 1024:
-        n = int(n)
-        result, base = None, x
-        while n:
-            if n & 1:
-                result = base if result is None else result * base
-            n >>= 1
-            if n:
-                base = base * base
-        return result
-    return dr.power(x, n)
 
 
 def svgf_level(grid: Grid, color: Img, var: mi.Float, gb: GBuffer, step: int,

@@ -396,7 +396,9 @@ class SVGF:
         if frame.camera is None:
             raise GlossrtError(f"{frame.where}: weights='lobe' needs the camera (glossrt header)"
                                " to know the view direction")
-        cam = mi.Point3f(*(float(v) for v in np.asarray(frame.camera.to_world)[:3, 3]))
+        # opaque: a moving camera must not bake new literals (and compile new kernels)
+        cam = mi.Point3f(*(dr.opaque(mi.Float, float(v))
+                           for v in np.asarray(frame.camera.to_world)[:3, 3]))
         pos = mi.Point3f(*split(frame["position"]))
         wo = dr.normalize(cam - pos)
         n = mi.Vector3f(*gb.normal)

@@ -58,7 +58,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..brdf.sg import ggx_lobe_to_sg, lobe_weight
+from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2, WEIGHTS, view_directions
@@ -112,7 +112,8 @@ def _albedo_name(channel: str) -> str:
 @dataclass
 class _Guides:
     """Per-pixel guidance of one frame: hit mask, depth, normal and (optionally) the SG of
-    the GGX lobe (Tokuyoshi 2015, sec. 4.2, Wang et al.'s warp)."""
+    the GGX lobe (Tokuyoshi 2015, sec. 4.2, Wang et al.'s warp) with its *smoothed*
+    sharpness ``lambda_bar``."""
 
     hit: mi.Bool
     z: mi.Float
@@ -121,7 +122,7 @@ class _Guides:
     lam: mi.Float | None = None
 
     @staticmethod
-    def of(frame, lobes: bool) -> _Guides:
+    def of(frame, lobes: bool, kappa: float | None = KAPPA) -> _Guides:
         n = mi.Vector3f(*split(frame["normal"]))
         z = split(frame["depth"])[0]
         hit = (split(frame["mesh_id"])[0] > 0) & dr.isfinite(z) & (z > 0)
@@ -131,7 +132,8 @@ class _Guides:
             alpha = split(frame["roughness"])[0]
             xi, lam = ggx_lobe_to_sg(n, view_directions(frame, pos), alpha)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
-            g.lam = dr.select(hit, lam, 1.0)
+            # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
+            g.lam = smoothed_sharpness(dr.select(hit, lam, 1.0), kappa)
         return g
 
 
@@ -165,8 +167,8 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     f = factor_of(frame, low)
     grid, lgrid = Grid(frame.width, frame.height), Grid(low.width, low.height)
     jx, jy = _low_jitter(low)
-    hi = _Guides.of(frame, use_lobe)
-    lo = _Guides.of(low, use_lobe)
+    hi = _Guides.of(frame, use_lobe, kappa)
+    lo = _Guides.of(low, use_lobe, kappa)
     # position of each full-resolution pixel centre in low-resolution pixel-index units
     u = (mi.Float(grid.x) + 0.5) / f - 0.5 - jx
     v = (mi.Float(grid.y) + 0.5) / f - 0.5 - jy
@@ -180,6 +182,8 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
         illum = demodulate(split(low[c]), split(low[albedo_of[c]]))
         packed.append(dr.ravel(mi.Vector4f(illum[0], illum[1], illum[2], 0.0)))
         specular.append(c.endswith("specular"))
+    # the full pixel's guides once, not re-derived in every window-row kernel
+    dr.eval(hi.hit, hi.z, hi.normal, hi.xi, hi.lam, u, v)
     dr.eval(geo, lobes, packed)
 
     inv_2s2 = 1.0 / (2.0 * sigma_s * sigma_s)
@@ -201,15 +205,19 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
             if sigma_z2 is not None:
                 # Tokuyoshi 2015, sec. 2.2: w_z, on the depth relative to z_p
                 log_w = -dr.square((hi.z - g[3]) / hi.z) / (2.0 * sigma_z2)
-            w_geo = dr.select(valid, w_sp * dr.exp(log_w), 0.0)
-            # sec. 2.2: w_n = exp(-|n_p - n_q|^2 / (2 sigma_n^2))
+            # sec. 2.2: w_n = exp(-|n_p - n_q|^2 / (2 sigma_n^2)), in the same exponent as w_z
             dn2 = dr.squared_norm(hi.normal - mi.Vector3f(g[0], g[1], g[2]))
-            w_nrm = w_geo * dr.exp(-dn2 / (2.0 * sigma_n2))
+            w_nrm = dr.select(valid, w_sp * dr.exp(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
             if use_lobe:
                 lq = dr.gather(mi.Vector4f, lobes, q)
+                xi_q = mi.Vector3f(lq[0], lq[1], lq[2])
                 # sec. 4.2: the lobe weight between the full pixel's and the sample's lobes
-                w_lobe = w_geo * lobe_weight(hi.xi, hi.lam, mi.Vector3f(lq[0], lq[1], lq[2]),
-                                             lq[3], beta, kappa, approx)
+                if approx:
+                    ratio, log_g = lobe_weight_factors(hi.xi, hi.lam, xi_q, lq[3], beta)
+                    w_lobe = dr.select(valid, w_sp * ratio * dr.exp(log_w + log_g), 0.0)
+                else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
+                    w_lobe = dr.select(valid, w_sp * dr.exp(log_w), 0.0) * lobe_weight(
+                        hi.xi, hi.lam, xi_q, lq[3], beta, None, False)
             for k, s in enumerate(packed):
                 wk = w_lobe if (use_lobe and specular[k]) else w_nrm
                 val = dr.gather(mi.Vector4f, s, q)
