@@ -272,3 +272,151 @@ def test_roughness_map_both_filters_reduce_error(roughness_map):
                    "not tuned", strict=False)
 def test_roughness_map_lobe_beats_normal(roughness_map):
     assert roughness_map["lobe"] <= 0.8 * roughness_map["normal"]
+
+
+# -- weight="screen": the sharpness-adapted screen kernel (fig. 4(c) baseline, glossrt's form) ---
+
+
+def np_screen_sigma(frame, k_s, sigma_min, sigma_s):
+    """Per-pixel sigma_s,i = clip(k_s / (sqrt(lambda_i) theta_px), sigma_min, sigma_s)."""
+    cam = frame.camera
+    theta = 2.0 * math.tan(math.radians(cam.fov) / 2.0) / frame.width
+    F = {k: frame.numpy(k).astype(np.float64) for k in ("normal", "position", "roughness")}
+    sig = np.full((frame.height, frame.width), sigma_s)
+    for y in range(frame.height):
+        for x in range(frame.width):
+            wo = CAM_POS - F["position"][y, x]
+            _, lam = np_lobe(F["normal"][y, x], wo / np.linalg.norm(wo), F["roughness"][y, x, 0])
+            sig[y, x] = min(max(k_s / (math.sqrt(lam) * theta), sigma_min), sigma_s)
+    return sig
+
+
+def np_screen_bilateral(frame, channels, radius, sigma_s, k_s, sigma_min, sigma_n2=0.01,
+                        sigma_z2=0.01):
+    F = {k: frame.numpy(k).astype(np.float64) for k in frame.names}
+    h, w = frame.height, frame.width
+    hit = F["mesh_id"][..., 0] > 0
+    sig_i = np_screen_sigma(frame, k_s, sigma_min, sigma_s)
+    out = sum(F[c] for c in RADIANCE if c not in channels)
+    for c in channels:
+        spec = c.endswith("specular")
+        alb = F["albedo_specular" if spec else "albedo_diffuse"]
+        ok = alb > 1e-3
+        sig = np.where(ok, F[c] / np.maximum(alb, 1e-3), F[c])
+        filt = sig.copy()
+        for y in range(h):
+            for x in range(w):
+                if not hit[y, x]:
+                    continue
+                s_i = sig_i[y, x] if spec else sigma_s
+                ni, zi = F["normal"][y, x], F["depth"][y, x, 0]
+                num, den = np.zeros(3), 0.0
+                for yy in range(max(0, y - radius), min(h, y + radius + 1)):
+                    for xx in range(max(0, x - radius), min(w, x + radius + 1)):
+                        if not hit[yy, xx]:
+                            continue
+                        d2 = (xx - x) ** 2 + (yy - y) ** 2
+                        wt = math.exp(-d2 / (2 * s_i**2))
+                        zj = F["depth"][yy, xx, 0]
+                        wt *= math.exp(-(((zi - zj) / zi) ** 2) / (2 * sigma_z2))
+                        wt *= math.exp(-np.sum((ni - F["normal"][yy, xx]) ** 2) / (2 * sigma_n2))
+                        num += wt * sig[yy, xx]
+                        den += wt
+                filt[y, x] = num / den
+        out = out + np.where(hit[..., None], np.where(ok, filt * alb, filt), F[c])
+    return out
+
+
+def test_screen_matches_numpy_reference():
+    f = random_frame(seed=11)
+    chans = ("indirect_diffuse", "indirect_specular")
+    k_s, sigma_min, sigma_s = 0.5, 0.5, 1.5
+    sig = np_screen_sigma(f, k_s, sigma_min, sigma_s)[f.numpy("mesh_id")[..., 0] > 0]
+    # all three regimes of the clip occur (the check is not about a constant sigma)
+    assert (sig == sigma_min).any() and (sig == sigma_s).any()
+    assert ((sig > sigma_min) & (sig < sigma_s)).any()
+    got = np.array(bilateral(f, weight="screen", channels=chans, radius=3, sigma_s=sigma_s,
+                             k_s=k_s, sigma_min=sigma_min))
+    want = np_screen_bilateral(f, chans, 3, sigma_s, k_s, sigma_min)
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=2e-5)
+    normal = np.array(bilateral(f, weight="normal", channels=chans, radius=3, sigma_s=sigma_s))
+    assert np.max(np.abs(got - normal)) > 1e-2  # the adapted kernel changed the result
+
+
+def test_screen_reduces_to_normal_when_sigma_is_not_adapted():
+    # k_s huge: every adapted sigma clips to sigma_s, so the weight is the normal weight
+    f = random_frame(seed=13)
+    a = np.array(bilateral(f, weight="screen", radius=3, k_s=1e9))
+    b = np.array(bilateral(f, weight="normal", radius=3))
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_screen_keeps_the_normal_weight_on_diffuse_channels():
+    f = random_frame(seed=15)
+    a = np.array(bilateral(f, weight="screen", channels=("indirect_diffuse",), radius=2))
+    b = np.array(bilateral(f, weight="normal", channels=("indirect_diffuse",), radius=2))
+    np.testing.assert_array_equal(a, b)
+
+
+def noisy_step_frame(seed=0):
+    """step_frame with independent noise on the demodulated indirect specular (mean 1)."""
+    f = step_frame()
+    rng = np.random.default_rng(seed)
+    h, w = f.height, f.width
+    noise = rng.uniform(0.0, 2.0, (h, w, 1)).repeat(3, -1)
+    g = Frame(channels=dict(f.channels), camera=f.camera)
+    g["indirect_specular"] = (0.5 * noise).astype(np.float32)  # albedo_specular = 0.5
+    return g
+
+
+def test_screen_filters_sharp_pixels_less_than_rough_ones():
+    f = noisy_step_frame()
+    inp = f.numpy("indirect_specular")[..., 0]
+    sharp_cols, rough_cols = slice(0, 5), slice(19, 24)  # >= 7 px from the step (radius 6)
+
+    def reduction(img, cols):
+        return float(np.std(img[:, cols]) / np.std(inp[:, cols]))
+
+    scr = np.array(bilateral(f, weight="screen"))[..., 0]
+    nrm = np.array(bilateral(f, weight="normal"))[..., 0]
+    s_sharp, s_rough = reduction(scr, sharp_cols), reduction(scr, rough_cols)
+    n_sharp, n_rough = reduction(nrm, sharp_cols), reduction(nrm, rough_cols)
+    sig = np_screen_sigma(f, 1.0, 0.5, 2.0)
+    print(f"\nscreen kernel: sigma {sig[:, sharp_cols].mean():.3g} px (alpha 0.02), "
+          f"{sig[:, rough_cols].mean():.3g} px (alpha 0.5); remaining noise std: screen "
+          f"{s_sharp:.3g} / {s_rough:.3g}, normal {n_sharp:.3g} / {n_rough:.3g} (sharp / rough)")
+    assert sig[:, sharp_cols].max() < 1.0 and np.all(sig[:, rough_cols] == 2.0)
+    assert s_sharp > 1.5 * s_rough  # less filtering where the lobe is sharp
+    assert s_sharp > 1.5 * n_sharp  # ... than the unadapted (normal) kernel there
+    assert s_rough == pytest.approx(n_rough, rel=1e-4)  # rough: sigma_s, as weight="normal"
+
+
+def test_screen_kernel_still_blurs_across_a_roughness_step():
+    """Fig. 4(c): the adapted kernel shrinks on the sharp side, but the rough side's wide
+    kernel still averages in the sharp side's values (it does not compare the lobes)."""
+    f = step_frame()
+    inp = f.numpy("indirect_specular")[..., 0]
+    step = inp[0, 0] - inp[0, -1]
+    out = {w: np.array(bilateral(f, weight=w))[..., 0] for w in ("normal", "screen", "lobe")}
+    def rel_err(o, cols):
+        return float(np.max(np.abs(o[:, cols] - inp[:, cols])) / step)
+
+    err = {w: (rel_err(o, slice(10, 12)), rel_err(o, slice(12, 14))) for w, o in out.items()}
+    print("\nroughness step, max error (fraction of the step) sharp side / rough side: "
+          + ", ".join(f"{w} {a:.3g} / {b:.3g}" for w, (a, b) in err.items()))
+    assert err["screen"][0] < 0.75 * err["normal"][0]  # the sharp side is blurred less
+    assert err["screen"][1] > 0.2
+    assert err["screen"][1] == pytest.approx(err["normal"][1], rel=1e-4)
+
+
+def test_screen_parameter_errors():
+    from glossrt.errors import FrameError, GlossrtError
+
+    f = random_frame()
+    with pytest.raises(GlossrtError, match="k_s > 0"):
+        bilateral(f, weight="screen", k_s=0.0)
+    with pytest.raises(GlossrtError, match="sigma_min"):
+        bilateral(f, weight="screen", sigma_min=3.0, sigma_s=2.0)
+    g = Frame(channels=dict(f.channels), camera=None)
+    with pytest.raises(FrameError, match="camera"):
+        bilateral(g, weight="screen", radius=1)

@@ -446,3 +446,27 @@ def test_xml_integrator_unbounded_max_depth(tmp_path):
         return
     f = r.render(0)
     _check_frame(f, setup)
+
+
+def test_glossy_spheres_roughness_matches_the_phong_exponents():
+    """glossy-spheres: three GGX spheres, alpha = sqrt(2 / (s + 2)) for s = 1000, 100, 10,
+    each visible, with its alpha in the roughness channel; static camera."""
+    from glossrt.scenes.library import GLOSSY_SPHERES_PHONG, phong_to_alpha
+
+    setup = scenes.load("glossy-spheres", size=(32, 24))
+    assert setup.max_depth == 3 and not setup.animated
+    assert phong_to_alpha(100.0) == pytest.approx(math.sqrt(2.0 / 102.0))
+    f = Renderer(setup).render(0)
+    mesh = f.numpy("mesh_id")[..., 0]
+    rough = f.numpy("roughness")[..., 0]
+    xs = []
+    for s in GLOSSY_SPHERES_PHONG:
+        mask = mesh == setup.shape_index[f"sphere_s{s:g}"]
+        assert mask.sum() >= 20, s
+        np.testing.assert_allclose(rough[mask], phong_to_alpha(s), rtol=1e-6)
+        xs.append(np.nonzero(mask)[1].mean())
+        # reflections of diffusely lit surfaces: the sphere's indirect specular is not black
+        assert f.numpy("indirect_specular")[mask].mean() > 0.0
+    assert xs == sorted(xs)  # side by side, sharpest on the left
+    with pytest.raises(ValueError):
+        phong_to_alpha(-3.0)

@@ -139,8 +139,9 @@ def test_bad_inputs_name_the_problem():
     full = random_frame(8, 6)
     with pytest.raises(FrameError, match="integer multiple"):
         up.upsample(full, random_frame(3, 3, background=()))
-    with pytest.raises(GlossrtError, match="unknown weight"):
-        up.upsample(full, random_frame(4, 3, background=()), weight="fancy")
+    for bad in ("fancy", "screen"):
+        with pytest.raises(GlossrtError, match="unknown weight"):
+            up.upsample(full, random_frame(4, 3, background=()), weight=bad)
     with pytest.raises(GlossrtError, match="emission"):
         up.upsample(full, random_frame(4, 3, background=()), channels=("emission",))
     low = random_frame(4, 3, background=())
@@ -265,3 +266,21 @@ def test_spatio_temporal_upsampling_converges_on_a_static_view(cornell):
     again = np.array(st(full, low))
     np.testing.assert_allclose(again, np.array(up.upsample(full, low, weight="lobe")),
                                rtol=1e-5, atol=1e-6)
+
+
+def test_upsampling_experiments_run_small():
+    from glossrt import upsampling_experiments as ue
+
+    res = ue.upsampling(size=(32, 24), ref_spp=16, low_spp=16)
+    assert [(r["factor"], r["weight"]) for r in res.rows] == [
+        (2, "normal"), (2, "lobe"), (4, "normal"), (4, "lobe")]
+    for r in res.rows:
+        assert np.isfinite(r["mse"]) and r["mse"] > 0 and r["ms"] > 0
+        assert r["mse_adaptive"] <= r["mse"] * 1.5
+    assert res.markdown().count("\n") == len(res.rows) + 1
+    st = ue.spatio_temporal(size=(32, 24), frames=4, ref_spp=16, ref_frames=(1, 3))
+    assert set(st.mse) == {(w, m) for w in ("normal", "lobe")
+                           for m in ("spatial", "spatio-temporal")}
+    assert all(len(v) == 2 and all(np.isfinite(v)) for v in st.mse.values())
+    with pytest.raises(ValueError, match="multiple"):
+        ue.upsampling(size=(30, 24), factors=(4,))

@@ -153,9 +153,11 @@ def denoisers(ctx: BenchContext) -> dict:
 @benchmark("lobe-weights")
 def lobe_weights(ctx: BenchContext) -> dict:
     """Cost of Tokuyoshi 2015's lobe weight over the normal weight at the same footprint,
-    interleaved in one run: the cross-bilateral filter (both indirect components, 13x13
-    window) and joint bilateral upsampling from 1/2 and 1/4 resolution (4x4 samples), on
-    ``roughness-map``. Target: lobe / normal <= 1.15."""
+    interleaved in one run on ``roughness-map``: the cross-bilateral filter (13x13 window) and
+    joint bilateral upsampling from 1/2 and 1/4 resolution (4x4 samples), each for the
+    specular channel alone (``spec``: the weight function is swapped) and for both indirect
+    channels (``both``: the diffuse one keeps the normal weight, so lobe mode computes both
+    weights). Target: lobe / normal <= 1.15."""
     import drjit as dr
 
     from . import render, scenes
@@ -165,12 +167,16 @@ def lobe_weights(ctx: BenchContext) -> dict:
     full = render.Renderer(scenes.load("roughness-map", size=(w, h))).render(0)
     lows = {f: render.Renderer(scenes.load("roughness-map", size=(w // f, h // f))).render(0)
             for f in (2, 4) if w % f == 0 and h % f == 0}
+    sets = {"spec": ("indirect_specular",), "both": ("indirect_diffuse", "indirect_specular")}
     cases = {}
-    for weight in ("normal", "lobe"):
-        cases[f"bilateral-{weight}"] = lambda wt=weight: dr.eval(bilateral(full, weight=wt))
-        for f, low in lows.items():
-            cases[f"upsample-1/{f}-{weight}"] = (
-                lambda wt=weight, lo=low: dr.eval(upsample(full, lo, weight=wt)))
+    for cname, ch in sets.items():
+        for weight in ("normal", "lobe"):
+            cases[f"bilateral-{cname}-{weight}"] = (
+                lambda wt=weight, ch=ch: dr.eval(bilateral(full, weight=wt, channels=ch)))
+            for f, low in lows.items():
+                cases[f"upsample-1/{f}-{cname}-{weight}"] = (
+                    lambda wt=weight, lo=low, ch=ch: dr.eval(
+                        upsample(full, lo, weight=wt, channels=ch)))
     res = {k: [] for k in cases}
     for _ in range(3):
         for name, fn in cases.items():

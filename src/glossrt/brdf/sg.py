@@ -276,7 +276,11 @@ def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
     inv_s = dr.rcp(lb_p + lb_q)
     r = lb_p * lb_q * inv_s
     # 4 a b / (a + b)^2 <= 1 (AM-GM); clamp rounding
-    ratio = pow_int(dr.minimum(4.0 * r * inv_s, 1.0), 0.5 * beta)
+    x = dr.minimum(4.0 * r * inv_s, 1.0)
+    if isinstance(beta, int | float):
+        ratio = pow_int(x, 0.5 * beta)
+    else:  # an opaque Dr.Jit beta (parameter sweeps without recompiling)
+        ratio = dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30)))
     # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
     return ratio, (beta * r) * _cos_minus_one(xi_p, xi_q)
 

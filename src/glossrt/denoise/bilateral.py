@@ -1,5 +1,6 @@
-"""Cross-bilateral denoising of demodulated indirect illumination with a normal-aware or a
-specular-lobe-aware weight (Tokuyoshi 2015, sec. 2.2 and 4; parameters of sec. 5).
+"""Cross-bilateral denoising of demodulated indirect illumination with a normal-aware, a
+sharpness-adapted screen-kernel or a specular-lobe-aware weight (Tokuyoshi 2015, sec. 2.2 and
+4; parameters of sec. 5; the screen-kernel baseline of sec. 5.1 / fig. 4(c)).
 
 Reference: Y. Tokuyoshi, "Specular Lobe-Aware Filtering and Upsampling for Interactive
 Indirect Illumination", IPSJ Journal 56(8), 2015.
@@ -29,7 +30,26 @@ Weights (``i`` = the filtered pixel, ``j`` = a tap of the ``(2r+1)^2`` window):
   normal weight ``w_n``: the paper states (end of sec. 4.2) that the normal-aware weight *is*
   its lobe weight for a diffuse surface (axis = normal, ``lb_i = lb_j``), and it filters only
   the specular buffer with lobes (sec. 5); keeping ``w_n`` there means ``weight`` changes the
-  specular filtering only.
+  specular filtering only;
+* ``weight="screen"``: the baseline of the paper's fig. 4(c), "frequency-analysis methods
+  adjust the screen-space kernel bandwidth to the sharpness of the specular reflection"
+  (sec. 5.1). The paper does not give its formula; this one is glossrt's. For *specular*
+  components the screen sigma becomes per pixel
+
+      ``sigma_s,i = clip(k_s / (sqrt(lambda_i) theta_px), sigma_min, sigma_s)``
+
+  where ``lambda_i`` is the pixel's SG sharpness (the same :func:`ggx_lobe_to_sg` lobe as the
+  lobe weight, *not* smoothed by ``kappa``), ``theta_px = 2 tan(fov / 2) / W`` the angle one
+  pixel subtends at the image centre (``fov`` = the camera's horizontal field of view, ``W``
+  the image width) and ``k_s`` a scale (default 1). Rationale: an SG ``exp(lambda (cos t -
+  1))`` has the angular standard deviation ``1 / sqrt(lambda)``; on a planar mirror the
+  reflected direction turns by ``theta_px`` per pixel, so the lobe averages the incident
+  radiance over about ``1 / (sqrt(lambda) theta_px)`` pixels, the scale below which the
+  reflection carries no detail. The kernel never grows beyond ``sigma_s`` (nor the window
+  beyond ``radius``) and never shrinks below ``sigma_min`` (default 0.5 px). The other factors
+  are those of ``weight="normal"`` (``W = f_i(s_i, s_j) w_z w_n``): the sharpness only sets
+  the bandwidth; unlike the lobe weight it does not compare the two pixels' lobes. *Diffuse*
+  components keep the normal weight with ``sigma_s``.
 
 The paper does not state its screen kernel (sigma_s, radius); the defaults here,
 ``sigma_s = 2`` px and ``radius = 6`` (the Gaussian truncated at 3 sigma_s), are glossrt's.
@@ -38,16 +58,30 @@ Background pixels (``mesh_id == 0``) are returned unfiltered and are never used 
 outside the image are skipped (no clamping / mirroring).
 
 Reads: the five radiance components, ``albedo_diffuse``, ``albedo_specular``, ``normal``,
-``depth``, ``mesh_id`` and, for ``weight="lobe"``, ``position``, ``roughness`` and the camera.
+``depth``, ``mesh_id`` and, for ``weight="lobe"`` or ``"screen"`` (with a specular channel),
+``position``, ``roughness`` and the camera.
 Produces: the RGB image (H, W, 3).
+
+Parameter sweeps: ``sigma_n2``, ``beta`` and ``k_s`` may also be passed as opaque Dr.Jit
+scalars (``dr.opaque(mi.Float, v)``); the kernels then do not depend on the value and are
+compiled once for the whole sweep (a Python float is a literal of the kernel, so each new
+value recompiles). Results agree with the Python-float call to float32 rounding.
 """
 
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
-from ..brdf.sg import ggx_lobe_to_sg, lobe_weight
+from ..brdf.sg import (
+    WANG_SG,
+    ggx_lobe_to_sg,
+    lobe_weight,
+    lobe_weight_factors,
+    smoothed_sharpness,
+)
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from .common import Grid, check_frame, demodulate, merge, remodulate, split
@@ -61,10 +95,15 @@ SIGMA_Z2 = 0.01
 SIGMA_N2 = 0.01
 BETA = 20.0
 KAPPA = 100.0
+#: weight="screen" (glossrt's form of the fig. 4(c) baseline): scale k_s of the adapted
+#: sigma and its floor in pixels
+K_S = 1.0
+SIGMA_MIN = 0.5
 
-WEIGHTS = ("normal", "lobe")
+WEIGHTS = ("normal", "lobe", "screen")
 
-__all__ = ["BETA", "KAPPA", "RADIUS", "SIGMA_N2", "SIGMA_S", "SIGMA_Z2", "WEIGHTS", "bilateral"]
+__all__ = ["BETA", "KAPPA", "K_S", "RADIUS", "SIGMA_MIN", "SIGMA_N2", "SIGMA_S", "SIGMA_Z2",
+           "WEIGHTS", "bilateral", "pixel_angle", "screen_sigma", "view_directions"]
 
 
 def _albedo_name(channel: str) -> str:
@@ -78,34 +117,68 @@ def _albedo_name(channel: str) -> str:
 def view_directions(frame, position) -> mi.Vector3f:
     """Per-pixel ``wo = normalize(camera position - position)`` (world space)."""
     if frame.camera is None:
-        raise FrameError(f"{frame.where}: weight='lobe' needs the camera (view directions)")
-    c = [float(v) for v in frame.camera.position]
+        raise FrameError(f"{frame.where}: weight='lobe' or 'screen' needs the camera "
+                         "(view directions)")
+    # opaque: a moving camera must not bake new literals into (and recompile) every kernel
+    c = [dr.opaque(mi.Float, float(v)) for v in frame.camera.position]
     return dr.normalize(mi.Vector3f(c[0] - position[0], c[1] - position[1], c[2] - position[2]))
+
+
+def pixel_angle(frame) -> float:
+    """``theta_px = 2 tan(fov / 2) / W``: the angle (radians) one pixel subtends at the image
+    centre, from the frame's camera (horizontal ``fov``) and its width ``W`` (glossrt's
+    ``weight="screen"``, see the module docstring)."""
+    if frame.camera is None:
+        raise FrameError(f"{frame.where}: weight='screen' needs the camera (field of view)")
+    return 2.0 * math.tan(math.radians(frame.camera.fov) / 2.0) / frame.width
+
+
+def screen_sigma(lambda_, theta_px: float, k_s: float = K_S, sigma_min: float = SIGMA_MIN,
+                 sigma_s: float = SIGMA_S):
+    """Sharpness-adapted screen sigma (pixels) of ``weight="screen"``:
+    ``clip(k_s / (sqrt(lambda) theta_px), sigma_min, sigma_s)`` (glossrt's form of the
+    frequency-analysis baseline of Tokuyoshi 2015, sec. 5.1 / fig. 4(c)). Works on Dr.Jit
+    arrays and Python floats; ``lambda = 0`` gives ``sigma_s``."""
+    lam = dr.maximum(lambda_, 1e-30)
+    # Tokuyoshi 2015, sec. 5.1 / fig. 4(c) baseline: the kernel bandwidth follows the
+    # specular sharpness (the lobe's angular std 1 / sqrt(lambda), in pixels)
+    return dr.clip(k_s / (dr.sqrt(lam) * theta_px), sigma_min, sigma_s)
 
 
 def bilateral(frame, weight: str = "normal",
               channels: tuple[str, ...] = ("indirect_diffuse", "indirect_specular"),
               radius: int = RADIUS, sigma_s: float = SIGMA_S, sigma_n2: float = SIGMA_N2,
               beta: float = BETA, kappa: float | None = KAPPA, approx: bool = True,
-              sigma_z2: float | None = SIGMA_Z2) -> mi.TensorXf:
+              sigma_z2: float | None = SIGMA_Z2, k_s: float = K_S,
+              sigma_min: float = SIGMA_MIN, ndf_sharpness: float = WANG_SG) -> mi.TensorXf:
     """Denoise ``frame`` with the cross-bilateral filter of Tokuyoshi 2015 (see the module
     docstring for the weights) and return the RGB image (H, W, 3).
 
-    ``weight``: ``"normal"`` (sec. 2.2's normal-aware weight) or ``"lobe"`` (sec. 4.2's
-    specular-lobe-aware weight for the specular components). ``channels``: the radiance
-    components to demodulate / filter / remodulate; the others are added unfiltered.
-    ``sigma_z2=None`` disables the depth weight."""
+    ``weight``: ``"normal"`` (sec. 2.2's normal-aware weight), ``"lobe"`` (sec. 4.2's
+    specular-lobe-aware weight for the specular components) or ``"screen"`` (the normal
+    weight with a screen sigma adapted per pixel to the specular sharpness for the specular
+    components, ``k_s`` / ``sigma_min``: glossrt's form of the fig. 4(c) baseline).
+    ``channels``: the radiance components to demodulate / filter / remodulate; the others are
+    added unfiltered. ``sigma_z2=None`` disables the depth weight. ``ndf_sharpness``: the NDF
+    SG sharpness times ``alpha^2`` used to build the lobes of ``"lobe"`` and ``"screen"`` (see
+    :func:`glossrt.brdf.sg.ggx_lobe_to_sg`; default Wang et al.'s 2)."""
     if weight not in WEIGHTS:
         raise GlossrtError(f"bilateral: unknown weight {weight!r}; choose one of "
                            f"{', '.join(WEIGHTS)}")
     radius = int(radius)
     if radius < 0 or not sigma_s > 0 or not sigma_n2 > 0:
         raise GlossrtError("bilateral: need radius >= 0, sigma_s > 0 and sigma_n2 > 0")
+    if weight == "screen" and not (k_s > 0 and 0 < sigma_min <= sigma_s):
+        raise GlossrtError("bilateral: weight='screen' needs k_s > 0 and "
+                           f"0 < sigma_min <= sigma_s (got k_s={k_s}, sigma_min={sigma_min}, "
+                           f"sigma_s={sigma_s})")
     channels = tuple(dict.fromkeys(channels))
     albedo_of = {c: _albedo_name(c) for c in channels}
-    use_lobe = weight == "lobe" and any(c.endswith("specular") for c in channels)
+    any_specular = any(c.endswith("specular") for c in channels)
+    use_lobe = weight == "lobe" and any_specular
+    use_screen = weight == "screen" and any_specular
     needs = [*RADIANCE, *sorted(set(albedo_of.values())), "normal", "depth", "mesh_id"]
-    if use_lobe:
+    if use_lobe or use_screen:
         needs += ["position", "roughness"]
     check_frame(frame, needs)
     h, w = frame.height, frame.width
@@ -118,16 +191,25 @@ def bilateral(frame, weight: str = "normal",
     zkey = dr.select(hit, z, -1.0)
     geo = dr.ravel(mi.Vector4f(normal[0], normal[1], normal[2], zkey))
     n_p = mi.Vector3f(*normal)
-    if use_lobe:
+    if use_lobe or use_screen:
         pos = split(frame["position"])
         alpha = split(frame["roughness"])[0]
         wo = view_directions(frame, pos)
         # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
-        xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, alpha)
+        xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, alpha, ndf_sharpness)
         xi_p = dr.select(hit, xi_p, mi.Vector3f(0.0, 0.0, 1.0))
         lam_p = dr.select(hit, lam_p, 1.0)
-        lobes = dr.ravel(mi.Vector4f(xi_p[0], xi_p[1], xi_p[2], lam_p))
-        dr.eval(lobes)
+    if use_lobe:
+        # sec. 4.2: the smoothed sharpness lambda_bar = lambda kappa / (lambda + kappa), once
+        # per pixel (not per tap)
+        lb_p = smoothed_sharpness(lam_p, kappa)
+        lobes = dr.ravel(mi.Vector4f(xi_p[0], xi_p[1], xi_p[2], lb_p))
+        dr.eval(lobes, xi_p, lb_p)
+    if use_screen:
+        # glossrt's fig. 4(c) baseline: per-pixel sigma_s,i from the lobe sharpness
+        sig_i = screen_sigma(lam_p, pixel_angle(frame), k_s, sigma_min, sigma_s)
+        inv_2si2 = 1.0 / (2.0 * dr.square(sig_i))
+        dr.eval(inv_2si2)
 
     # demodulate (sec. 4: filtering works on the indirect illumination without albedo)
     signals, albedos, specular = [], [], []
@@ -138,7 +220,8 @@ def bilateral(frame, weight: str = "normal",
         albedos.append(alb)
         specular.append(c.endswith("specular"))
     packed = [dr.ravel(mi.Vector4f(s[0], s[1], s[2], 0.0)) for s in signals]
-    dr.eval(geo, packed)
+    # the centre pixel's guides once, not re-derived in every window-row kernel
+    dr.eval(geo, packed, hit, z, n_p)
 
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
@@ -154,22 +237,40 @@ def bilateral(frame, weight: str = "normal",
             valid = hit & grid.inside(qx, qy) & (g[3] > 0)  # never a background tap
             # sec. 2.2: f(s_i, s_j) = exp(-|s_i - s_j|^2 / (2 sigma_s^2))
             log_w = -float(dx * dx + dy * dy) * inv_2s2
+            if use_screen:
+                # fig. 4(c) baseline: f with the pixel's adapted sigma_s,i
+                log_ws = -float(dx * dx + dy * dy) * inv_2si2
             if sigma_z2 is not None:
                 # sec. 2.2: w_z = g(|z_i - z_j|, sigma_z^2), on the depth relative to z_i
                 rel = (z - g[3]) / z
-                log_w = log_w - dr.square(rel) / (2.0 * sigma_z2)
-            w_geo = dr.select(valid, dr.exp(log_w), 0.0)
-            # sec. 2.2: w_n = g(|n_i - n_j|, sigma_n^2) = exp(-|n_i - n_j|^2 / (2 sigma_n^2))
+                log_z = dr.square(rel) / (2.0 * sigma_z2)
+                log_w = log_w - log_z
+                if use_screen:
+                    log_ws = log_ws - log_z
+            # sec. 2.2: w_n = g(|n_i - n_j|, sigma_n^2) = exp(-|n_i - n_j|^2 / (2 sigma_n^2)),
+            # folded into one exponential with f and w_z
             dn2 = dr.squared_norm(n_p - mi.Vector3f(g[0], g[1], g[2]))
-            w_nrm = w_geo * dr.exp(-dn2 / (2.0 * sigma_n2))
+            log_n = dn2 / (2.0 * sigma_n2)
+            w_nrm = dr.select(valid, dr.exp(log_w - log_n), 0.0)
+            if use_screen:
+                w_scr = dr.select(valid, dr.exp(log_ws - log_n), 0.0)
             if use_lobe:
                 lq = dr.gather(mi.Vector4f, lobes, q)
+                xi_q = mi.Vector3f(lq[0], lq[1], lq[2])
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
                 #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j))
-                w_lobe = w_geo * lobe_weight(xi_p, lam_p, mi.Vector3f(lq[0], lq[1], lq[2]),
-                                             lq[3], beta, kappa, approx)
+                if approx:
+                    ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, lq[3], beta)
+                    w_lobe = dr.select(valid, ratio * dr.exp(log_w + log_g), 0.0)
+                else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
+                    w_lobe = dr.select(valid, dr.exp(log_w), 0.0) * lobe_weight(
+                        xi_p, lb_p, xi_q, lq[3], beta, None, False)
             for k, s in enumerate(packed):
-                wk = w_lobe if (use_lobe and specular[k]) else w_nrm
+                wk = w_nrm
+                if specular[k] and use_lobe:
+                    wk = w_lobe
+                elif specular[k] and use_screen:
+                    wk = w_scr
                 v = dr.gather(mi.Vector4f, s, q)
                 # eq. 1: numerator and denominator
                 sums[k] += wk

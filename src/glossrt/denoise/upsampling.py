@@ -61,7 +61,7 @@ import numpy as np
 from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
-from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2, WEIGHTS, view_directions
+from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2, view_directions
 from .common import Grid, check_frame, demodulate, merge, remodulate, split
 
 #: default screen kernel in *low-resolution* pixels, and the window half width (2r x 2r taps)
@@ -69,12 +69,14 @@ SIGMA_S = 1.0
 RADIUS = 2
 #: default blending factor of the spatio-temporal upsampler (as SVGF's colour alpha)
 ALPHA = 0.2
+#: the guide weights of the upsamplers (Tokuyoshi 2015, sec. 2.2 and 4.2)
+WEIGHTS = ("normal", "lobe")
 #: default threshold on the normalised weight sum below which pixels are re-rendered
 THRESHOLD = 0.05
 #: guide weights are floored at this fraction of the spatial weight (the spatial fallback)
 _FLOOR = 1e-6
 
-__all__ = ["ALPHA", "RADIUS", "SIGMA_S", "THRESHOLD", "SpatioTemporalUpsampler",
+__all__ = ["ALPHA", "RADIUS", "SIGMA_S", "THRESHOLD", "WEIGHTS", "SpatioTemporalUpsampler",
            "adaptive_resample", "factor_of", "jitter_sequence", "upsample"]
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import html
 import re
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -189,6 +189,14 @@ class Section:
         rel = self._save_figure(name, fig)
         if "matplotlib.pyplot" in sys.modules:
             sys.modules["matplotlib.pyplot"].close(fig)
+        self._blocks.append(_figure(rel, caption))
+        return rel
+
+    def saved_figure(self, name: str, write: Callable[[Path], Any], caption: str = "") -> str:
+        """Add a picture that ``write(path)`` saves itself (e.g. a plotting function taking a
+        file name); returns its path relative to the report."""
+        rel, path = self.report._new_file(name)
+        write(path)
         self._blocks.append(_figure(rel, caption))
         return rel
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from . import (
@@ -161,3 +163,88 @@ def roughness_map() -> SceneSpec:
         camera_path=lambda f: rotation_about((0, 0, 0), (0, 1, 0), sway(f)) @ rest,
         max_depth=3,
     )
+
+
+#: Phong exponents of the three spheres of ``glossy-spheres`` (Tokuyoshi 2015, fig. 6: three
+#: materials of different Phong exponent), left to right: sharpest to roughest
+GLOSSY_SPHERES_PHONG = (1000.0, 100.0, 10.0)
+
+
+def phong_to_alpha(s: float) -> float:
+    """GGX / Beckmann roughness matching a Phong exponent: ``alpha = sqrt(2 / (s + 2))``
+    (Walter et al. 2007's Phong-Beckmann correspondence; the NDF sharpness ``2 / alpha^2``
+    of Wang et al.'s SG is then ``s + 2``)."""
+    if not s > -2.0:
+        raise ValueError(f"Phong exponent must be > -2, got {s}")
+    return math.sqrt(2.0 / (s + 2.0))
+
+
+def _bands(n_pixels: int, colours) -> np.ndarray:
+    """Vertical colour bands (an RGB bitmap, ``len(colours)`` bands across)."""
+    idx = np.arange(n_pixels) * len(colours) // n_pixels
+    row = np.asarray(colours, dtype=np.float32)[idx]  # (n, 3)
+    return np.ascontiguousarray(np.broadcast_to(row[None], (n_pixels // 4, n_pixels, 3)))
+
+
+@builtin(
+    "glossy-spheres",
+    "three GGX silver spheres side by side, alpha = sqrt(2 / (s + 2)) for Phong exponents "
+    "s = 1000, 100, 10 (left to right; Tokuyoshi 2015, figs. 5-6), in a closed room with "
+    "red / green side walls, a colour-banded wall behind the camera, coloured blocks and a "
+    "ceiling light (a rich indirect_specular channel); static camera",
+)
+def glossy_spheres() -> SceneSpec:
+    """Shape ids ``sphere_s1000``, ``sphere_s100``, ``sphere_s10`` (GGX ``roughconductor``,
+    material ``Ag``, ``alpha = sqrt(2 / (s + 2))`` = 0.0447, 0.140, 0.408): the spheres of
+    Tokuyoshi 2015, fig. 6's three Phong exponents. The room (4 x 2.6 x 5 m) is closed so
+    every reflected ray sees a diffusely lit surface. One emitter only: Mitsuba orders a
+    scene's emitters differently from load to load, so with several emitters the same seed
+    gives a different noise realisation per load (the experiments compare a frame rendered
+    once with filters, but tests compare separate loads)."""
+    red, green, white = (0.7, 0.06, 0.05), (0.08, 0.55, 0.1), (0.7, 0.7, 0.7)
+    bands = _bands(256, [(0.8, 0.1, 0.1), (0.9, 0.8, 0.1), (0.1, 0.6, 0.15),
+                         (0.1, 0.3, 0.85), (0.85, 0.85, 0.85), (0.6, 0.1, 0.7)])
+    front_bsdf = {
+        "type": "diffuse",
+        "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(bands), "raw": True,
+                        "filter_type": "nearest", "wrap_mode": "clamp"},
+    }
+    scene = {
+        "type": "scene",
+        "sensor": _sensor([0, 1.0, 2.3], [0, 0.5, -0.5], 45.0, 320, 240),
+        "floor": _rect(T().rotate([1, 0, 0], -90).scale([2, 2.5, 1]), _diffuse(white)),
+        "ceiling": _rect(T().translate([0, 2.6, 0]).rotate([1, 0, 0], 90).scale([2, 2.5, 1]),
+                         _diffuse(white)),
+        "back": _rect(T().translate([0, 1.3, -2.5]).scale([2, 1.3, 1]),
+                      _diffuse((0.15, 0.25, 0.7))),
+        # behind the camera, seen in the spheres: vertical colour bands
+        "front": _rect(T().translate([0, 1.3, 2.5]).rotate([0, 1, 0], 180).scale([2, 1.3, 1]),
+                       front_bsdf),
+        "left": _rect(T().translate([-2, 1.3, 0]).rotate([0, 1, 0], 90).scale([2.5, 1.3, 1]),
+                      _diffuse(red)),
+        "right": _rect(T().translate([2, 1.3, 0]).rotate([0, 1, 0], -90).scale([2.5, 1.3, 1]),
+                       _diffuse(green)),
+        "light": _rect(
+            T().translate([0, 2.59, 0.6]).rotate([1, 0, 0], 90).scale([0.8, 0.5, 1]),
+            _diffuse((0, 0, 0)),
+            {"type": "area", "radiance": {"type": "rgb", "value": [9.0, 8.5, 8.0]}},
+        ),
+        "block_yellow": {
+            "type": "cube",
+            "to_world": T().translate([-1.2, 0.3, 0.9]).rotate([0, 1, 0], 30).scale(0.3),
+            "bsdf": _diffuse((0.85, 0.75, 0.1)),
+        },
+        "block_cyan": {
+            "type": "cube",
+            "to_world": T().translate([1.2, 0.25, 1.1]).rotate([0, 1, 0], -20).scale(0.25),
+            "bsdf": _diffuse((0.1, 0.7, 0.75)),
+        },
+    }
+    for k, s in enumerate(GLOSSY_SPHERES_PHONG):
+        scene[f"sphere_s{s:g}"] = {
+            "type": "sphere",
+            "center": [-0.75 + 0.75 * k, 0.35, -0.5],
+            "radius": 0.33,
+            "bsdf": {"type": "roughconductor", "material": "Ag", "alpha": phong_to_alpha(s)},
+        }
+    return SceneSpec(scene, max_depth=3)

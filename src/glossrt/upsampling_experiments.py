@@ -1,0 +1,177 @@
+"""Upsampling measurements behind docs/RESULTS.md and the report (Tokuyoshi 2015, secs.
+5.3-5.4; issue 4's "Upsampling (1/2 and 1/4): error and time, normal vs lobe weights").
+
+``upsampling``: on ``roughness-map`` the indirect light of a converged low-resolution render
+(1/2 and 1/4) is upsampled to the full-resolution G-buffer with normal and lobe weights (so
+the error is the upsampling's own, not noise), against a converged full-resolution reference;
+adaptive re-sampling re-renders the pixels whose normalised weight sum is below a threshold.
+``spatio_temporal``: on the animated ``glossy-cornell`` sequence, 1 spp low-resolution frames
+(jittered) upsampled per frame (spatial only) and with the spatio-temporal upsampler.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import drjit as dr
+import numpy as np
+
+from .frame import RADIANCE
+
+INDIRECT = ("indirect_diffuse", "indirect_specular")
+
+
+def _indirect(frame) -> np.ndarray:
+    return sum(frame.numpy(c) for c in INDIRECT)
+
+
+def _rest(frame) -> np.ndarray:
+    return sum(frame.numpy(c) for c in RADIANCE if c not in INDIRECT)
+
+
+@dataclass
+class UpsamplingResults:
+    size: tuple[int, int]
+    ref_spp: int
+    low_spp: int
+    threshold: float
+    #: one row per (factor, weight): mse (indirect), mse_specular, ms, resampled, mse_adaptive
+    rows: list[dict] = field(default_factory=list)
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+
+    COLUMNS = ["factor", "weights", "MSE indirect", "MSE indirect specular", "ms / upsample",
+               "re-sampled pixels", "MSE after re-sampling"]
+
+    def table(self) -> list[list]:
+        return [[f"1/{r['factor']}", r["weight"], r["mse"], r["mse_specular"], r["ms"],
+                 r["resampled"], r["mse_adaptive"]] for r in self.rows]
+
+    def markdown(self) -> str:
+        lines = ["| " + " | ".join(self.COLUMNS) + " |", "|" + "---|" * len(self.COLUMNS)]
+        for row in self.table():
+            cells = [str(v) if isinstance(v, str | int) else f"{v:.4g}" for v in row]
+            lines.append("| " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+
+def upsampling(size: tuple[int, int] = (192, 144), ref_spp: int = 256, low_spp: int = 256,
+               factors: tuple[int, ...] = (2, 4), threshold: float = 0.05,
+               resample_spp: int | None = None, scene: str = "roughness-map",
+               progress: Callable[[str], None] | None = None) -> UpsamplingResults:
+    """Error (MSE of the indirect light against a ``ref_spp`` reference) and wall time of
+    joint bilateral upsampling from each factor, normal vs lobe weights, and adaptive
+    re-sampling (``resample_spp`` samples per re-rendered pixel, default ``low_spp``)."""
+    from . import render, scenes
+    from .denoise.upsampling import adaptive_resample, upsample
+
+    w, h = size
+    for f in factors:
+        if w % f or h % f:
+            raise ValueError(f"size {w}x{h} is not a multiple of the factor {f}")
+    say = progress or (lambda _m: None)
+    full_r = render.Renderer(scenes.load(scene, size=size))
+    full = full_r.render(0)
+    say(f"reference {w}x{h}, {ref_spp} spp")
+    ref = full_r.render_reference(0, spp=ref_spp)
+    tgt, rest = _indirect(ref), _rest(full)
+    spec = ref.numpy("indirect_specular")
+    res = UpsamplingResults(size, ref_spp, low_spp, threshold)
+    res.images["reference (indirect)"] = tgt
+    for f in factors:
+        say(f"1/{f}: low-resolution reference {w // f}x{h // f}, {low_spp} spp")
+        low = render.Renderer(scenes.load(scene, size=(w // f, h // f))).render_reference(
+            0, spp=low_spp)
+        for weight in ("normal", "lobe"):
+            dr.eval(upsample(full, low, weight=weight))  # warm the kernel cache
+            times = []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                img, wts = upsample(full, low, weight=weight, return_weights=True)
+                dr.eval(img, wts)
+                dr.sync_thread()
+                times.append(time.perf_counter() - t0)
+            img = np.array(img)
+            ind = img - rest
+            spec_only = np.array(upsample(full, low, weight=weight,
+                                          channels=("indirect_specular",)))
+            spec_err = spec_only - sum(full.numpy(c) for c in RADIANCE
+                                       if c != "indirect_specular") - spec
+            out, mask = adaptive_resample(full_r, 0, full, img, wts, threshold=threshold,
+                                          spp=resample_spp or low_spp)
+            res.rows.append({
+                "factor": f, "weight": weight,
+                "mse": float(np.mean((ind - tgt) ** 2)),
+                "mse_specular": float(np.mean(spec_err ** 2)),
+                "ms": 1000 * float(np.median(times)),
+                "resampled": int(mask.sum()),
+                "mse_adaptive": float(np.mean((np.array(out) - rest - tgt) ** 2)),
+            })
+            res.images[f"1/{f} {weight}"] = ind
+            if weight == "lobe":
+                res.images[f"1/{f} re-sampled pixels (lobe)"] = np.repeat(
+                    mask[..., None].astype(np.float32), 3, -1)
+    return res
+
+
+@dataclass
+class SpatioTemporalResults:
+    size: tuple[int, int]
+    factor: int
+    frames: int
+    ref_spp: int
+    ref_frames: list[int]
+    #: (weight, mode) -> MSE of the indirect light per referenced frame
+    mse: dict[tuple[str, str], list[float]] = field(default_factory=dict)
+    ms: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def markdown(self) -> str:
+        head = ["weights", "upsampling"] + [f"MSE frame {i}" for i in self.ref_frames] + [
+            "ms / frame"]
+        lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for (weight, mode), errs in self.mse.items():
+            cells = [weight, mode] + [f"{e:.4g}" for e in errs] + [
+                f"{self.ms[(weight, mode)]:.3g}"]
+            lines.append("| " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+
+def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames: int = 16,
+                    ref_spp: int = 256, ref_frames: tuple[int, ...] = (7, 15),
+                    scene: str = "glossy-cornell",
+                    progress: Callable[[str], None] | None = None) -> SpatioTemporalResults:
+    """Spatial-only vs spatio-temporal upsampling of 1 spp, jittered low-resolution indirect
+    light over an animated sequence (camera and object motion), MSE of the indirect light
+    against references at ``ref_frames``."""
+    from . import render, scenes
+    from .denoise.upsampling import SpatioTemporalUpsampler, jitter_sequence, upsample
+
+    w, h = size
+    say = progress or (lambda _m: None)
+    full_r = render.Renderer(scenes.load(scene, size=size))
+    low_r = render.Renderer(scenes.load(scene, size=(w // factor, h // factor)))
+    refs = {}
+    for i in ref_frames:
+        say(f"reference frame {i}, {ref_spp} spp")
+        refs[i] = _indirect(full_r.render_reference(i, spp=ref_spp))
+    res = SpatioTemporalResults(size, factor, frames, ref_spp, list(ref_frames))
+    seq = [(full_r.render(i), low_r.render(i, jitter=jitter_sequence(factor, i)))
+           for i in range(frames)]
+    for weight in ("normal", "lobe"):
+        st = SpatioTemporalUpsampler(weight=weight)
+        for mode in ("spatial", "spatio-temporal"):
+            errs, times = [], []
+            st.reset()
+            for i, (full, low) in enumerate(seq):
+                t0 = time.perf_counter()
+                img = st(full, low) if mode == "spatio-temporal" else upsample(
+                    full, low, weight=weight)
+                dr.eval(img)
+                dr.sync_thread()
+                times.append(time.perf_counter() - t0)
+                if i in refs:
+                    errs.append(float(np.mean((np.array(img) - _rest(full) - refs[i]) ** 2)))
+            res.mse[(weight, mode)] = errs
+            res.ms[(weight, mode)] = 1000 * float(np.median(times[1:]))
+    return res
