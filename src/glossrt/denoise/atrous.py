@@ -78,10 +78,13 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
     acc_var = [mi.Float(h0 * h0) * v for v in variances]
     eps_z = EPS_Z * gb.inv_z + 1e-12
     if lobes is not None:
-        from ..brdf.sg import lobe_weight
+        from ..brdf.sg import lobe_weight_factors, smoothed_sharpness
 
         axis_p, lam_p, use_lobe, beta, kappa = lobes
-        lobe_packed = dr.ravel(mi.Vector4f(axis_p[0], axis_p[1], axis_p[2], lam_p))
+        xi_p = mi.Vector3f(axis_p[0], axis_p[1], axis_p[2])
+        # Tokuyoshi 2015, sec. 4.2: lambda_bar once per pixel, not per tap
+        lb_p = smoothed_sharpness(lam_p, kappa)
+        lobe_packed = dr.ravel(mi.Vector4f(axis_p[0], axis_p[1], axis_p[2], lb_p))
     for dx, dy, q, inside in atrous_taps(grid, step, hit_p):
         nq = dr.gather(mi.Vector4f, geo, q)  # packet gather; q is clamped: valid
         z_q = nq[3]
@@ -97,19 +100,21 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
         if lobes is not None:
             lq = dr.gather(mi.Vector4f, lobe_packed, q)
             xi_q = mi.Vector3f(lq[0], lq[1], lq[2])
-            xi_p = mi.Vector3f(axis_p[0], axis_p[1], axis_p[2])
-            # Tokuyoshi 2015, sec. 4.2 (closed form): the lobe weight in place of w_n
-            w_lobe = dr.select(valid_q, h * lobe_weight(xi_p, lam_p, xi_q, lq[3], beta, kappa,
-                                                        approx=True), 0.0)
+            # Tokuyoshi 2015, sec. 4.2 (closed form): the lobe weight in place of w_n, as
+            # ratio * exp(log_g) with log_g folded into the exponent of w_z * w_l below
+            ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, lq[3], beta)
+            w_lobe = dr.select(valid_q, h * ratio, 0.0)
         for k in range(n_sig):
             cq = dr.gather(mi.Vector4f, packed[k], q)
-            w_g = w_lobe if (lobes is not None and use_lobe[k]) else w_n
+            lobe_k = lobes is not None and use_lobe[k]
+            w_g = w_lobe if lobe_k else w_n
+            a_g = a_z - log_g if lobe_k else a_z
             if lum_weights:
                 # Schied 2017, eq. 3 * eq. 5: exp(-a_z) exp(-a_l) = exp(-(a_z + a_l))
                 l_q = luminance([cq[0], cq[1], cq[2]])
-                hw = w_g * dr.exp(-(a_z + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
+                hw = w_g * dr.exp(-(a_g + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
             else:
-                hw = w_g * dr.exp(-a_z)
+                hw = w_g * dr.exp(-a_g)
             sum_w[k] += hw
             acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
             acc_var[k] += dr.square(hw) * cq[3]
