@@ -161,3 +161,15 @@ def test_denoise_cli_missing_channel(tmp_path, capsys):
     assert main(["denoise", str(src), "--method", "svgf", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "frame_0000.exr" in err and "albedo" in err
+
+
+def test_experiment_lobes(tmp_path, capsys):
+    out = tmp_path / "lobes"
+    assert main(["experiment", "--which", "lobes", "--out", str(out), "--size", "32x24",
+                 "--spp", "8"]) == 0
+    md = (out / "lobes.md").read_text()
+    for title in ("fig. 4", "fig. 5", "fig. 6", "upsampling", "spatio-temporal"):
+        assert title in md
+    assert (out / "fig6.png").stat().st_size > 1000
+    assert main(["experiment", "--which", "lobes", "--out", str(out), "--size", "30x24"]) == 2
+    assert "multiple of 4" in capsys.readouterr().err

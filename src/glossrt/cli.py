@@ -129,6 +129,8 @@ def cmd_experiment(args) -> int:
 
     out = _writable_dir(args.out)
     size = parse_size(args.size)
+    if args.which == "lobes":
+        return _experiment_lobes(out, size, args.spp)
     res = experiments.denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
                                 ref_spp=args.spp, static_frames=args.static_frames)
     md = res.markdown()
@@ -146,6 +148,36 @@ def cmd_experiment(args) -> int:
     s.images_row(list(res.images.items()), name="denoised")
     rep.write()
     print(md)
+    return 0
+
+
+def _experiment_lobes(out, size, spp: int) -> int:
+    """Tokuyoshi 2015 figs. 4-6 analogues and the upsampling measurements (RESULTS.md)."""
+    from . import lobe_experiments as le
+    from . import upsampling_experiments as ue
+
+    if size[0] % 4 or size[1] % 4:
+        raise GlossrtError(f"--size must be a multiple of 4 in both axes for the 1/4 "
+                           f"upsampling, got {size[0]}x{size[1]}")
+    parts = []
+    for title, fn in (("fig. 4 analogue (roughness-map)", le.fig4),
+                      ("fig. 5 analogue (glossy-spheres)", le.fig5),
+                      ("fig. 6 analogue (glossy-spheres)", le.fig6)):
+        print(f"{title} ...", flush=True)
+        res = fn(size=size, ref_spp=spp)
+        parts.append(f"## {title}\n\n{res.markdown()}")
+        if fn is le.fig6:
+            res.plot(str(out / "fig6.png"))
+    print("upsampling ...", flush=True)
+    up = ue.upsampling(size=size, ref_spp=spp, low_spp=spp)
+    parts.append(f"## upsampling (roughness-map)\n\n{up.markdown()}")
+    print("spatio-temporal upsampling ...", flush=True)
+    st = ue.spatio_temporal(size=size, ref_spp=spp)
+    parts.append(f"## spatio-temporal upsampling (glossy-cornell)\n\n{st.markdown()}")
+    md = "\n\n".join(parts)
+    (out / "lobes.md").write_text(md + "\n")
+    print(md)
+    print(f"wrote {out / 'lobes.md'} and {out / 'fig6.png'}")
     return 0
 
 
@@ -242,6 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-every", type=int, default=10)
     p.add_argument("--spp", type=int, default=1024)
     p.add_argument("--static-frames", type=int, default=60)
+    p.add_argument("--which", choices=["denoisers", "lobes"], default="denoisers",
+                   help="denoisers: Schied 2017 comparison; lobes: Tokuyoshi 2015 figs. 4-6 "
+                        "and upsampling (uses --size and --spp)")
 
     p = add("compare", cmd_compare, "metrics of frames against references, per frame and mean",
             "glossrt compare out/cornell out/cornell-ref --json metrics.json")
