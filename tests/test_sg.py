@@ -387,3 +387,9 @@ def test_lobe_weight_factors_match_the_closed_form(beta):
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)
     full = _np(sg.lobe_weight(_v(xp), _f(lp), _v(xq), _f(lq), beta, kappa, approx=True))
     np.testing.assert_allclose(got, full, rtol=2e-4, atol=1e-7)
+    # the packed form (lambda_bar * axis in one vector) used by the filters
+    lbq = sg.smoothed_sharpness(_f(lq), kappa)
+    ratio, log_g = sg.lobe_weight_factors_packed(
+        _v(xp), sg.smoothed_sharpness(_f(lp), kappa), _v(xq) * lbq, beta)
+    packed = _np(ratio) * np.exp(_np(log_g))
+    np.testing.assert_allclose(packed, want, rtol=2e-3, atol=1e-6)

@@ -49,6 +49,7 @@ __all__ = [
     "ggx_lobe_to_sg",
     "lobe_weight",
     "lobe_weight_factors",
+    "lobe_weight_factors_packed",
     "phong_lobe_to_sg",
     "reflect",
     "sg_eval",
@@ -283,6 +284,24 @@ def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
         ratio = dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30)))
     # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
     return ratio, (beta * r) * _cos_minus_one(xi_p, xi_q)
+
+
+def lobe_weight_factors_packed(xi_p, lb_p, v_q, beta=20.0):
+    """:func:`lobe_weight_factors` with the neighbour's lobe packed as one vector ``v_q =
+    lb_q xi_q`` (so a filter loads axis and smoothed sharpness with 3 floats and keeps the
+    4th for its depth): ``lb_q = |v_q|`` and ``xi_p . xi_q - 1 = xi_p . v_q / lb_q - 1``
+    (clamped to <= 0; its float32 rounding, ~1e-7, is far below any lobe's width)."""
+    lb_q = dr.norm(v_q)
+    inv_s = dr.rcp(lb_p + lb_q)
+    r = lb_p * lb_q * inv_s
+    x = dr.minimum(4.0 * r * inv_s, 1.0)  # 4 a b / (a + b)^2 <= 1 (AM-GM)
+    if isinstance(beta, int | float):
+        ratio = pow_int(x, 0.5 * beta)
+    else:
+        ratio = dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30)))
+    cm1 = dr.minimum(dr.dot(xi_p, v_q) * dr.rcp(dr.maximum(lb_q, 1e-30)) - 1.0, 0.0)
+    # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
+    return ratio, (beta * r) * cm1
 
 
 def gaussian_weight(mu_p, var_p, mu_q, var_q, beta=20.0, kappa=100.0, dim=1):

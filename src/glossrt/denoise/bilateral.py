@@ -79,7 +79,7 @@ from ..brdf.sg import (
     WANG_SG,
     ggx_lobe_to_sg,
     lobe_weight,
-    lobe_weight_factors,
+    lobe_weight_factors_packed,
     smoothed_sharpness,
 )
 from ..errors import FrameError, GlossrtError
@@ -201,9 +201,10 @@ def bilateral(frame, weight: str = "normal",
         lam_p = dr.select(hit, lam_p, 1.0)
     if use_lobe:
         # sec. 4.2: the smoothed sharpness lambda_bar = lambda kappa / (lambda + kappa), once
-        # per pixel (not per tap)
+        # per pixel (not per tap); packed with the depth as (lambda_bar xi, z): one 4-wide
+        # gather per tap gives a neighbour's lobe and depth
         lb_p = smoothed_sharpness(lam_p, kappa)
-        lobes = dr.ravel(mi.Vector4f(xi_p[0], xi_p[1], xi_p[2], lb_p))
+        lobes = dr.ravel(mi.Vector4f(lb_p * xi_p[0], lb_p * xi_p[1], lb_p * xi_p[2], zkey))
         dr.eval(lobes, xi_p, lb_p)
     if use_screen:
         # glossrt's fig. 4(c) baseline: per-pixel sigma_s,i from the lobe sharpness
@@ -222,6 +223,8 @@ def bilateral(frame, weight: str = "normal",
     packed = [dr.ravel(mi.Vector4f(s[0], s[1], s[2], 0.0)) for s in signals]
     # the centre pixel's guides once, not re-derived in every window-row kernel
     dr.eval(geo, packed, hit, z, n_p)
+    # the normal weight is needed unless the lobe weight serves every channel
+    need_normal = not (use_lobe and all(specular))
 
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
@@ -233,8 +236,12 @@ def bilateral(frame, weight: str = "normal",
                 continue
             qx, qy = grid.x + dx, grid.y + dy
             q = grid.index(qx, qy)  # clamped, hence a valid gather
-            g = dr.gather(mi.Vector4f, geo, q)
-            valid = hit & grid.inside(qx, qy) & (g[3] > 0)  # never a background tap
+            if need_normal:
+                g = dr.gather(mi.Vector4f, geo, q)
+            if use_lobe:
+                lq = dr.gather(mi.Vector4f, lobes, q)
+            z_q = lq[3] if use_lobe else g[3]
+            valid = hit & grid.inside(qx, qy) & (z_q > 0)  # never a background tap
             # sec. 2.2: f(s_i, s_j) = exp(-|s_i - s_j|^2 / (2 sigma_s^2))
             log_w = -float(dx * dx + dy * dy) * inv_2s2
             if use_screen:
@@ -242,35 +249,37 @@ def bilateral(frame, weight: str = "normal",
                 log_ws = -float(dx * dx + dy * dy) * inv_2si2
             if sigma_z2 is not None:
                 # sec. 2.2: w_z = g(|z_i - z_j|, sigma_z^2), on the depth relative to z_i
-                rel = (z - g[3]) / z
+                rel = (z - z_q) / z
                 log_z = dr.square(rel) / (2.0 * sigma_z2)
                 log_w = log_w - log_z
                 if use_screen:
                     log_ws = log_ws - log_z
             # sec. 2.2: w_n = g(|n_i - n_j|, sigma_n^2) = exp(-|n_i - n_j|^2 / (2 sigma_n^2)),
             # folded into one exponential with f and w_z
-            dn2 = dr.squared_norm(n_p - mi.Vector3f(g[0], g[1], g[2]))
-            log_n = dn2 / (2.0 * sigma_n2)
-            w_nrm = dr.select(valid, dr.exp(log_w - log_n), 0.0)
-            if use_screen:
-                w_scr = dr.select(valid, dr.exp(log_ws - log_n), 0.0)
+            if need_normal:
+                dn2 = dr.squared_norm(n_p - mi.Vector3f(g[0], g[1], g[2]))
+                log_n = dn2 / (2.0 * sigma_n2)
+                w_nrm = dr.select(valid, dr.exp(log_w - log_n), 0.0)
+                if use_screen:
+                    w_scr = dr.select(valid, dr.exp(log_ws - log_n), 0.0)
             if use_lobe:
-                lq = dr.gather(mi.Vector4f, lobes, q)
-                xi_q = mi.Vector3f(lq[0], lq[1], lq[2])
+                v_q = mi.Vector3f(lq[0], lq[1], lq[2])
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
                 #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j))
                 if approx:
-                    ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, lq[3], beta)
+                    ratio, log_g = lobe_weight_factors_packed(xi_p, lb_p, v_q, beta)
                     w_lobe = dr.select(valid, ratio * dr.exp(log_w + log_g), 0.0)
                 else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
+                    lb_q = dr.norm(v_q)
                     w_lobe = dr.select(valid, dr.exp(log_w), 0.0) * lobe_weight(
-                        xi_p, lb_p, xi_q, lq[3], beta, None, False)
+                        xi_p, lb_p, v_q / dr.maximum(lb_q, 1e-30), lb_q, beta, None, False)
             for k, s in enumerate(packed):
-                wk = w_nrm
                 if specular[k] and use_lobe:
                     wk = w_lobe
                 elif specular[k] and use_screen:
                     wk = w_scr
+                else:
+                    wk = w_nrm
                 v = dr.gather(mi.Vector4f, s, q)
                 # eq. 1: numerator and denominator
                 sums[k] += wk

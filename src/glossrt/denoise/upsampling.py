@@ -58,7 +58,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors, smoothed_sharpness
+from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors_packed, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2, view_directions
@@ -178,7 +178,9 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
 
     # packed low-resolution data: one packet gather per tap
     geo = dr.ravel(mi.Vector4f(lo.normal[0], lo.normal[1], lo.normal[2], lo.z))
-    lobes = dr.ravel(mi.Vector4f(lo.xi[0], lo.xi[1], lo.xi[2], lo.lam)) if use_lobe else None
+    # (lambda_bar xi, z): a sample's lobe and depth in one 4-wide gather
+    lobes = dr.ravel(mi.Vector4f(lo.lam * lo.xi[0], lo.lam * lo.xi[1], lo.lam * lo.xi[2],
+                                 lo.z)) if use_lobe else None
     packed, specular = [], []
     for c in channels:
         illum = demodulate(split(low[c]), split(low[albedo_of[c]]))
@@ -187,6 +189,8 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     # the full pixel's guides once, not re-derived in every window-row kernel
     dr.eval(hi.hit, hi.z, hi.normal, hi.xi, hi.lam, u, v)
     dr.eval(geo, lobes, packed)
+    # the normal weight is needed unless the lobe weight serves every channel
+    need_normal = not (use_lobe and all(specular))
 
     inv_2s2 = 1.0 / (2.0 * sigma_s * sigma_s)
     sums = [mi.Float(0.0) for _ in channels]
@@ -197,29 +201,34 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
             qx, qy = x0 + dx, y0 + dy
             inside = lgrid.inside(qx, qy)
             q = lgrid.index(qx, qy)
-            g = dr.gather(mi.Vector4f, geo, q)
+            if need_normal:
+                g = dr.gather(mi.Vector4f, geo, q)
+            if use_lobe:
+                lq = dr.gather(mi.Vector4f, lobes, q)
+            z_q = lq[3] if use_lobe else g[3]
             # Kopf 2007: spatial Gaussian on the low-resolution grid
             d2 = dr.square(mi.Float(qx) - u) + dr.square(mi.Float(qy) - v)
             w_sp = dr.select(inside, dr.exp(-d2 * inv_2s2), 0.0)
             spatial_sum += w_sp
-            valid = inside & hi.hit & (g[3] > 0)  # never a background sample
+            valid = inside & hi.hit & (z_q > 0)  # never a background sample
             log_w = mi.Float(0.0)
             if sigma_z2 is not None:
                 # Tokuyoshi 2015, sec. 2.2: w_z, on the depth relative to z_p
-                log_w = -dr.square((hi.z - g[3]) / hi.z) / (2.0 * sigma_z2)
-            # sec. 2.2: w_n = exp(-|n_p - n_q|^2 / (2 sigma_n^2)), in the same exponent as w_z
-            dn2 = dr.squared_norm(hi.normal - mi.Vector3f(g[0], g[1], g[2]))
-            w_nrm = dr.select(valid, w_sp * dr.exp(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
+                log_w = -dr.square((hi.z - z_q) / hi.z) / (2.0 * sigma_z2)
+            if need_normal:
+                # sec. 2.2: w_n = exp(-|n_p - n_q|^2 / (2 sigma_n^2)), in w_z's exponent
+                dn2 = dr.squared_norm(hi.normal - mi.Vector3f(g[0], g[1], g[2]))
+                w_nrm = dr.select(valid, w_sp * dr.exp(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
             if use_lobe:
-                lq = dr.gather(mi.Vector4f, lobes, q)
-                xi_q = mi.Vector3f(lq[0], lq[1], lq[2])
+                v_q = mi.Vector3f(lq[0], lq[1], lq[2])
                 # sec. 4.2: the lobe weight between the full pixel's and the sample's lobes
                 if approx:
-                    ratio, log_g = lobe_weight_factors(hi.xi, hi.lam, xi_q, lq[3], beta)
+                    ratio, log_g = lobe_weight_factors_packed(hi.xi, hi.lam, v_q, beta)
                     w_lobe = dr.select(valid, w_sp * ratio * dr.exp(log_w + log_g), 0.0)
                 else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
+                    lb_q = dr.norm(v_q)
                     w_lobe = dr.select(valid, w_sp * dr.exp(log_w), 0.0) * lobe_weight(
-                        hi.xi, hi.lam, xi_q, lq[3], beta, None, False)
+                        hi.xi, hi.lam, v_q / dr.maximum(lb_q, 1e-30), lb_q, beta, None, False)
             for k, s in enumerate(packed):
                 wk = w_lobe if (use_lobe and specular[k]) else w_nrm
                 val = dr.gather(mi.Vector4f, s, q)
