@@ -34,6 +34,7 @@ from .motion import MotionInputs  # noqa: E402
 from .pathtracer import (  # noqa: E402
     RADIANCE_OUT,
     UNBOUNDED_DEPTH,
+    EmitterTable,
     ShapeTable,
     resolve_max_depth,
     trace_pixels,
@@ -65,14 +66,15 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
     return x
 
 
-def _trace(scene, sensor, shapes, table, motion_inputs, pixel, seed, width, height, max_depth,
-           jitter):
-    out = trace_pixels(scene, sensor, shapes, table, motion_inputs, pixel, seed, width, height,
-                       max_depth, jitter)
+def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
+           max_depth, jitter):
+    out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
+                       height, max_depth, jitter)
     return {k: _flat(v) for k, v in out.items()}
 
 
-_trace_frozen = dr.freeze(_trace)
+# one recording per scene and image size; a session may well use dozens (experiments)
+_trace_frozen = dr.freeze(_trace, warn_after=64)
 
 
 def _check_jitter(jitter) -> tuple[float, float]:
@@ -104,6 +106,8 @@ class Renderer:
         self.seed = seed
         self.frozen = frozen
         self.shapes = ShapeTable(setup.scene)
+        #: emitters in a load-independent order for next-event estimation (reproducible noise)
+        self.emitters = EmitterTable(setup.scene)
         self.table = SpecularAlbedoTable.load()
         self.width, self.height = setup.size
         self.n_meshes = len(setup.shapes)
@@ -125,7 +129,7 @@ class Renderer:
         jx, jy = _check_jitter(jitter)
         offset = mi.Point2f(dr.opaque(mi.Float, jx), dr.opaque(mi.Float, jy))
         with no_gc():
-            out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.table,
+            out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
                      self._motion_inputs(frame), pixel, seed, self.width, self.height,
                      self.max_depth, offset)
             dr.eval(out)

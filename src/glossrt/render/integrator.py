@@ -17,7 +17,14 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .pathtracer import RADIANCE_OUT, ShapeTable, gbuffer, resolve_max_depth, shade
+from .pathtracer import (
+    RADIANCE_OUT,
+    EmitterTable,
+    ShapeTable,
+    gbuffer,
+    resolve_max_depth,
+    shade,
+)
 
 #: AOV layers in output order, with their components (Mitsuba names them layer.component)
 AOV_LAYERS = (
@@ -34,6 +41,7 @@ class GlossrtIntegrator(mi.SamplingIntegrator):
         super().__init__(props)
         self.max_depth = resolve_max_depth(int(props.get("max_depth", 3)))
         self._tables: dict[int, ShapeTable] = {}
+        self._emitters: dict[int, EmitterTable] = {}
         from ..brdf.ggx import SpecularAlbedoTable
 
         self.albedo = SpecularAlbedoTable.load()
@@ -47,9 +55,16 @@ class GlossrtIntegrator(mi.SamplingIntegrator):
             self._tables[key] = ShapeTable(scene)
         return self._tables[key]
 
+    def _emitter_table(self, scene: mi.Scene) -> EmitterTable:
+        """Stable emitter order for NEE (built once per scene, not per ``sample`` call)."""
+        key = id(scene)
+        if key not in self._emitters:
+            self._emitters[key] = EmitterTable(scene)
+        return self._emitters[key]
+
     def sample(self, scene, sampler, ray, medium=None, active=True):
         ray = mi.Ray3f(ray)
-        r = shade(scene, sampler, ray, self.max_depth)
+        r = shade(scene, sampler, ray, self.max_depth, self._emitter_table(scene))
         sensor = scene.sensors()[0]
         gb = gbuffer(r.si, r.bsdf, ray, sensor, self._shapes(scene), self.albedo)
         values = {name: getattr(r, name) for name in RADIANCE_OUT}

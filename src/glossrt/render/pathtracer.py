@@ -15,7 +15,11 @@ power-heuristic MIS, Russian roulette from depth 5) with the contributions split
 
 Primary rays go through pixel centres, so the G-buffer is noise-free and deterministic;
 random numbers come from a PCG32 stream keyed by (pixel index, seed), so rendering a subset
-of pixels gives exactly the values a full render gives for those pixels.
+of pixels gives exactly the values a full render gives for those pixels. Next-event estimation
+picks emitters through an :class:`EmitterTable` (Mitsuba's selection probabilities, in an
+order that does not change between loads) rather than ``scene.sample_emitter_direction``,
+whose emitter order changes from load to load: the same seed gives the same image on every
+load of a scene.
 """
 
 from __future__ import annotations
@@ -24,8 +28,9 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
-from ..scenes import stable_shapes
+from ..scenes import stable_emitters, stable_shapes
 
 #: Lobe masks: diffuse, and everything that is not diffuse (glossy + delta).
 DIFFUSE_MASK = int(mi.BSDFFlags.Diffuse)
@@ -80,6 +85,94 @@ def _context(mask: int) -> mi.BSDFContext:
     return ctx
 
 
+class EmitterTable:
+    """The scene's emitters in a load-independent order (:func:`glossrt.scenes.stable_emitters`)
+    with Mitsuba's selection probabilities (``scene.pdf_emitter``, which honours each emitter's
+    ``sampling_weight``) and their CDF, for :func:`sample_emitter_direction`.
+
+    ``emitter``, ``pmf``, ``cdf``: one entry per emitter (a single null entry with pmf 0 when
+    the scene has none); ``last``: index of the last emitter with a nonzero pmf (the CDF is
+    exactly 1 from there on), the end of the binary search."""
+
+    DRJIT_STRUCT = {"emitter": mi.EmitterPtr, "pmf": mi.Float, "cdf": mi.Float, "last": mi.UInt32}
+
+    def __init__(self, scene: mi.Scene | None = None):
+        if scene is None:
+            self.emitter, self.pmf, self.cdf, self.last = (
+                mi.EmitterPtr(), mi.Float(), mi.Float(), mi.UInt32())
+            return
+        ordered = stable_emitters(scene)
+        n = len(ordered)
+        if n == 0:
+            ids, pmf = np.zeros(1, np.uint32), np.zeros(1, np.float32)
+        else:
+            def rid(e) -> int:  # Dr.Jit registry id: what an EmitterPtr holds
+                return int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0])
+
+            position = {rid(e): i for i, e in enumerate(scene.emitters())}
+            # Mitsuba's pmf by its own emitter index (uniform: one value for all of them)
+            mitsuba_pmf = np.broadcast_to(
+                np.array(scene.pdf_emitter(dr.arange(mi.UInt32, n)), np.float32).ravel(), (n,))
+            ids = np.array([rid(e) for e in ordered], np.uint32)
+            pmf = np.array([mitsuba_pmf[position[rid(e)]] for e in ordered], np.float32)
+        cdf = np.cumsum(pmf, dtype=np.float64)
+        positive = np.flatnonzero(pmf > 0)
+        last = int(positive[-1]) if positive.size else 0
+        if positive.size:
+            cdf /= cdf[last]
+        cdf[last:] = 1.0
+        self.emitter = dr.reinterpret_array(mi.EmitterPtr, mi.UInt32(ids))
+        self.pmf = mi.Float(pmf)
+        self.cdf = mi.Float(cdf.astype(np.float32))
+        self.last = dr.opaque(mi.UInt32, last)
+        dr.make_opaque(self.emitter, self.pmf, self.cdf)
+
+    def __len__(self) -> int:
+        """Number of emitters (the null entry of an emitter-less scene does not count)."""
+        return int(np.count_nonzero(np.array(dr.reinterpret_array(mi.UInt32, self.emitter))))
+
+
+@dr.syntax
+def sample_emitter_direction(scene: mi.Scene, emitters: EmitterTable,
+                             si: mi.SurfaceInteraction3f, sample: mi.Point2f,
+                             active: mi.Bool) -> tuple[mi.DirectionSample3f, mi.Color3f]:
+    """``scene.sample_emitter_direction(si, sample, True, active)`` with the emitter picked
+    from ``emitters`` (a load-independent order) instead of Mitsuba's emitter list.
+
+    Same semantics as Mitsuba's ``Scene::sample_emitter_direction``: the emitter is chosen
+    with probability ``pmf`` (Mitsuba's, so ``scene.pdf_emitter_direction`` stays the MIS pdf
+    of this technique) from ``sample.x``, which is then rescaled and reused; the weight is
+    divided by ``pmf`` and ``ds.pdf`` multiplied by it; occluded samples get weight and pdf 0
+    (shadow ray ``si.spawn_ray_to(ds.p)``; for environment emitters ``ds.p`` lies on a sphere
+    around the scene). A scene without emitters gives weight 0 and pdf 0."""
+    x = sample.x
+    # first index with cdf > x in [0, last] (the CDF is exactly 1 from ``last`` on, and
+    # zero-pmf entries repeat the previous CDF value, so they are never chosen)
+    lo = mi.UInt32(0)
+    hi = mi.UInt32(emitters.last)
+    while active & (lo < hi):
+        mid = (lo + hi) >> 1
+        right = dr.gather(mi.Float, emitters.cdf, mid) <= x
+        lo = dr.select(right, mid + 1, lo)
+        hi = dr.select(right, hi, mid)
+    pmf = dr.gather(mi.Float, emitters.pmf, lo, active)
+    cdf_hi = dr.gather(mi.Float, emitters.cdf, lo, active)
+    cdf_lo = dr.gather(mi.Float, emitters.cdf, lo - 1, active & (lo > 0))
+    active = active & (pmf > 0)
+    # reuse sample.x: its position within the chosen emitter's CDF interval
+    x_re = dr.select(active, (x - cdf_lo) / (cdf_hi - cdf_lo), 0.0)
+    x_re = dr.clip(x_re, 0.0, dr.one_minus_epsilon(mi.Float))
+    emitter = dr.gather(mi.EmitterPtr, emitters.emitter, lo, active)
+    ds, spec = emitter.sample_direction(si, mi.Point2f(x_re, sample.y), active)
+    ds.pdf *= pmf
+    spec = dr.select(active, spec / pmf, 0.0)
+    active &= ds.pdf != 0
+    occluded = scene.ray_test(si.spawn_ray_to(ds.p), active)
+    spec = dr.select(occluded, 0.0, spec)
+    ds.pdf = dr.select(occluded, 0.0, ds.pdf)
+    return ds, mi.Color3f(spec)
+
+
 @dataclass
 class ShadeResult:
     emission: mi.Color3f
@@ -92,8 +185,13 @@ class ShadeResult:
 
 
 @dr.syntax
-def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int) -> ShadeResult:
-    """Trace one path per lane from ``ray`` and return its separated contributions."""
+def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
+          emitters: EmitterTable | None = None) -> ShadeResult:
+    """Trace one path per lane from ``ray`` and return its separated contributions.
+    ``emitters``: the scene's :class:`EmitterTable` (built here when not given; pass it in
+    from outside when tracing inside ``dr.freeze``)."""
+    if emitters is None:
+        emitters = EmitterTable(scene)
     ctx_all = mi.BSDFContext()
     ctx_d, ctx_s = _context(DIFFUSE_MASK), _context(SPECULAR_MASK)
     zero = dr.zeros(mi.Color3f)
@@ -107,7 +205,7 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int) -> ShadeResul
     act0 = valid0 & (max_depth > 1)
 
     # next-event estimation, split by lobe; MIS against the full BSDF's pdf
-    ds, em_w = scene.sample_emitter_direction(si0, sampler.next_2d(), True, act0)
+    ds, em_w = sample_emitter_direction(scene, emitters, si0, sampler.next_2d(), act0)
     wo = si0.to_local(ds.d)
     f_d = bsdf0.eval(ctx_d, si0, wo, act0)
     f_s = bsdf0.eval(ctx_s, si0, wo, act0)
@@ -143,7 +241,8 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int) -> ShadeResul
 
         active_next = active & si.is_valid() & (depth + 1 < max_depth)
         bsdf = si.bsdf(ray_k)
-        dsn, em_wn = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_next)
+        dsn, em_wn = sample_emitter_direction(scene, emitters, si, sampler.next_2d(),
+                                              active_next)
         won = si.to_local(dsn.d)
         f_n, pdf_n = bsdf.eval_pdf(ctx_all, si, won, active_next)
         w_en = dr.select(dsn.delta, 1.0, _mis(dsn.pdf, pdf_n))
@@ -256,9 +355,10 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     }
 
 
-def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable, table,
-                 motion_inputs, pixel: mi.UInt32, seed: mi.UInt32, width: int, height: int,
-                 max_depth: int, jitter: mi.Point2f | None = None) -> dict:
+def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
+                 emitters: EmitterTable, table, motion_inputs, pixel: mi.UInt32,
+                 seed: mi.UInt32, width: int, height: int, max_depth: int,
+                 jitter: mi.Point2f | None = None) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
     ``jitter`` (pixels, in [-0.5, 0.5)) moves every primary ray off the pixel centre."""
@@ -271,7 +371,7 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable, table,
     pos = mi.Point2f(x / width, y / height)
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)
-    r = shade(scene, sampler, ray, max_depth)
+    r = shade(scene, sampler, ray, max_depth, emitters)
     out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
     bad = mi.UInt32(0)  # per lane: radiance values that were not finite
     color = dr.zeros(mi.Color3f)

@@ -14,6 +14,7 @@ Adding a built-in scene is one decorated function in :mod:`glossrt.scenes.librar
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import xml.etree.ElementTree as ET
@@ -101,6 +102,49 @@ def stable_shapes(scene: mi.Scene) -> list:
                 tuple(float(b.max[i]) for i in range(3)))
 
     return sorted(scene.shapes(), key=key)
+
+
+def _registry_id(ptr_type, obj) -> int:
+    """Dr.Jit registry id of a Mitsuba object (what ``mi.ShapePtr``/``mi.EmitterPtr`` hold)."""
+    import drjit as dr
+
+    return int(dr.reinterpret_array(mi.UInt32, ptr_type(obj))[0])
+
+
+def _param_digest(obj) -> str:
+    """Digest of an object's parameters (``mi.traverse``): tells apart emitters of the same
+    plugin and id (Mitsuba gives many emitters the same id, e.g. '' or 'emitter')."""
+    params = mi.traverse(obj)
+    h = hashlib.sha1()
+    for k in sorted(params.keys()):
+        v = params[k]
+        v = getattr(v, "matrix", v)
+        try:
+            a = np.ascontiguousarray(np.asarray(v, dtype=np.float64))
+            data = a.tobytes() + repr(a.shape).encode()
+        except (TypeError, ValueError):
+            data = repr(v).encode()
+        h.update(k.encode() + b"\0" + data + b"\0")
+    return h.hexdigest()
+
+
+def stable_emitters(scene: mi.Scene) -> list:
+    """``scene.emitters()`` in an order that does not change between loads of the same scene
+    (Mitsuba's own order varies from load to load): area emitters first, in the order of their
+    shapes in :func:`stable_shapes`, then the others by id, plugin and parameters. glossrt's
+    next-event estimation picks emitters in this order, so a seed gives the same image on
+    every load."""
+    rank = {_registry_id(mi.ShapePtr, s): i for i, s in enumerate(stable_shapes(scene))}
+
+    def key(e):
+        shape = e.get_shape()
+        if shape is not None:
+            r = rank.get(_registry_id(mi.ShapePtr, shape))
+            if r is not None:
+                return (0, r, "", "", "")
+        return (1, 0, e.id(), e.class_name(), _param_digest(e))
+
+    return sorted(scene.emitters(), key=key)
 
 
 class SceneSetup:
