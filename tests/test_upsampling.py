@@ -218,7 +218,7 @@ def test_adaptive_resample_fixes_the_low_weight_pixels(roughness_up):
     full_r, full, ref, low = roughness_up
     img, wts = up.upsample(full, low, weight="lobe", return_weights=True)
     wts = np.array(wts)
-    out, mask = up.adaptive_resample(full_r, 0, full, img, wts, threshold=0.05, spp=128)
+    out, mask = up.adaptive_resample(full_r, 0, full, img, wts, threshold=0.05, spp=512)
     np.testing.assert_array_equal(mask, wts.min(-1) < 0.05)
     n = int(mask.sum())
     assert 0 < n < mask.size // 4
@@ -233,7 +233,9 @@ def test_adaptive_resample_fixes_the_low_weight_pixels(roughness_up):
     floor = np.mean((sum(other.numpy(c) for c in ind) - tgt)[mask] ** 2)
     print(f"\nadaptive re-sampling (1/4, lobe): {n} of {mask.size} pixels, their MSE "
           f"{before:.4g} -> {after:.4g} (two 128 spp references: {floor:.4g})")
-    assert after < 1.5 * floor
+    # re-rendered with 512 spp against a 128 spp reference: var_512 + var_128 is about 0.6 of
+    # the floor (2 var_128); what is left of the upsampling error must be below the floor
+    assert after < floor
     assert before > 1.5 * after
     np.testing.assert_array_equal(np.array(out)[~mask], np.array(img)[~mask])
 
