@@ -1,0 +1,108 @@
+"""What deferred polygon-light shading reads from a Frame, and the BRDF it shades with.
+
+The BRDF of glossrt's polygon-light shading (issue 5; LTC and its Monte Carlo reference use
+the same one, so their difference is the LTC approximation alone):
+
+* diffuse: Lambert, ``albedo_diffuse / pi``;
+* specular: GGX (Walter et al. 2007, eq. 33) with the *height-correlated* Smith
+  shadowing-masking ``G2 = 1 / (1 + Lambda(wo) + Lambda(wi))`` (Heitz 2014, "Understanding the
+  masking-shadowing function", eq. 99) and Schlick's Fresnel with the material's ``F0``
+  (Schlick 1994): ``f = F(wo.h) D(h) G2 / (4 cos_o cos_i)``.
+
+(The path tracer follows Mitsuba's separable Smith form instead; see
+:mod:`glossrt.brdf.ggx`. The two differ by a few percent at grazing angles.)
+
+``F0`` is not in a Frame: :func:`f0_image` looks it up per pixel from the scene's materials
+through ``mesh_id``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .. import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick  # noqa: E402
+from ..denoise.common import check_frame, split  # noqa: E402
+from ..errors import FrameError  # noqa: E402
+
+NEEDS = ("position", "normal", "roughness", "albedo_diffuse", "mesh_id")
+
+
+def f0_image(setup, frame) -> np.ndarray:
+    """Specular F0 (H, W, 3) per pixel from the materials of ``setup``'s shapes, through the
+    frame's ``mesh_id`` (0 = background: F0 0)."""
+    from ..render.materials import describe_bsdf
+    from ..scenes import stable_shapes
+
+    table = np.zeros((len(setup.shapes) + 1, 3))
+    for i, s in enumerate(stable_shapes(setup.scene)):
+        table[i + 1] = describe_bsdf(s.bsdf()).f0
+    ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
+    if ids.min() < 0 or ids.max() >= len(table):
+        raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
+                         f"({ids.max()} >= {len(table)})")
+    return table[ids].astype(np.float32)
+
+
+@dataclass
+class ShadingPoints:
+    """One lane per pixel: world position, normal, view direction (towards the camera),
+    GGX alpha, diffuse albedo, F0 and whether the pixel sees a surface."""
+
+    p: mi.Point3f
+    n: mi.Vector3f
+    wo: mi.Vector3f
+    alpha: mi.Float
+    albedo: mi.Color3f
+    f0: mi.Color3f
+    hit: mi.Bool
+
+    @staticmethod
+    def of(frame, f0: np.ndarray | None = None) -> ShadingPoints:
+        """From a Frame's G-buffer (and its camera); ``f0`` (H, W, 3), default 0."""
+        check_frame(frame, NEEDS)
+        if frame.camera is None:
+            raise FrameError(f"{frame.where}: polygon-light shading needs the camera")
+        p = mi.Point3f(*split(frame["position"]))
+        n = mi.Vector3f(*split(frame["normal"]))
+        cam = [dr.opaque(mi.Float, float(v)) for v in frame.camera.position]
+        wo = dr.normalize(mi.Vector3f(cam[0] - p[0], cam[1] - p[1], cam[2] - p[2]))
+        hit = split(frame["mesh_id"])[0] > 0
+        if f0 is None:
+            f0c = dr.zeros(mi.Color3f, frame.width * frame.height)
+        else:
+            f0 = np.asarray(f0, np.float32).reshape(frame.height, frame.width, 3)
+            f0c = mi.Color3f(*split(mi.TensorXf(f0)))
+        alpha = dr.maximum(split(frame["roughness"])[0], ALPHA_MIN)
+        return ShadingPoints(p, n, wo, alpha, mi.Color3f(*split(frame["albedo_diffuse"])), f0c,
+                             hit & (dr.dot(n, wo) > 0))
+
+
+def smith_lambda(cos_theta, alpha):
+    """GGX Smith ``Lambda(v) = (-1 + sqrt(1 + alpha^2 tan^2 theta)) / 2`` (Heitz 2014, eq. 72),
+    written without the tangent (finite at grazing: ``Lambda -> inf`` as ``cos -> 0``)."""
+    c2 = dr.maximum(dr.square(cos_theta), 1e-12)
+    return 0.5 * (dr.sqrt(1.0 + dr.square(alpha) * (1.0 - c2) / c2) - 1.0)
+
+
+def brdf_cos(sp: ShadingPoints, wi: mi.Vector3f) -> tuple[mi.Color3f, mi.Color3f]:
+    """Diffuse and specular ``f(wo, wi) cos(theta_i)`` (module docstring), world-space
+    ``wi``; 0 below the horizon of either direction."""
+    cos_i = dr.dot(sp.n, wi)
+    cos_o = dr.dot(sp.n, sp.wo)
+    ok = sp.hit & (cos_i > 0) & (cos_o > 0)
+    h = dr.normalize(sp.wo + wi)
+    # Heitz 2014, eq. 99: height-correlated G2
+    g2 = dr.rcp(1.0 + smith_lambda(cos_o, sp.alpha) + smith_lambda(cos_i, sp.alpha))
+    f = fresnel_schlick(dr.dot(sp.wo, h), sp.f0)
+    # Walter et al. 2007, eq. 20 times cos_i
+    spec = f * (D_ggx(dr.dot(sp.n, h), sp.alpha) * g2 / (4.0 * dr.maximum(cos_o, 1e-8)))
+    diff = sp.albedo * (cos_i / dr.pi)
+    return dr.select(ok, diff, 0.0), dr.select(ok, spec, 0.0)
