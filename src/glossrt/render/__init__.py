@@ -77,6 +77,16 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
 _trace_frozen = dr.freeze(_trace, warn_after=64)
 
 
+def _warm_emitters(scene: mi.Scene) -> None:
+    """Sample every emitter once, outside any frozen recording: Mitsuba builds a textured
+    emitter's sampling table lazily on first use, and doing that inside ``dr.freeze``'s
+    recording aborts the first frame ("frozen function included a virtual function call")."""
+    it = dr.zeros(mi.Interaction3f, 1)
+    for e in scene.emitters():
+        ds, w = e.sample_direction(it, mi.Point2f(0.5, 0.5), True)
+        dr.eval(ds, w)
+
+
 def _check_jitter(jitter) -> tuple[float, float]:
     try:
         jx, jy = (float(v) for v in jitter)
@@ -108,6 +118,7 @@ class Renderer:
         self.shapes = ShapeTable(setup.scene)
         #: emitters in a load-independent order for next-event estimation (reproducible noise)
         self.emitters = EmitterTable(setup.scene)
+        _warm_emitters(setup.scene)
         self.table = SpecularAlbedoTable.load()
         self.width, self.height = setup.size
         self.n_meshes = len(setup.shapes)

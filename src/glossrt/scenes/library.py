@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
+import drjit as dr
 import numpy as np
 
 from . import (
@@ -248,3 +250,154 @@ def glossy_spheres() -> SceneSpec:
             "bsdf": {"type": "roughconductor", "material": "Ag", "alpha": phong_to_alpha(s)},
         }
     return SceneSpec(scene, max_depth=3)
+
+
+# -- polygon-light: a teapot and a sphere under a moving, rotating quad light --------------------
+
+#: GGX roughness of the ``polygon-light-a*`` variants (``polygon-light`` is 0.25)
+POLYGON_LIGHT_ALPHAS = (0.1, 0.25, 0.5, 1.0)
+#: teapot tessellation of the built-ins (``teapot_mesh(n)``: 2082 vertices, 4032 triangles)
+POLYGON_LIGHT_TEAPOT_N = 8
+#: frames of one period of the light's animation
+POLYGON_LIGHT_PERIOD = 96
+#: the quad light at rest (frame 0): centre, half extents, downward tilt (degrees) of its
+#: emitting side from facing the camera (+z), constant radiance
+POLYGON_LIGHT_CENTRE = (0.0, 1.3, -1.5)
+POLYGON_LIGHT_HALF = (0.9, 0.45)
+POLYGON_LIGHT_TILT = 50.0
+POLYGON_LIGHT_RADIANCE = (12.0, 11.4, 10.8)
+
+
+def stained_glass(height: int = 96, width: int = 160, cells: int = 28, seed: int = 7,
+                  peak: float = 30.0) -> np.ndarray:
+    """(H, W, 3) float32 linear radiance: a stained-glass window -- Voronoi cells of
+    saturated glass colours separated by dark lead lines, inside a dark frame. ``peak`` is
+    the brightest channel value (the built-in's: mean luminance 8.6, against 11.4 for the
+    constant light)."""
+    rng = np.random.default_rng(seed)
+    palette = np.array([(0.9, 0.12, 0.08), (0.1, 0.3, 0.95), (0.95, 0.75, 0.1),
+                        (0.15, 0.75, 0.25), (0.6, 0.15, 0.8), (0.95, 0.95, 0.85),
+                        (0.1, 0.75, 0.8), (0.95, 0.45, 0.1)])
+    sites = rng.uniform(0.0, 1.0, (cells, 2)) * (width, height)
+    colour = palette[rng.integers(0, len(palette), cells)] * rng.uniform(0.6, 1.0, (cells, 1))
+    yy, xx = np.mgrid[0:height, 0:width] + 0.5
+    d = np.hypot(xx[..., None] - sites[:, 0], yy[..., None] - sites[:, 1])  # (H, W, cells)
+    order = np.argsort(d, axis=-1)
+    d1 = np.take_along_axis(d, order[..., :1], -1)[..., 0]
+    d2 = np.take_along_axis(d, order[..., 1:2], -1)[..., 0]
+    img = colour[order[..., 0]]
+    lead = (d2 - d1) < 1.6
+    border = max(2, min(height, width) // 24)
+    frame = np.zeros((height, width), bool)
+    frame[:border], frame[-border:], frame[:, :border], frame[:, -border:] = True, True, True, True
+    img[lead | frame] = 0.02
+    return (img * peak).astype(np.float32)
+
+
+def polygon_light_path(frame: int) -> np.ndarray:
+    """Rigid motion of ``polygon-light``'s quad light at ``frame`` (applied on top of its rest
+    pose; identity at frame 0), periodic over :data:`POLYGON_LIGHT_PERIOD` frames: its centre
+    sweeps 0.9 m left and right above and behind the objects, bobbing +-0.2 m and coming
+    0.6 m closer half-way, while the quad rolls about its normal (+-45 degrees) and turns
+    about the vertical (+-30 degrees) to follow the objects."""
+    theta = 2.0 * math.pi * frame / POLYGON_LIGHT_PERIOD
+    c0 = np.array(POLYGON_LIGHT_CENTRE)
+    c = c0 + np.array([0.9 * math.sin(theta), 0.2 * math.sin(2.0 * theta),
+                       0.3 * (1.0 - math.cos(theta))])
+    tilt = math.radians(POLYGON_LIGHT_TILT)
+    normal = (0.0, -math.sin(tilt), math.cos(tilt))
+    roll = rotation_about((0, 0, 0), normal, 45.0 * math.sin(theta))
+    yaw = rotation_about((0, 0, 0), (0, 1, 0), -30.0 * math.sin(theta))
+    return translation(c) @ yaw @ roll @ translation(-c0)
+
+
+def polygon_light_scene(alpha: float = 0.25, textured: bool = False,
+                        teapot_n: int = POLYGON_LIGHT_TEAPOT_N) -> SceneSpec:
+    """The ``polygon-light`` scenes (Heitz et al. 2016, figs. 1, 6, 7): a Utah teapot (GGX
+    ``roughplastic``: orange diffuse + GGX specular, ``alpha``) and a copper sphere (GGX
+    ``roughconductor``, ``alpha``) on a grey glossy floor (GGX ``roughplastic``, ``alpha``)
+    under one quad light (``rectangle`` with an ``area`` emitter, id ``light``; at rest
+    behind the objects, facing them and the camera, tilted down) that moves and rotates
+    (:func:`polygon_light_path`), seen directly and in the floor. ``textured``:
+    the light's radiance is a :func:`stained_glass` bitmap instead of a constant. The teapot
+    is :func:`glossrt.scenes.teapot.teapot_shape` with ``teapot_n`` x ``teapot_n`` quads per
+    patch, 0.3 units per data unit (0.945 m tall), turned z-up to y-up."""
+    from .teapot import teapot_shape
+
+    alpha = float(alpha)
+    if not 0.0 < alpha <= 1.0:
+        raise ValueError(f"GGX alpha must lie in (0, 1], got {alpha}")
+    teapot_to_world = (T().translate([-0.45, 0.0, -0.1]).rotate([0, 1, 0], 25)
+                       .rotate([1, 0, 0], -90).scale(0.3))
+    cx, cy, cz = POLYGON_LIGHT_CENTRE
+    hx, hz = POLYGON_LIGHT_HALF
+    if textured:
+        radiance = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(stained_glass()),
+                                 "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"})
+        # the area emitter samples a textured light through the texture's 2D distribution,
+        # which Mitsuba builds on first use: build it now, or glossrt's frozen renderer would
+        # build it while recording its first frame and fail (the kernel's virtual call then
+        # reaches an object the recording did not see)
+        dr.eval(radiance.sample_position(mi.Point2f(0.5, 0.5)))
+    else:
+        radiance = {"type": "rgb", "value": list(POLYGON_LIGHT_RADIANCE)}
+    scene = {
+        "type": "scene",
+        "sensor": _sensor([0, 1.25, 3.4], [0.05, 0.5, -0.4], 55.0, 320, 240),
+        "floor": _rect(
+            T().rotate([1, 0, 0], -90).scale(3.0),
+            # a stronger coat than the default (eta 1.9: F0 = 0.097) for clear reflections
+            {"type": "roughplastic", "distribution": "ggx", "alpha": alpha, "int_ior": 1.9,
+             "diffuse_reflectance": {"type": "rgb", "value": [0.25, 0.25, 0.27]}},
+        ),
+        "teapot": teapot_shape(
+            teapot_n, teapot_to_world,
+            {"type": "roughplastic", "distribution": "ggx", "alpha": alpha,
+             "diffuse_reflectance": {"type": "rgb", "value": [0.75, 0.32, 0.1]}}),
+        "sphere": {
+            "type": "sphere",
+            "center": [0.85, 0.32, -0.25],
+            "radius": 0.32,
+            "bsdf": {"type": "roughconductor", "distribution": "ggx", "material": "Cu",
+                     "alpha": alpha},
+        },
+        # rest pose: behind the objects, the rectangle's +z normal (its emitting side) turned
+        # POLYGON_LIGHT_TILT degrees down from +z, towards the objects and the camera
+        "light": _rect(
+            T().translate([cx, cy, cz]).rotate([1, 0, 0], POLYGON_LIGHT_TILT)
+            .scale([hx, hz, 1.0]),
+            _diffuse((0, 0, 0)),
+            {"type": "area", "radiance": radiance},
+        ),
+    }
+    return SceneSpec(scene, object_paths={"light": polygon_light_path}, max_depth=3)
+
+
+@builtin(
+    "polygon-light",
+    "Utah teapot (GGX rough plastic) and copper sphere on a glossy floor under a moving, "
+    "rotating quad light, GGX alpha 0.25 (Heitz et al. 2016, figs. 1, 6); variants "
+    "polygon-light-a0.1 / -a0.25 / -a0.5 / -a1.0 and polygon-light-textured",
+)
+def polygon_light() -> SceneSpec:
+    return polygon_light_scene(0.25)
+
+
+def _register_polygon_light_alphas() -> None:
+    for a in POLYGON_LIGHT_ALPHAS:
+        builtin(
+            f"polygon-light-a{a}",
+            f"polygon-light with GGX alpha {a} on the teapot, sphere and floor",
+        )(functools.partial(polygon_light_scene, a))
+
+
+_register_polygon_light_alphas()
+
+
+@builtin(
+    "polygon-light-textured",
+    "polygon-light (GGX alpha 0.25) whose moving quad light shows a stained-glass texture "
+    "(Heitz et al. 2016, fig. 7: textured polygon light)",
+)
+def polygon_light_textured() -> SceneSpec:
+    return polygon_light_scene(0.25, textured=True)
