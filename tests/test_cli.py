@@ -173,3 +173,28 @@ def test_experiment_lobes(tmp_path, capsys):
     assert (out / "fig6.png").stat().st_size > 1000
     assert main(["experiment", "--which", "lobes", "--out", str(out), "--size", "30x24"]) == 2
     assert "multiple of 4" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("method", ["ltc", "mc"])
+def test_light_cli(tmp_path, method):
+    out = tmp_path / method
+    argv = ["light", "polygon-light", "--method", method, "--frames", "2", "--size", "24x18",
+            "--out", str(out)] + (["--spp", "4"] if method == "mc" else [])
+    assert main(argv) == 0
+    from glossrt.frame import Frame
+
+    f = Frame.load(out / "frame_0001.exr", require=("color", "normal"))
+    c = f.numpy("color")
+    assert np.all(np.isfinite(c)) and c.max() > 0
+    assert (out / "frame_0001.png").stat().st_size > 100
+    assert f.meta["method"] == method
+
+
+def test_light_cli_scene_without_polygon_lights(tmp_path, capsys):
+    xml = tmp_path / "s.xml"
+    xml.write_text('<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm">'
+                   '</film></sensor><shape type="sphere"><bsdf type="diffuse"/>'
+                   '</shape><emitter type="point"><point name="position" x="0" y="0" z="-3"/>'
+                   '</emitter></scene>')
+    assert main(["light", str(xml), "--out", str(tmp_path / "o"), "--size", "8x6"]) == 2
+    assert "no polygon lights" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""The ``glossrt`` command line: info | render | denoise | compare | demo | bench."""
+"""The ``glossrt`` command line: info | render | light | ltc-fit | denoise | compare | experiment
+| demo | bench."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import json
 import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from .errors import GlossrtError
@@ -181,6 +183,74 @@ def _experiment_lobes(out, size, spp: int) -> int:
     return 0
 
 
+def cmd_light(args) -> int:
+    """Direct light from a scene's polygon lights per frame: LTC or Monte Carlo."""
+    import matplotlib.image
+
+    from . import render, scenes
+    from .frame import Frame, frame_filename
+    from .lights import mc as lmc
+    from .lights.ltc import shade_frame
+    from .lights.scene import polygon_lights
+    from .lights.shading import f0_image
+    from .progress import Progress
+    from .report.page import tonemap
+
+    if args.frames < 1:
+        raise GlossrtError(f"--frames must be >= 1, got {args.frames}")
+    if args.spp < 1:
+        raise GlossrtError(f"--spp must be >= 1, got {args.spp}")
+    size = scenes.parse_size(args.size) if args.size else None
+    setup = scenes.load(args.scene, size=size, frames=args.frames)
+    r = render.Renderer(setup, seed=args.seed)
+    out = _writable_dir(args.out)
+    cache: dict = {}
+    work = args.frames * (args.spp if args.method == "mc" else 1)
+    desc = f"{args.method} {setup.name} {setup.size[0]}x{setup.size[1]}"
+    times = []
+    with Progress(work, desc) as p:
+        for i in range(args.frames):
+            gb = r.render(i)
+            lights = polygon_lights(setup, i)
+            if not lights:
+                raise GlossrtError(f"{setup.name}: no polygon lights (area emitters on "
+                                   "rectangles or small planar meshes) in this scene")
+            f0 = f0_image(setup, gb)
+            t0 = time.perf_counter()
+            if args.method == "ltc":
+                img = shade_frame(gb, lights, f0=f0, textures=cache)
+                p.update(i + 1)
+            else:
+                img = lmc.render_mc(gb, lights, args.spp, f0=f0,
+                                    scene=None if args.no_shadows else setup.scene,
+                                    seed=args.seed + 7919 * i,
+                                    progress=lambda d, n, i=i: p.update(i * n + d))
+            times.append(time.perf_counter() - t0)
+            ch = {k: gb[k] for k in ("albedo_diffuse", "normal", "position", "depth",
+                                     "roughness", "mesh_id", "motion")}
+            ch["color"] = img
+            meta = {"scene": setup.name, "method": args.method, "lights": len(lights),
+                    "shadows": args.method == "mc" and not args.no_shadows,
+                    "spp": args.spp if args.method == "mc" else None,
+                    "seconds": times[-1]}
+            f = Frame(channels=ch, camera=gb.camera, prev_camera=gb.prev_camera, index=i,
+                      meta=meta)
+            name = frame_filename(i)
+            f.save(out / name)
+            matplotlib.image.imsave(out / (name.rsplit(".", 1)[0] + ".png"), tonemap(img))
+    later = times[1:] or times
+    print(f"wrote {args.frames} frame(s) to {out}; {args.method}: "
+          f"{1000 * sorted(later)[len(later) // 2]:.1f} ms per frame (median)")
+    return 0
+
+
+def cmd_ltc_fit(args) -> int:
+    from .lights import ltc_fit
+
+    argv = ["--out", args.out] + (["--size", str(args.size)] if args.size else [])
+    return ltc_fit.main(argv)
+
+
 def cmd_compare(args) -> int:
     from .compare import compare_dirs, format_table
 
@@ -255,6 +325,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mitsuba", action="store_true",
                    help="anti-aliased reference from Mitsuba's own path integrator "
                         "(color only)")
+
+    p = add("light", cmd_light,
+            "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",
+            "glossrt light polygon-light --method ltc --frames 8 --size 320x240 --out out/ltc")
+    p.add_argument("scene", help="built-in scene name or Mitsuba XML path")
+    p.add_argument("--method", choices=["ltc", "mc"], default="ltc")
+    p.add_argument("--spp", type=int, default=64,
+                   help="mc: samples per pixel (each one light + one BRDF sample per light)")
+    p.add_argument("--no-shadows", action="store_true", help="mc: no visibility (as LTC)")
+    p.add_argument("--frames", type=int, default=1)
+    p.add_argument("--size", help="WxH (default: the scene's film size)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output folder (EXR + PNG per frame)")
+
+    p = add("ltc-fit", cmd_ltc_fit, "fit glossrt's GGX LTC table (minutes)",
+            "glossrt ltc-fit --out ltc_ggx.npz")
+    p.add_argument("--out", required=True, help="output .npz")
+    p.add_argument("--size", type=int, default=None, help="table resolution (default 64)")
 
     p = add("denoise", cmd_denoise,
             "denoise an EXR sequence (writes frames with the denoised color)",

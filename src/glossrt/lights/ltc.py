@@ -1,0 +1,277 @@
+"""Polygon-light shading with linearly transformed cosines (Heitz, Dupuy, Hill, Neubelt 2016,
+"Real-Time Polygonal-Light Shading with Linearly Transformed Cosines"), using glossrt's own
+LTC fit of GGX (:mod:`glossrt.lights.ltc_fit`) and polygon integration
+(:mod:`glossrt.lights.polygon`).
+
+For a shading point with normal ``n``, view ``wo`` and GGX ``alpha``, in the frame whose x axis
+is ``wo``'s projection on the tangent plane (``T1 = normalize(wo - n (n.wo))``, ``T2 = n x
+T1``, z = ``n``) the LTC fit gives ``M^-1`` (4 coefficients), the directional albedo ``norm``
+and the Fresnel moment ``fres``. Then (Heitz et al. 2016, sec. 3-4):
+
+* ``int_P D(w) dw = int_{M^-1 P} D_o(w) dw``: the clamped-cosine integral of the polygon
+  transformed by ``M^-1`` (:func:`glossrt.lights.polygon.cosine_integral`);
+* specular: ``int_P f_s cos dw ~= (F0 (norm - fres) + fres) int_{M^-1 P} D_o`` (Schlick's F,
+  split as in the fit);
+* diffuse (Lambert): ``int_P (albedo / pi) cos dw = albedo int_P D_o`` (identity transform).
+
+Textured lights (Heitz et al. 2016, sec. 5.3 "textured polygonal lights"): the integral above
+times the light's texture prefiltered over the footprint of the (transformed) cosine lobe on
+the light, looked up where the vector form factor ``F`` of the transformed polygon (its mean
+direction, :func:`glossrt.lights.polygon.form_factor_vector`) meets the light's plane, at a
+level of detail set by the distance ``d`` of that plane along ``F`` relative to the polygon's
+size in the transformed space: ``sigma_uv = d / sqrt(A)`` (glossrt's form of the idea: the
+paper does not give its constants). :class:`PrefilteredTexture` stores Gaussian-filtered
+levels (normalised convolution over a padded domain, so the average only counts texels inside
+the light and lookups slightly outside the polygon see its edge colours).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from .. import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..errors import GlossrtError  # noqa: E402
+from .polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
+from .shading import ShadingPoints  # noqa: E402
+
+__all__ = ["PrefilteredTexture", "ltc_frame", "polygon_integral", "shade_frame"]
+
+
+def _table():
+    from .ltc_fit import LTCTable
+
+    return LTCTable.load()
+
+
+def ltc_frame(n: mi.Vector3f, wo: mi.Vector3f) -> tuple[mi.Vector3f, mi.Vector3f]:
+    """``(T1, T2)``: ``T1`` along ``wo``'s projection on the tangent plane, ``T2 = n x T1``;
+    for ``wo`` along ``n`` (isotropic: any tangent does) Mitsuba's ``coordinate_system``."""
+    t = wo - n * dr.dot(n, wo)
+    len2 = dr.squared_norm(t)
+    fallback, _ = mi.coordinate_system(n)
+    t1 = dr.select(len2 > 1e-12, t * dr.rsqrt(dr.maximum(len2, 1e-30)), fallback)
+    return t1, dr.cross(n, t1)
+
+
+def _local(verts_world: Sequence, p, t1, t2, n) -> list:
+    out = []
+    for v in verts_world:
+        d = v - p
+        out.append(mi.Vector3f(dr.dot(d, t1), dr.dot(d, t2), dr.dot(d, n)))
+    return out
+
+
+def _apply_minv(coeffs, verts: list) -> list:
+    """``M^-1 v`` with Heitz's canonical ``M^-1 = [[a, 0, b], [0, c, 0], [d, 0, 1]]``."""
+    a, b, c, d = coeffs
+    return [mi.Vector3f(a * v.x + b * v.z, c * v.y, d * v.x + v.z) for v in verts]
+
+
+def _integrals(local: list, coeffs, two_sided):
+    """(diffuse, specular) clamped-cosine integrals: identity and ``M^-1``-transformed."""
+    i_d = cosine_integral(local, None, two_sided)
+    i_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
+    return i_d, i_s
+
+
+def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True) -> np.ndarray:
+    """Integral over the polygon of the GGX BRDF (height-correlated Smith, Fresnel = 1) times
+    the clamped cosine, by LTC: ``norm * int_{M^-1 P} D_o``.
+
+    NumPy in and out, batched over leading axes: ``vertices`` (..., K, 3) *relative to the
+    shading point* (world axes, 3 <= K <= 8), ``normal`` and ``view`` (..., 3) unit vectors
+    (``view`` points away from the surface, towards the eye), ``alpha`` (...). Returns (...).
+    One-sided polygons emit towards their counter-clockwise side (see
+    :mod:`glossrt.lights.polygon`).
+
+    >>> import numpy as np
+    >>> from glossrt.lights.ltc import polygon_integral
+    >>> quad = np.array([[-1, -1, 2], [1, -1, 2], [1, 1, 2], [-1, 1, 2.0]])
+    >>> v = polygon_integral(quad, [0, 0, 1.0], [0, 0, 1.0], 0.3)  # doctest: +SKIP
+    """
+    try:
+        verts = np.asarray(vertices, np.float64)
+        n = np.asarray(normal, np.float64)
+        wo = np.asarray(view, np.float64)
+        a = np.asarray(alpha, np.float64)
+    except (TypeError, ValueError) as e:
+        raise GlossrtError(f"polygon_integral: inputs must be numeric arrays: {e}") from e
+    if verts.ndim < 2 or verts.shape[-1] != 3 or not K_MIN <= verts.shape[-2] <= K_MAX:
+        raise GlossrtError(f"polygon_integral: vertices must be (..., K, 3) with "
+                           f"{K_MIN} <= K <= {K_MAX}, got {verts.shape}")
+    batch = np.broadcast_shapes(verts.shape[:-2], n.shape[:-1], wo.shape[:-1], a.shape)
+    for name, arr in (("vertices", verts), ("normal", n), ("view", wo), ("alpha", a)):
+        if not np.all(np.isfinite(arr)):
+            raise GlossrtError(f"polygon_integral: {name} contains NaN or Inf")
+    k = verts.shape[-2]
+    verts = np.broadcast_to(verts, (*batch, k, 3)).reshape(-1, k, 3)
+    n = np.broadcast_to(n, (*batch, 3)).reshape(-1, 3)
+    wo = np.broadcast_to(wo, (*batch, 3)).reshape(-1, 3)
+    a = np.broadcast_to(a, batch).reshape(-1)
+    nn = np.linalg.norm(n, axis=-1, keepdims=True)
+    if np.any(nn < 1e-12):
+        raise GlossrtError("polygon_integral: zero normal")
+    n = n / nn
+    wo = wo / np.maximum(np.linalg.norm(wo, axis=-1, keepdims=True), 1e-300)
+    # scale each polygon so its largest coordinate is ~1 (the integral is scale invariant)
+    scale = np.maximum(np.abs(verts).max(axis=(1, 2)), 1e-300)[:, None, None]
+    verts = verts / scale
+
+    def vec(x):
+        return mi.Vector3f(*(mi.Float(np.ascontiguousarray(x[:, c], np.float32))
+                             for c in range(3)))
+
+    nd, wod = vec(n), vec(wo)
+    t1, t2 = ltc_frame(nd, wod)
+    origin = dr.zeros(mi.Point3f, len(a))
+    local = _local([vec(verts[:, j]) for j in range(k)], origin, t1, t2, nd)
+    cos_o = dr.clip(dr.dot(nd, wod), 0.0, 1.0)
+    coeffs, norm, _ = _table().lookup(mi.Float(a.astype(np.float32)), cos_o)
+    i_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
+    out = np.array(norm * i_s, dtype=np.float64)
+    out[np.array(dr.dot(nd, wod)) <= 0] = 0.0  # view below the surface: no reflection
+    return out.reshape(batch)
+
+
+class PrefilteredTexture:
+    """A light texture filtered for LTC lookups (module docstring): level ``k`` is the
+    normalised Gaussian convolution (sigma ``2^k`` texels of the base level) of the texture
+    padded by ``pad`` of its size on each side, stored at ``1 / 2^k`` resolution; ``eval(uv,
+    sigma_uv)`` blends the two levels around the requested filter width (in uv units, the
+    light's texture spans [0, 1]^2) and returns RGB."""
+
+    def __init__(self, image: np.ndarray, pad: float = 0.5, levels: int | None = None):
+        from scipy.ndimage import gaussian_filter
+
+        img = np.asarray(image, np.float32)
+        if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
+            raise GlossrtError(f"light texture must be (H, W, 3), got {img.shape}")
+        if not np.all(np.isfinite(img)):
+            raise GlossrtError("light texture contains NaN or Inf")
+        h, w = img.shape[:2]
+        self.pad = float(pad)
+        ph, pw = int(math.ceil(h * pad)), int(math.ceil(w * pad))
+        data = np.zeros((h + 2 * ph, w + 2 * pw, 3), np.float32)
+        mask = np.zeros(data.shape[:2], np.float32)
+        data[ph:ph + h, pw:pw + w] = img
+        mask[ph:ph + h, pw:pw + w] = 1.0
+        # uv of the padded domain: [-pad', 1 + pad'] with pad' = ph / h (rounded up)
+        self.lo = (-pw / w, -ph / h)
+        self.span = ((w + 2 * pw) / w, (h + 2 * ph) / h)
+        # up to sigma = 4x the texture size: the widest level is ~ the light's mean colour
+        n_levels = levels or max(1, int(math.log2(max(h, w))) + 3)
+        self.sigmas, self.textures = [], []
+        for k in range(n_levels):
+            sigma = 0.0 if k == 0 else 2.0 ** k
+            if sigma > 0:
+                num = np.stack([gaussian_filter(data[..., c] * mask, sigma, mode="constant")
+                                for c in range(3)], -1)
+                den = gaussian_filter(mask, sigma, mode="constant")[..., None]
+                lvl = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
+            else:
+                # level 0: the texture, with edge colours continued into the padding
+                lvl = np.pad(img, ((ph, ph), (pw, pw), (0, 0)), mode="edge")
+            step = 2 ** k
+            lvl = lvl[::step, ::step] if step > 1 else lvl
+            self.sigmas.append(sigma / max(h, w))  # filter width in uv units
+            self.textures.append(mi.Texture2f(mi.TensorXf(np.ascontiguousarray(
+                lvl, np.float32)), filter_mode=dr.FilterMode.Linear,
+                wrap_mode=dr.WrapMode.Clamp))
+
+    def eval(self, uv: mi.Point2f, sigma_uv: mi.Float) -> mi.Color3f:
+        """Trilinear lookup: the two levels whose filter widths bracket ``sigma_uv``."""
+        p = mi.Point2f((uv.x - self.lo[0]) / self.span[0], (uv.y - self.lo[1]) / self.span[1])
+        vals = [t.eval(p) for t in self.textures]
+        cols = [mi.Color3f(v[0], v[1], v[2]) for v in vals]
+        out = cols[0]
+        # piecewise-linear in sigma between consecutive levels; beyond the last: the last
+        for k in range(1, len(cols)):
+            s0, s1 = self.sigmas[k - 1], self.sigmas[k]
+            t = dr.clip((sigma_uv - s0) / (s1 - s0), 0.0, 1.0)
+            out = dr.select(sigma_uv > s0, dr.lerp(cols[k - 1], cols[k], t), out)
+        return out
+
+
+def _texture_lookup(light, tex: PrefilteredTexture, local: list, coeffs) -> mi.Color3f:
+    """Heitz et al. 2016, sec. 5.3: the prefiltered texture where the transformed polygon's
+    vector form factor points, at a width from its distance and size (module docstring)."""
+    verts = local if coeffs is None else _apply_minv(coeffs, local)
+    f = form_factor_vector(verts)
+    # plane of the transformed polygon
+    e1, e2 = verts[1] - verts[0], verts[len(verts) - 1] - verts[0]
+    nrm = dr.cross(e1, e2)
+    area = mi.Float(0.0)  # of the (convex, planar) polygon, by its fan of triangles
+    for j in range(1, len(verts) - 1):
+        area += 0.5 * dr.norm(dr.cross(verts[j] - verts[0], verts[j + 1] - verts[0]))
+    nrm = dr.normalize(nrm)
+    dirn = dr.normalize(f)
+    denom = dr.dot(dirn, nrm)
+    t = dr.dot(verts[0], nrm) / dr.select(dr.abs(denom) > 1e-8, denom, 1e-8)
+    hit = dirn * t
+    # affine coordinates of the hit in the polygon's first edges, mapped to the light's uv
+    g11, g12, g22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
+    r = hit - verts[0]
+    b1, b2 = dr.dot(r, e1), dr.dot(r, e2)
+    det = dr.maximum(g11 * g22 - g12 * g12, 1e-30)
+    s = (g22 * b1 - g12 * b2) / det
+    q = (g11 * b2 - g12 * b1) / det
+    uv = np.asarray(light.uv, np.float64)
+    uv0, uv1, uvl = (uv[0], uv[1], uv[-1])
+    u = uv0[0] + s * (uv1[0] - uv0[0]) + q * (uvl[0] - uv0[0])
+    v = uv0[1] + s * (uv1[1] - uv0[1]) + q * (uvl[1] - uv0[1])
+    sigma_uv = dr.abs(t) / dr.sqrt(dr.maximum(area, 1e-30))
+    return tex.eval(mi.Point2f(u, v), sigma_uv)
+
+
+def shade_frame(frame, lights: list, f0: np.ndarray | None = None,
+                textures: dict | None = None) -> np.ndarray:
+    """Direct light (H, W, 3) of ``frame``'s G-buffer from the polygon ``lights`` by LTC:
+    GGX specular with Schlick Fresnel (``f0`` per pixel, see
+    :func:`glossrt.lights.shading.f0_image`; default 0) plus Lambertian diffuse
+    (``albedo_diffuse``), unshadowed. Lights: objects with ``vertices`` (K, 3) world space,
+    ``radiance`` RGB, ``two_sided``, optional ``texture`` (H, W, 3) and ``uv`` (K, 2)
+    (:class:`glossrt.lights.scene.PolygonLight`). ``textures``: a cache {id(light texture):
+    PrefilteredTexture} reused across frames."""
+    sp = ShadingPoints.of(frame, f0)
+    t1, t2 = ltc_frame(sp.n, sp.wo)
+    cos_o = dr.clip(dr.dot(sp.n, sp.wo), 0.0, 1.0)
+    coeffs, norm, fres = _table().lookup(sp.alpha, cos_o)
+    # Schlick split of the fit: int f F cos = F0 (norm - fres) + fres (per unit D integral)
+    spec_w = sp.f0 * (norm - fres) + fres
+    total = dr.zeros(mi.Color3f, frame.width * frame.height)
+    cache = {} if textures is None else textures
+    for light in lights:
+        v = np.asarray(light.vertices, np.float64)
+        if v.ndim != 2 or v.shape[1] != 3 or not K_MIN <= len(v) <= K_MAX:
+            raise GlossrtError(f"polygon light needs {K_MIN} to {K_MAX} vertices (K, 3), "
+                               f"got {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise GlossrtError("polygon light vertices contain NaN or Inf")
+        world = [mi.Point3f(*(dr.opaque(mi.Float, float(c)) for c in p)) for p in v]
+        local = _local(world, sp.p, t1, t2, sp.n)
+        two = bool(getattr(light, "two_sided", False))
+        i_d, i_s = _integrals(local, coeffs, two)
+        le = mi.Color3f(*(dr.opaque(mi.Float, float(c))
+                          for c in np.asarray(light.radiance, float).ravel()[:3]))
+        tex_img = getattr(light, "texture", None)
+        if tex_img is not None:
+            key = id(tex_img)
+            if key not in cache:
+                cache[key] = PrefilteredTexture(tex_img)
+            tex = cache[key]
+            col_d = le * _texture_lookup(light, tex, local, None)
+            col_s = le * _texture_lookup(light, tex, local, coeffs)
+        else:
+            col_d = col_s = le
+        total += col_d * (sp.albedo * i_d) + col_s * (spec_w * i_s)
+    total = dr.select(sp.hit, total, 0.0)
+    out = np.stack([np.array(total[c]) for c in range(3)], -1)
+    return out.reshape(frame.height, frame.width, 3).astype(np.float32)
