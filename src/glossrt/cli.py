@@ -307,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("render", cmd_render, "render 1 spp frames (or converged references) to EXR",
             "glossrt render glossy-cornell --out out/cornell --frames 8 --size 320x240")
-    p.add_argument("scene", help="built-in scene name (glossy-cornell, roughness-map) or XML path")
+    p.add_argument("scene", help="built-in scene name (see README) or Mitsuba XML path")
     p.add_argument("--out", required=True, help="output folder (one EXR per frame)")
     p.add_argument("--frames", type=int, default=1)
     p.add_argument("--start", type=int, default=0, help="first frame index")
