@@ -26,6 +26,15 @@ def no_gc() -> Iterator[None]:
             gc.enable()
 
 
+def opaque(values) -> list:
+    """Python numbers as opaque Dr.Jit scalars (``mi.Float``): values that change between
+    calls (a camera or light position) must not be baked into kernels as literals, or every
+    new value compiles new kernels."""
+    import mitsuba as mi
+
+    return [dr.opaque(mi.Float, float(v)) for v in values]
+
+
 def pow_int(x, n: float):
     """``x**n`` by repeated squaring when ``n`` is a small positive integer (128 is 7
     squarings, far cheaper than ``exp(n log x)``); ``dr.power`` otherwise."""

@@ -264,6 +264,19 @@ def lobe_weight(xi_p, l_p, xi_q, l_q, beta=20.0, kappa=100.0, approx=False):
     return dr.exp(beta * dr.minimum(log_q, 0.0))
 
 
+def _ratio_term(lb_p, lb_q, beta):
+    """``((4 lb_p lb_q / (lb_p + lb_q)^2)^(beta / 2), lb_p lb_q / (lb_p + lb_q))`` (Tokuyoshi
+    2015, sec. 4.2), the power by repeated squaring for a Python ``beta`` with integer half."""
+    inv_s = dr.rcp(lb_p + lb_q)
+    r = lb_p * lb_q * inv_s
+    # 4 a b / (a + b)^2 <= 1 (AM-GM); clamp rounding
+    x = dr.minimum(4.0 * r * inv_s, 1.0)
+    if isinstance(beta, int | float):
+        return pow_int(x, 0.5 * beta), r
+    # an opaque Dr.Jit beta (parameter sweeps without recompiling)
+    return dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30))), r
+
+
 def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
     """The closed-form lobe weight (``lobe_weight(..., approx=True)``) split for filters that
     evaluate it per tap: ``w = ratio * exp(log_g)``, from *smoothed* sharpnesses ``lb``
@@ -274,14 +287,7 @@ def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
     integer, as for the paper's 20) and ``log_g = beta lb_p lb_q / (lb_p + lb_q) (xi_p . xi_q -
     1)``; a filter folds ``log_g`` into the exponent of its other Gaussian weights, so the
     lobe weight costs one ``exp`` per tap."""
-    inv_s = dr.rcp(lb_p + lb_q)
-    r = lb_p * lb_q * inv_s
-    # 4 a b / (a + b)^2 <= 1 (AM-GM); clamp rounding
-    x = dr.minimum(4.0 * r * inv_s, 1.0)
-    if isinstance(beta, int | float):
-        ratio = pow_int(x, 0.5 * beta)
-    else:  # an opaque Dr.Jit beta (parameter sweeps without recompiling)
-        ratio = dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30)))
+    ratio, r = _ratio_term(lb_p, lb_q, beta)
     # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
     return ratio, (beta * r) * _cos_minus_one(xi_p, xi_q)
 
@@ -292,13 +298,7 @@ def lobe_weight_factors_packed(xi_p, lb_p, v_q, beta=20.0):
     4th for its depth): ``lb_q = |v_q|`` and ``xi_p . xi_q - 1 = xi_p . v_q / lb_q - 1``
     (clamped to <= 0; its float32 rounding, ~1e-7, is far below any lobe's width)."""
     lb_q = dr.norm(v_q)
-    inv_s = dr.rcp(lb_p + lb_q)
-    r = lb_p * lb_q * inv_s
-    x = dr.minimum(4.0 * r * inv_s, 1.0)  # 4 a b / (a + b)^2 <= 1 (AM-GM)
-    if isinstance(beta, int | float):
-        ratio = pow_int(x, 0.5 * beta)
-    else:
-        ratio = dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30)))
+    ratio, r = _ratio_term(lb_p, lb_q, beta)
     cm1 = dr.minimum(dr.dot(xi_p, v_q) * dr.rcp(dr.maximum(lb_q, 1e-30)) - 1.0, 0.0)
     # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
     return ratio, (beta * r) * cm1

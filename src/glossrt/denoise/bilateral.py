@@ -84,7 +84,16 @@ from ..brdf.sg import (
 )
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
-from .common import Grid, check_frame, demodulate, merge, remodulate, split
+from .common import (
+    Grid,
+    albedo_channel,
+    check_frame,
+    demodulate,
+    merge,
+    remodulate,
+    split,
+    view_directions,
+)
 
 #: default screen-space kernel: sigma_s in pixels and the half width of the window
 SIGMA_S = 2.0
@@ -104,24 +113,6 @@ WEIGHTS = ("normal", "lobe", "screen")
 
 __all__ = ["BETA", "KAPPA", "K_S", "RADIUS", "SIGMA_MIN", "SIGMA_N2", "SIGMA_S", "SIGMA_Z2",
            "WEIGHTS", "bilateral", "pixel_angle", "screen_sigma", "view_directions"]
-
-
-def _albedo_name(channel: str) -> str:
-    if channel not in RADIANCE or channel == "emission":
-        raise GlossrtError(
-            f"bilateral: cannot filter {channel!r}; choose among "
-            f"{', '.join(c for c in RADIANCE if c != 'emission')}")
-    return "albedo_specular" if channel.endswith("specular") else "albedo_diffuse"
-
-
-def view_directions(frame, position) -> mi.Vector3f:
-    """Per-pixel ``wo = normalize(camera position - position)`` (world space)."""
-    if frame.camera is None:
-        raise FrameError(f"{frame.where}: weight='lobe' or 'screen' needs the camera "
-                         "(view directions)")
-    # opaque: a moving camera must not bake new literals into (and recompile) every kernel
-    c = [dr.opaque(mi.Float, float(v)) for v in frame.camera.position]
-    return dr.normalize(mi.Vector3f(c[0] - position[0], c[1] - position[1], c[2] - position[2]))
 
 
 def pixel_angle(frame) -> float:
@@ -173,7 +164,7 @@ def bilateral(frame, weight: str = "normal",
                            f"0 < sigma_min <= sigma_s (got k_s={k_s}, sigma_min={sigma_min}, "
                            f"sigma_s={sigma_s})")
     channels = tuple(dict.fromkeys(channels))
-    albedo_of = {c: _albedo_name(c) for c in channels}
+    albedo_of = {c: albedo_channel(c, "bilateral") for c in channels}
     any_specular = any(c.endswith("specular") for c in channels)
     use_lobe = weight == "lobe" and any_specular
     use_screen = weight == "screen" and any_specular
@@ -194,7 +185,7 @@ def bilateral(frame, weight: str = "normal",
     if use_lobe or use_screen:
         pos = split(frame["position"])
         alpha = split(frame["roughness"])[0]
-        wo = view_directions(frame, pos)
+        wo = view_directions(frame, pos, "weight='lobe' or 'screen'")
         # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
         xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, alpha, ndf_sharpness)
         xi_p = dr.select(hit, xi_p, mi.Vector3f(0.0, 0.0, 1.0))

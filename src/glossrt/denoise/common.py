@@ -11,7 +11,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..errors import FrameError
+from ..errors import FrameError, GlossrtError
+from ..frame import RADIANCE
+from ..jit import opaque
 
 #: Rec. 709 luminance weights (linear RGB)
 LUM = (0.2126, 0.7152, 0.0722)
@@ -134,6 +136,25 @@ def gbuffer(frame, grid: Grid, with_position: bool = False) -> GBuffer:
     dzdx, dzdy = depth_gradient(grid, inv_z)
     pos = split(frame["position"]) if with_position else None
     return GBuffer(split(normal), inv_z, dzdx, dzdy, split(mesh)[0], pos)
+
+
+def albedo_channel(channel: str, who: str) -> str:
+    """The albedo that demodulates radiance component ``channel`` (``who`` names the caller
+    in the error for anything that is not a filterable component)."""
+    if channel not in RADIANCE or channel == "emission":
+        raise GlossrtError(
+            f"{who}: cannot use {channel!r}; choose among "
+            f"{', '.join(c for c in RADIANCE if c != 'emission')}")
+    return "albedo_specular" if channel.endswith("specular") else "albedo_diffuse"
+
+
+def view_directions(frame, position, purpose: str = "this filter") -> mi.Vector3f:
+    """Per-pixel ``wo = normalize(camera position - position)`` (world space), the camera
+    position opaque (a moving camera does not recompile kernels)."""
+    if frame.camera is None:
+        raise FrameError(f"{frame.where}: {purpose} needs the camera (view directions)")
+    c = opaque(frame.camera.position)
+    return dr.normalize(mi.Vector3f(c[0] - position[0], c[1] - position[1], c[2] - position[2]))
 
 
 def check_frame(frame, names) -> None:

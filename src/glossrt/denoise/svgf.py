@@ -41,6 +41,7 @@ from .common import (
     merge,
     remodulate,
     split,
+    view_directions,
 )
 
 #: the signals filtered separately: (radiance channels summed, albedo channels summed)
@@ -393,14 +394,7 @@ class SVGF:
         """Each pixel's GGX lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009)."""
         from ..brdf.sg import ggx_lobe_to_sg
 
-        if frame.camera is None:
-            raise GlossrtError(f"{frame.where}: weights='lobe' needs the camera (glossrt header)"
-                               " to know the view direction")
-        # opaque: a moving camera must not bake new literals (and compile new kernels)
-        cam = mi.Point3f(*(dr.opaque(mi.Float, float(v))
-                           for v in np.asarray(frame.camera.to_world)[:3, 3]))
-        pos = mi.Point3f(*split(frame["position"]))
-        wo = dr.normalize(cam - pos)
+        wo = view_directions(frame, split(frame["position"]), "weights='lobe'")
         n = mi.Vector3f(*gb.normal)
         axis, lam = ggx_lobe_to_sg(n, wo, split(frame["roughness"])[0])
         return {"lobe_axis": [axis[0], axis[1], axis[2]], "lobe_sharpness": lam,

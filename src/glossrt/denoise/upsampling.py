@@ -61,8 +61,17 @@ import numpy as np
 from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors_packed, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
-from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2, view_directions
-from .common import Grid, check_frame, demodulate, merge, remodulate, split
+from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2
+from .common import (
+    Grid,
+    albedo_channel,
+    check_frame,
+    demodulate,
+    merge,
+    remodulate,
+    split,
+    view_directions,
+)
 
 #: default screen kernel in *low-resolution* pixels, and the window half width (2r x 2r taps)
 SIGMA_S = 1.0
@@ -103,14 +112,6 @@ def jitter_sequence(factor: int, index: int) -> tuple[float, float]:
     return ((i + 0.5) / factor - 0.5, (j + 0.5) / factor - 0.5)
 
 
-def _albedo_name(channel: str) -> str:
-    if channel not in RADIANCE or channel == "emission":
-        raise GlossrtError(
-            f"upsample: cannot upsample {channel!r}; choose among "
-            f"{', '.join(c for c in RADIANCE if c != 'emission')}")
-    return "albedo_specular" if channel.endswith("specular") else "albedo_diffuse"
-
-
 @dataclass
 class _Guides:
     """Per-pixel guidance of one frame: hit mask, depth, normal and (optionally) the SG of
@@ -132,7 +133,7 @@ class _Guides:
         if lobes:
             pos = split(frame["position"])
             alpha = split(frame["roughness"])[0]
-            xi, lam = ggx_lobe_to_sg(n, view_directions(frame, pos), alpha)
+            xi, lam = ggx_lobe_to_sg(n, view_directions(frame, pos, "weight='lobe'"), alpha)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
             # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
             g.lam = smoothed_sharpness(dr.select(hit, lam, 1.0), kappa)
@@ -144,7 +145,7 @@ def _check(frame, low, channels, weight) -> tuple[tuple, dict, bool]:
         raise GlossrtError(f"upsample: unknown weight {weight!r}; choose one of "
                            f"{', '.join(WEIGHTS)}")
     channels = tuple(dict.fromkeys(channels))
-    albedo_of = {c: _albedo_name(c) for c in channels}
+    albedo_of = {c: albedo_channel(c, "upsample") for c in channels}
     use_lobe = weight == "lobe" and any(c.endswith("specular") for c in channels)
     geo = ["normal", "depth", "mesh_id"] + (["position", "roughness"] if use_lobe else [])
     check_frame(frame, [*RADIANCE, *sorted(set(albedo_of.values())), *geo])

@@ -39,8 +39,9 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
+from ..jit import opaque  # noqa: E402
 from .polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
-from .shading import ShadingPoints  # noqa: E402
+from .shading import ShadingPoints, light_vertices  # noqa: E402
 
 __all__ = ["PrefilteredTexture", "ltc_frame", "polygon_integral", "shade_frame"]
 
@@ -249,18 +250,11 @@ def shade_frame(frame, lights: list, f0: np.ndarray | None = None,
     total = dr.zeros(mi.Color3f, frame.width * frame.height)
     cache = {} if textures is None else textures
     for light in lights:
-        v = np.asarray(light.vertices, np.float64)
-        if v.ndim != 2 or v.shape[1] != 3 or not K_MIN <= len(v) <= K_MAX:
-            raise GlossrtError(f"polygon light needs {K_MIN} to {K_MAX} vertices (K, 3), "
-                               f"got {v.shape}")
-        if not np.all(np.isfinite(v)):
-            raise GlossrtError("polygon light vertices contain NaN or Inf")
-        world = [mi.Point3f(*(dr.opaque(mi.Float, float(c)) for c in p)) for p in v]
+        world = [mi.Point3f(*opaque(p)) for p in light_vertices(light)]
         local = _local(world, sp.p, t1, t2, sp.n)
         two = bool(getattr(light, "two_sided", False))
         i_d, i_s = _integrals(local, coeffs, two)
-        le = mi.Color3f(*(dr.opaque(mi.Float, float(c))
-                          for c in np.asarray(light.radiance, float).ravel()[:3]))
+        le = mi.Color3f(*opaque(np.asarray(light.radiance, float).ravel()[:3]))
         tex_img = getattr(light, "texture", None)
         if tex_img is not None:
             key = id(tex_img)

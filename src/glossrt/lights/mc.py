@@ -32,7 +32,8 @@ import numpy as np  # noqa: E402
 from ..brdf.ggx import D_ggx, G1_smith, sample_vndf  # noqa: E402
 from ..denoise.common import LUM  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
-from .shading import ShadingPoints, brdf_cos  # noqa: E402
+from ..jit import opaque  # noqa: E402
+from .shading import ShadingPoints, brdf_cos, light_vertices  # noqa: E402
 
 #: lanes (pixels x samples) per launch
 MAX_LANES = 1 << 21
@@ -40,19 +41,11 @@ MAX_LANES = 1 << 21
 SHADOW_EPS = 1e-3
 
 
-def _opaque_vec(v) -> mi.Vector3f:
-    return mi.Vector3f(*(dr.opaque(mi.Float, float(c)) for c in v))
-
-
 class _Light:
     """A polygon light as opaque Dr.Jit constants (no recompiles when it moves)."""
 
     def __init__(self, light):
-        v = np.asarray(light.vertices, np.float64)
-        if v.ndim != 2 or v.shape[1] != 3 or not 3 <= len(v) <= 8:
-            raise GlossrtError(f"polygon light needs 3 to 8 vertices (K, 3), got {v.shape}")
-        if not np.all(np.isfinite(v)):
-            raise GlossrtError("polygon light vertices contain NaN or Inf")
+        v = light_vertices(light)
         n = np.cross(v[1] - v[0], v[2] - v[0])
         for k in range(3, len(v)):
             n = n + np.cross(v[k - 1] - v[0], v[k] - v[0])
@@ -64,11 +57,10 @@ class _Light:
                for k in range(1, len(v) - 1)]
         self.area = float(sum(tri))
         self.cdf = np.cumsum(tri) / self.area
-        self.v = [_opaque_vec(p) for p in v]
-        self.n = _opaque_vec(self.normal)
-        self.cdf_dr = [dr.opaque(mi.Float, float(c)) for c in self.cdf[:-1]]
-        self.radiance = mi.Color3f(*(dr.opaque(mi.Float, float(c))
-                                     for c in np.asarray(light.radiance, float).ravel()[:3]))
+        self.v = [mi.Vector3f(*opaque(p)) for p in v]
+        self.n = mi.Vector3f(*opaque(self.normal))
+        self.cdf_dr = opaque(self.cdf[:-1])
+        self.radiance = mi.Color3f(*opaque(np.asarray(light.radiance, float).ravel()[:3]))
         self.two_sided = bool(getattr(light, "two_sided", False))
         tex = getattr(light, "texture", None)
         self.texture = None
@@ -77,12 +69,10 @@ class _Light:
             # affine map from (s, t) along edges v0->v1, v0->v2 to uv
             e1, e2 = v[1] - v[0], v[2] - v[0]
             g = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
-            self.gram_inv = [[dr.opaque(mi.Float, float(x)) for x in row]
-                             for row in np.linalg.inv(g)]
-            self.uv0 = [dr.opaque(mi.Float, float(x)) for x in uv[0]]
-            self.duv1 = [dr.opaque(mi.Float, float(x)) for x in uv[1] - uv[0]]
-            self.duv2 = [dr.opaque(mi.Float, float(x)) for x in uv[2] - uv[0]]
-            self.e1, self.e2 = _opaque_vec(e1), _opaque_vec(e2)
+            self.gram_inv = [opaque(row) for row in np.linalg.inv(g)]
+            self.uv0, self.duv1, self.duv2 = opaque(uv[0]), opaque(uv[1] - uv[0]), opaque(
+                uv[2] - uv[0])
+            self.e1, self.e2 = mi.Vector3f(*opaque(e1)), mi.Vector3f(*opaque(e2))
             self.texture = mi.Texture2f(mi.TensorXf(np.asarray(tex, np.float32)),
                                         filter_mode=dr.FilterMode.Linear,
                                         wrap_mode=dr.WrapMode.Clamp)

@@ -29,10 +29,21 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick  # noqa: E402
-from ..denoise.common import check_frame, split  # noqa: E402
-from ..errors import FrameError  # noqa: E402
+from ..denoise.common import check_frame, split, view_directions  # noqa: E402
+from ..errors import FrameError, GlossrtError  # noqa: E402
 
 NEEDS = ("position", "normal", "roughness", "albedo_diffuse", "mesh_id")
+
+
+def light_vertices(light) -> np.ndarray:
+    """A polygon light's world-space vertices (K, 3) float64, checked: 3 to 8 of them,
+    all finite (a clear GlossrtError otherwise)."""
+    v = np.asarray(light.vertices, np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or not 3 <= len(v) <= 8:
+        raise GlossrtError(f"polygon light needs 3 to 8 vertices (K, 3), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise GlossrtError("polygon light vertices contain NaN or Inf")
+    return v
 
 
 def f0_image(setup, frame) -> np.ndarray:
@@ -68,12 +79,9 @@ class ShadingPoints:
     def of(frame, f0: np.ndarray | None = None) -> ShadingPoints:
         """From a Frame's G-buffer (and its camera); ``f0`` (H, W, 3), default 0."""
         check_frame(frame, NEEDS)
-        if frame.camera is None:
-            raise FrameError(f"{frame.where}: polygon-light shading needs the camera")
         p = mi.Point3f(*split(frame["position"]))
         n = mi.Vector3f(*split(frame["normal"]))
-        cam = [dr.opaque(mi.Float, float(v)) for v in frame.camera.position]
-        wo = dr.normalize(mi.Vector3f(cam[0] - p[0], cam[1] - p[1], cam[2] - p[2]))
+        wo = view_directions(frame, p, "polygon-light shading")
         hit = split(frame["mesh_id"])[0] > 0
         if f0 is None:
             f0c = dr.zeros(mi.Color3f, frame.width * frame.height)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import functools
 import math
 
-import drjit as dr
 import numpy as np
 
 from . import (
@@ -334,11 +333,8 @@ def polygon_light_scene(alpha: float = 0.25, textured: bool = False,
     if textured:
         radiance = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(stained_glass()),
                                  "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"})
-        # the area emitter samples a textured light through the texture's 2D distribution,
-        # which Mitsuba builds on first use: build it now, or glossrt's frozen renderer would
-        # build it while recording its first frame and fail (the kernel's virtual call then
-        # reaches an object the recording did not see)
-        dr.eval(radiance.sample_position(mi.Point2f(0.5, 0.5)))
+        # (Mitsuba builds its sampling table lazily; glossrt's Renderer samples every emitter
+        # once before recording its frozen kernels, see render._warm_emitters)
     else:
         radiance = {"type": "rgb", "value": list(POLYGON_LIGHT_RADIANCE)}
     scene = {
