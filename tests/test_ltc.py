@@ -137,3 +137,39 @@ def test_prefiltered_texture_levels():
     np.testing.assert_allclose(wide[0], 0.5, atol=0.05)
     with pytest.raises(GlossrtError, match="NaN"):
         PrefilteredTexture(img * np.nan)
+
+
+def test_frozen_shading_replays_the_moving_light():
+    """``frozen=True`` (dr.freeze) gives the traced result bit for bit on every frame of the
+    moving light and the moving G-buffer, recording once (new light positions are inputs, not
+    baked constants)."""
+    from glossrt import render, scenes
+    from glossrt.lights import ltc
+    from glossrt.lights.scene import polygon_lights
+    from glossrt.lights.shading import f0_image
+
+    setup = scenes.load("polygon-light", size=(32, 24), frames=3)
+    r = render.Renderer(setup)
+    before = ltc._shade_frozen.n_recordings
+    for i in range(3):
+        gb = r.render(i)
+        lights = polygon_lights(setup, i)
+        f0 = f0_image(setup, gb)
+        traced = shade_frame(gb, lights, f0=f0)
+        frozen = shade_frame(gb, lights, f0=f0, frozen=True)
+        assert traced.max() > 0.1
+        np.testing.assert_array_equal(frozen, traced)
+    assert ltc._shade_frozen.n_recordings - before <= 1
+
+
+def test_textured_light_is_finite_on_its_own_pixels():
+    """Pixels on the textured light itself (shading point on the light's plane) get 0 from
+    it, not NaN (the texture lookup has no direction there)."""
+    from glossrt import render, scenes
+    from glossrt.lights.scene import polygon_lights
+    from glossrt.lights.shading import f0_image
+
+    setup = scenes.load("polygon-light-textured", size=(32, 24))
+    gb = render.Renderer(setup).render(0)
+    img = shade_frame(gb, polygon_lights(setup, 0), f0=f0_image(setup, gb))
+    assert np.all(np.isfinite(img)) and img.max() > 0.1

@@ -188,6 +188,48 @@ def lobe_weights(ctx: BenchContext) -> dict:
             "ratio_lobe_vs_normal": ratios, "target_ratio": 1.15}
 
 
+@benchmark("ltc")
+def ltc(ctx: BenchContext) -> dict:
+    """Deferred LTC shading of ``polygon-light``'s G-buffer by its quad light (Heitz et al.
+    2016) at the bench size, the light moving between calls: traced anew and frozen
+    (``dr.freeze``, the real-time path), with unshadowed Monte Carlo of the same BRDF at 1 spp
+    for scale, interleaved in one run; the result stays on the device (no NumPy copy).
+    GPU target (issue 5): frozen, 1920x1080, at most 0.5 ms."""
+    import drjit as dr
+
+    from . import render, scenes
+    from .lights.ltc import shade_tensor
+    from .lights.mc import render_mc
+    from .lights.scene import polygon_lights
+    from .lights.shading import f0_image
+
+    w, h = ctx.size
+    setup = scenes.load("polygon-light", size=(w, h), frames=4)
+    r = render.Renderer(setup)
+    inputs = []
+    for i in range(4):
+        gb = r.render(i)
+        inputs.append((gb, polygon_lights(setup, i), f0_image(setup, gb)))
+    state = {"k": 0}
+
+    def step(frozen):
+        gb, lights, f0 = inputs[state["k"] % 4]
+        state["k"] += 1
+        dr.eval(shade_tensor(gb, lights, f0=f0, frozen=frozen))
+
+    gb0, lights0, f00 = inputs[0]
+    cases = {"ltc-traced": lambda: step(False), "ltc-frozen": lambda: step(True),
+             "mc-1spp": lambda: render_mc(gb0, lights0, 1, f0=f00)}
+    res = {k: [] for k in cases}
+    for _ in range(3):
+        for name, fn in cases.items():
+            res[name].append(timeit(fn, 1, max(1, ctx.repeats // 3))["median_s"])
+    med = {k: statistics.median(v) for k, v in res.items()}
+    return {"scene": "polygon-light", "size": [w, h], "lights": 1, "seconds": med,
+            "frozen_vs_traced": med["ltc-frozen"] / med["ltc-traced"],
+            "gpu_target_s_at_1920x1080": 0.5e-3}
+
+
 def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,
         repeats: int = 9, log: Callable[[str], None] = print) -> dict:
     """Run the named (default: all) benchmarks and return a JSON-able dict."""

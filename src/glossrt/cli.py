@@ -133,6 +133,8 @@ def cmd_experiment(args) -> int:
     size = parse_size(args.size)
     if args.which == "lobes":
         return _experiment_lobes(out, size, args.spp)
+    if args.which == "ltc":
+        return _experiment_ltc(out, size, args.spp, args.polygons, args.published)
     res = experiments.denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
                                 ref_spp=args.spp, static_frames=args.static_frames)
     md = res.markdown()
@@ -150,6 +152,39 @@ def cmd_experiment(args) -> int:
     s.images_row(list(res.images.items()), name="denoised")
     rep.write()
     print(md)
+    return 0
+
+
+def _experiment_ltc(out, size, spp: int, polygons: int, published: str | None) -> int:
+    """Heitz et al. 2016 measurements (RESULTS.md): polygon_integral against the quadrature,
+    LTC images against Monte Carlo per alpha and textured (montage with error maps), and the
+    published table when its ltc.js is given."""
+    from . import ltc_experiments as le
+
+    parts = []
+    cmp = None
+    if published:
+        print(f"published table {published}: fit error per cell and {polygons} random "
+              "polygons, both tables ...", flush=True)
+        cmp = le.compare_with_published(published, polygons=polygons, progress=print)
+        (out / "ltc_published.json").write_text(json.dumps(cmp, indent=2, default=str))
+        parts.append("## glossrt's fit vs the published table\n\n" + le.published_markdown(cmp))
+    if polygons > 0:
+        print(f"accuracy: {polygons} random polygons against the quadrature ...", flush=True)
+        acc = cmp["polygons"]["glossrt"] if cmp else le.accuracy(polygons)
+        rows = ["| alpha | cases | median | p90 | p99 |", "|---|---|---|---|---|"]
+        rows += [f"| {k} | {v['count']} | {v['median']:.3f} | {v['p90']:.3f} | {v['p99']:.3f} |"
+                 for k, v in acc.items()]
+        parts.insert(0, "## polygon_integral vs quadrature (relative error)\n\n"
+                     + "\n".join(rows))
+    print(f"images at {size[0]}x{size[1]}, references {spp} spp ...", flush=True)
+    res = le.images(size=size, ref_spp=spp, textured=True, progress=print)
+    res.montage(out / "ltc_images.png")
+    parts.append(f"## LTC vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp)\n\n{res.markdown()}")
+    md = "\n\n".join(parts)
+    (out / "ltc.md").write_text(md + "\n")
+    print(md)
+    print(f"wrote {out / 'ltc.md'} and {out / 'ltc_images.png'}")
     return 0
 
 
@@ -362,9 +397,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-every", type=int, default=10)
     p.add_argument("--spp", type=int, default=1024)
     p.add_argument("--static-frames", type=int, default=60)
-    p.add_argument("--which", choices=["denoisers", "lobes"], default="denoisers",
+    p.add_argument("--which", choices=["denoisers", "lobes", "ltc"], default="denoisers",
                    help="denoisers: Schied 2017 comparison; lobes: Tokuyoshi 2015 figs. 4-6 "
-                        "and upsampling (uses --size and --spp)")
+                        "and upsampling (uses --size and --spp); ltc: Heitz et al. 2016 "
+                        "accuracy and images (uses --size, --spp, --polygons, --published)")
+    p.add_argument("--polygons", type=int, default=2000,
+                   help="ltc: random polygons for the accuracy statistics (0: skip)")
+    p.add_argument("--published", default=None,
+                   help="ltc: path to ltc_code's fit/results/ltc.js (Heitz et al.'s table, "
+                        "not shipped) to score it the same way as glossrt's")
 
     p = add("compare", cmd_compare, "metrics of frames against references, per frame and mean",
             "glossrt compare out/cornell out/cornell-ref --json metrics.json")

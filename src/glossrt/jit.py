@@ -49,3 +49,17 @@ def pow_int(x, n: float):
                 base = base * base
         return result
     return dr.power(x, n)
+
+
+def owned_float(values):
+    """A NumPy array as an evaluated ``mi.Float`` in memory Dr.Jit allocated itself (a kernel
+    writes the copy). Arrays built straight from NumPy can keep the NumPy buffer, whose
+    alignment varies between calls, and then ``dr.freeze`` re-records now and then (seen as
+    a nondeterministic second recording): inputs of frozen functions go through this."""
+    import mitsuba as mi
+    import numpy as np
+
+    out = mi.Float(np.ascontiguousarray(values, dtype=np.float32).ravel()) + \
+        dr.opaque(mi.Float, 0.0)
+    dr.eval(out)
+    return out

@@ -14,6 +14,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -51,10 +52,11 @@ def random_polygons(rng: np.random.Generator, k: int) -> list[tuple]:
     return cases
 
 
-def accuracy(n: int = 2000, seed: int = 5, m: int = 400) -> dict:
+def accuracy(n: int = 2000, seed: int = 5, m: int = 400, table=None) -> dict:
     """Relative error statistics of LTC's polygon integral (see the module docstring);
     cases whose exact value is below 1e-3 of the largest are left out (relative error of
-    nothing). Returns {"all": stats, 0.1: stats, ...} with stats median / p90 / p99 / count."""
+    nothing). Returns {"all": stats, 0.1: stats, ...} with stats median / p90 / p99 / count.
+    ``table``: the LTC table to score (default glossrt's, see :func:`load_published_table`)."""
     from .lights.ltc import polygon_integral
     from .lights.quadrature import polygon_quadrature
 
@@ -68,7 +70,8 @@ def accuracy(n: int = 2000, seed: int = 5, m: int = 400) -> dict:
         got[idx] = polygon_integral(np.array([cases[i][0] for i in idx]),
                                     np.array([cases[i][2] for i in idx]),
                                     np.array([cases[i][1] for i in idx]),
-                                    np.array([cases[i][3] for i in idx]), two_sided=False)
+                                    np.array([cases[i][3] for i in idx]), two_sided=False,
+                                    table=table)
     alphas = np.array([c[3] for c in cases])
     sig = want > 1e-3 * want.max()
     rel = np.abs(got / np.where(sig, want, 1.0) - 1)
@@ -85,12 +88,135 @@ def accuracy(n: int = 2000, seed: int = 5, m: int = 400) -> dict:
     return out
 
 
+# Heitz et al.'s fit (selfshadow/ltc_code, fitLTC.cpp): rows at alpha = max(r^2, 1e-5)
+PUBLISHED_ALPHA_MIN = 1e-5
+
+
+def load_published_table(path: str | Path):
+    """The published GGX LTC table of Heitz et al. 2016 from a copy of ``fit/results/ltc.js``
+    of https://github.com/selfshadow/ltc_code (BSD 2-clause; the user supplies the file,
+    glossrt does not ship it), as an :class:`~glossrt.lights.ltc_fit.LTCTable` in glossrt's
+    layout, for :func:`compare_with_published`.
+
+    The file holds ``g_ltc_1`` (per cell ``M^-1`` normalised by its middle element, as glm's
+    column-major ``[0][0], [0][2], [2][0], [2][2]``, i.e. elements (0,0), (2,0), (0,2),
+    (2,2)) and ``g_ltc_2`` (``norm``, ``fresnel``, 0, sphere), ``N x N`` cells with the
+    roughness index fastest, over the same ``(sqrt(alpha), sqrt(1 - cos theta))`` grid as
+    glossrt's table."""
+    import re
+
+    from .errors import GlossrtError
+    from .lights.ltc_fit import LTCTable
+
+    text = Path(path).read_text()
+    num = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+    parts = {}
+    for name in ("g_ltc_1", "g_ltc_2"):
+        m = re.search(name + r"\s*=\s*\[([^\]]*)\]", text)
+        if m is None:
+            raise GlossrtError(f"{path}: no array {name} (expected ltc_code's fit/results/ltc.js)")
+        parts[name] = np.array([float(x) for x in num.findall(m.group(1))])
+    size = parts["g_ltc_1"].size // 4
+    n = int(round(math.sqrt(size)))
+    if n < 2 or n * n * 4 != parts["g_ltc_1"].size or parts["g_ltc_2"].size != size * 4:
+        raise GlossrtError(f"{path}: g_ltc_1 / g_ltc_2 must hold N*N*4 numbers each, got "
+                           f"{parts['g_ltc_1'].size} and {parts['g_ltc_2'].size}")
+    # file order [theta][roughness] -> glossrt's [roughness][theta]
+    t1 = parts["g_ltc_1"].reshape(n, n, 4).transpose(1, 0, 2)
+    t2 = parts["g_ltc_2"].reshape(n, n, 4).transpose(1, 0, 2)
+    m00, m20, m02, m22 = (t1[..., k] for k in range(4))
+    if not np.all(np.isfinite(t1)) or np.any(m22 == 0.0):
+        raise GlossrtError(f"{path}: non-finite or singular matrices in g_ltc_1")
+    # glossrt's canonical M^-1 = [[a, 0, b], [0, c, 0], [d, 0, 1]] (normalised by (2, 2))
+    coeffs = np.stack([m00 / m22, m02 / m22, 1.0 / m22, m20 / m22], -1)
+    return LTCTable.from_arrays(coeffs, t2[..., 0], t2[..., 1], PUBLISHED_ALPHA_MIN)
+
+
+def _cell_l1(table, norm: np.ndarray, cells: list[tuple[int, int]]) -> np.ndarray:
+    """The fit error L1 (:func:`glossrt.lights.ltc_fit.lobe_errors`) of ``table``'s matrices
+    at glossrt's nodes ``cells`` (lobe norms from glossrt's table, the same for both)."""
+    from .lights.ltc_fit import _Objective, minv_matrix, node_config
+
+    alpha, cos_o = node_config(*_grid(table))
+    coeffs = table.host["minv"].astype(np.float64)
+    out = np.full(len(cells), np.nan)
+    for k, (j, i) in enumerate(cells):
+        obj = _Objective(float(alpha[j]), float(cos_o[i]), float(norm[j, i]), False)
+        try:
+            out[k] = obj.errors_of(np.linalg.inv(minv_matrix(coeffs[j, i])))[1]
+        except np.linalg.LinAlgError:
+            pass
+    return out
+
+
+def _grid(table):
+    from .lights.ltc_fit import grid_axes
+
+    return grid_axes(table.n_r)
+
+
+def compare_with_published(path: str | Path, polygons: int = 2000, cell_step: int = 1,
+                           seed: int = 5, m: int = 400,
+                           progress: Callable[[str], None] | None = None) -> dict:
+    """glossrt's LTC table against the published one (:func:`load_published_table`), scored
+    the same way: the fit error L1 = int |LTC - normalised lobe| per cell (glossrt's samples,
+    BRDF and lobe norms, every ``cell_step``-th row and column of glossrt's 64 x 64 nodes) and
+    :func:`accuracy` on ``polygons`` random polygons against the float64 quadrature.
+    Returns {"cells", "l1": {"glossrt": stats, "published": stats, "glossrt_better": n},
+    "polygons": {"glossrt": accuracy, "published": accuracy}, "norm_max_diff"}."""
+    from .lights.ltc_fit import LTCTable
+
+    say = progress or (lambda _m: None)
+    ours = LTCTable.load()
+    theirs = load_published_table(path)
+    if (theirs.n_r, theirs.n_u) != (ours.n_r, ours.n_u):
+        from .errors import GlossrtError
+
+        raise GlossrtError(f"{path}: published table is {theirs.n_r}x{theirs.n_u}, glossrt's "
+                           f"{ours.n_r}x{ours.n_u}: not comparable cell by cell")
+    norm = ours.host["norm"].astype(np.float64)
+    idx = range(0, ours.n_r, max(1, int(cell_step)))
+    cells = [(j, i) for j in idx for i in range(0, ours.n_u, max(1, int(cell_step)))]
+    say(f"fit error of {len(cells)} cells, both tables")
+    l1 = {"glossrt": _cell_l1(ours, norm, cells), "published": _cell_l1(theirs, norm, cells)}
+
+    def st(x):
+        x = x[np.isfinite(x)]
+        return {"median": float(np.median(x)), "mean": float(np.mean(x)),
+                "p95": float(np.percentile(x, 95)), "max": float(np.max(x)), "count": int(x.size)}
+
+    out = {"cells": len(cells),
+           "l1": {k: st(v) for k, v in l1.items()},
+           "norm_max_diff": float(np.max(np.abs(norm - theirs.host["norm"])))}
+    out["l1"]["glossrt_better"] = int(np.sum(l1["glossrt"] < l1["published"]))
+    if polygons > 0:
+        say(f"{polygons} random polygons against the quadrature, both tables")
+        out["polygons"] = {"glossrt": accuracy(polygons, seed, m),
+                           "published": accuracy(polygons, seed, m, table=theirs)}
+    return out
+
+
+def published_markdown(res: dict) -> str:
+    """:func:`compare_with_published`'s result as a markdown table."""
+    rows = ["| table | L1 median | L1 mean | L1 p95 | polygons: median rel. error | p90 | p99 |",
+            "|---|---|---|---|---|---|---|"]
+    for k in ("glossrt", "published"):
+        l1 = res["l1"][k]
+        p = res.get("polygons", {}).get(k, {}).get("all")
+        tail = (f"{p['median']:.3f} | {p['p90']:.3f} | {p['p99']:.3f}" if p else "- | - | -")
+        rows.append(f"| {k} | {l1['median']:.4f} | {l1['mean']:.4f} | {l1['p95']:.4f} | {tail} |")
+    rows.append(f"\nglossrt's fit error is lower in {res['l1']['glossrt_better']} of "
+                f"{res['cells']} cells; largest |norm difference| {res['norm_max_diff']:.3g}.")
+    return "\n".join(rows)
+
+
 @dataclass
 class LTCImageResults:
     size: tuple[int, int]
     ref_spp: int
     rows: list[dict] = field(default_factory=list)
     images: dict[str, np.ndarray] = field(default_factory=dict)
+    labels: list[str] = field(default_factory=list)
 
     COLUMNS = ["alpha", "LTC RMSE", "LTC mean rel. error", "LTC ms / frame",
                "MC spp for LTC's RMSE", "MC ms / frame at that spp", "MC time / LTC time"]
@@ -99,10 +225,44 @@ class LTCImageResults:
         return [[r["alpha"], r["rmse"], r["rel"], r["ltc_ms"], r["mc_spp"], r["mc_ms"],
                  r["mc_ms"] / r["ltc_ms"] if r["mc_ms"] else None] for r in self.rows]
 
+    def montage(self, path: str | Path, eps: float = 1e-2) -> Path:
+        """One PNG: a row per run (LTC | Monte Carlo reference | relative error
+        ``|LTC - MC| / (MC + eps)`` on a 0-50% colour scale), paper fig. 8, lower row."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from .report.page import tonemap
+
+        n = len(self.labels)
+        h, w = self.size[1], self.size[0]
+        fig, axes = plt.subplots(n, 3, figsize=(9.6, 9.6 * n * h / (3 * w) + 0.6 * n),
+                                 squeeze=False)
+        for r, label in enumerate(self.labels):
+            ltc = self.images[f"{label}: LTC"]
+            ref = self.images[f"{label}: Monte Carlo {self.ref_spp} spp"]
+            lum = lambda x: x @ np.array([0.2126, 0.7152, 0.0722])  # noqa: E731
+            rel = np.abs(lum(ltc) - lum(ref)) / (lum(ref) + eps)
+            panels = [(tonemap(ltc), None, f"{label}: LTC"),
+                      (tonemap(ref), None, f"Monte Carlo, {self.ref_spp} spp (no shadows)"),
+                      (rel, "magma", "relative error (0 to 50%)")]
+            for c, (img, cmap, title) in enumerate(panels):
+                ax = axes[r, c]
+                im = ax.imshow(img, cmap=cmap, vmin=0.0 if cmap else None,
+                               vmax=0.5 if cmap else None, interpolation="nearest")
+                ax.set_title(title, fontsize=8)
+                ax.axis("off")
+            fig.colorbar(im, ax=axes[r, 2], fraction=0.046, pad=0.02)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return Path(path)
+
     def markdown(self) -> str:
         lines = ["| " + " | ".join(self.COLUMNS) + " |", "|" + "---|" * len(self.COLUMNS)]
         for row in self.table():
-            cells = ["-" if v is None else (str(v) if isinstance(v, int) else f"{v:.4g}")
+            cells = ["-" if v is None else (str(v) if isinstance(v, int | str) else f"{v:.4g}")
                      for v in row]
             lines.append("| " + " | ".join(cells) + " |")
         return "\n".join(lines)
@@ -119,9 +279,10 @@ def _timed(fn, repeats: int = 3):
 
 
 def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120),
-           ref_spp: int = 1024, frame: int = 0, max_spp: int = 256,
+           ref_spp: int = 1024, frame: int = 0, max_spp: int = 256, textured: bool = False,
            progress: Callable[[str], None] | None = None) -> LTCImageResults:
-    """LTC vs unshadowed Monte Carlo on ``polygon-light-a<alpha>`` (module docstring)."""
+    """LTC vs unshadowed Monte Carlo on ``polygon-light-a<alpha>`` (module docstring), and on
+    ``polygon-light-textured`` (alpha 0.25, row label ``"textured 0.25"``) if ``textured``."""
     from . import render, scenes
     from .lights.ltc import shade_frame
     from .lights.mc import render_mc
@@ -130,14 +291,19 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
 
     say = progress or (lambda _m: None)
     res = LTCImageResults(tuple(size), ref_spp)
-    for a in alphas:
-        name = f"polygon-light-a{a:.2g}" if a != 1.0 else "polygon-light-a1.0"
+    runs = [(a, f"polygon-light-a{a:.2g}" if a != 1.0 else "polygon-light-a1.0", f"alpha {a:g}")
+            for a in alphas]
+    if textured:
+        runs.append(("textured 0.25", "polygon-light-textured", "textured light, alpha 0.25"))
+    for a, name, label in runs:
         say(f"{name}: G-buffer, LTC, Monte Carlo reference ({ref_spp} spp)")
         setup = scenes.load(name, size=size)
         gb = render.Renderer(setup).render(frame)
         lights = polygon_lights(setup, frame)
         f0 = f0_image(setup, gb)
-        ltc, ltc_ms = _timed(lambda gb=gb, lights=lights, f0=f0: shade_frame(gb, lights, f0=f0))
+        cache: dict = {}
+        ltc, ltc_ms = _timed(lambda gb=gb, lights=lights, f0=f0, cache=cache:
+                             shade_frame(gb, lights, f0=f0, textures=cache))
         ref = render_mc(gb, lights, ref_spp, f0=f0, seed=1)
         hit = gb.numpy("mesh_id")[..., 0] > 0
         err = (ltc - ref)[hit]
@@ -154,7 +320,8 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
             spp *= 2
         res.rows.append({"alpha": a, "rmse": rmse, "rel": rel, "ltc_ms": ltc_ms,
                          "mc_spp": mc_spp, "mc_ms": mc_ms})
-        res.images[f"alpha {a:g}: LTC"] = ltc
-        res.images[f"alpha {a:g}: Monte Carlo {ref_spp} spp"] = ref
-        res.images[f"alpha {a:g}: |LTC - MC|"] = np.abs(ltc - ref)
+        res.labels.append(label)
+        res.images[f"{label}: LTC"] = ltc
+        res.images[f"{label}: Monte Carlo {ref_spp} spp"] = ref
+        res.images[f"{label}: |LTC - MC|"] = np.abs(ltc - ref)
     return res

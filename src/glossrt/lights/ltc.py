@@ -38,12 +38,13 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque  # noqa: E402
+from ..denoise.common import check_frame, merge, split  # noqa: E402
+from ..errors import FrameError, GlossrtError  # noqa: E402
+from ..jit import no_gc, opaque  # noqa: E402
 from .polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
-from .shading import ShadingPoints, light_vertices  # noqa: E402
+from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices  # noqa: E402
 
-__all__ = ["PrefilteredTexture", "ltc_frame", "polygon_integral", "shade_frame"]
+__all__ = ["PrefilteredTexture", "ltc_frame", "polygon_integral", "shade_frame", "shade_tensor"]
 
 
 def _table():
@@ -83,7 +84,8 @@ def _integrals(local: list, coeffs, two_sided):
     return i_d, i_s
 
 
-def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True) -> np.ndarray:
+def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
+                     table=None) -> np.ndarray:
     """Integral over the polygon of the GGX BRDF (height-correlated Smith, Fresnel = 1) times
     the clamped cosine, by LTC: ``norm * int_{M^-1 P} D_o``.
 
@@ -91,7 +93,8 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True) -> n
     shading point* (world axes, 3 <= K <= 8), ``normal`` and ``view`` (..., 3) unit vectors
     (``view`` points away from the surface, towards the eye), ``alpha`` (...). Returns (...).
     One-sided polygons emit towards their counter-clockwise side (see
-    :mod:`glossrt.lights.polygon`).
+    :mod:`glossrt.lights.polygon`). ``table``: an :class:`~glossrt.lights.ltc_fit.LTCTable`
+    (default: glossrt's shipped fit), e.g. another fit to compare.
 
     >>> import numpy as np
     >>> from glossrt.lights.ltc import polygon_integral
@@ -135,7 +138,7 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True) -> n
     origin = dr.zeros(mi.Point3f, len(a))
     local = _local([vec(verts[:, j]) for j in range(k)], origin, t1, t2, nd)
     cos_o = dr.clip(dr.dot(nd, wod), 0.0, 1.0)
-    coeffs, norm, _ = _table().lookup(mi.Float(a.astype(np.float32)), cos_o)
+    coeffs, norm, _ = (table or _table()).lookup(mi.Float(a.astype(np.float32)), cos_o)
     i_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
     out = np.array(norm * i_s, dtype=np.float64)
     out[np.array(dr.dot(nd, wod)) <= 0] = 0.0  # view below the surface: no reflection
@@ -232,40 +235,98 @@ def _texture_lookup(light, tex: PrefilteredTexture, local: list, coeffs) -> mi.C
     return tex.eval(mi.Point2f(u, v), sigma_uv)
 
 
+def _finite(c: mi.Color3f) -> mi.Color3f:
+    return dr.select(dr.isfinite(c[0] + c[1] + c[2]), c, 0.0)
+
+
+def _shade(sp: ShadingPoints, table, lights: list, two_sided: Sequence[bool],
+           textures: Sequence = ()) -> mi.Color3f:
+    """LTC direct light per lane (module docstring): ``lights`` a list of (world vertices as
+    ``mi.Point3f``, radiance ``mi.Color3f``), ``textures`` per light ``(light, prefiltered)``
+    or ``None``."""
+    t1, t2 = ltc_frame(sp.n, sp.wo)
+    cos_o = dr.clip(dr.dot(sp.n, sp.wo), 0.0, 1.0)
+    coeffs, norm, fres = table.lookup(sp.alpha, cos_o)
+    # Schlick split of the fit: int f F cos = F0 (norm - fres) + fres (per unit D integral)
+    spec_w = sp.f0 * (norm - fres) + fres
+    total = dr.zeros(mi.Color3f, dr.width(sp.p))
+    for k, (world, le) in enumerate(lights):
+        local = _local(world, sp.p, t1, t2, sp.n)
+        i_d, i_s = _integrals(local, coeffs, bool(two_sided[k]))
+        tex = textures[k] if k < len(textures) else None
+        if tex is not None:
+            # points on the light's own plane (the light's pixels) have no lookup direction:
+            # their integrals are 0, and so must the colour be (not NaN)
+            col_d = le * _finite(_texture_lookup(tex[0], tex[1], local, None))
+            col_s = le * _finite(_texture_lookup(tex[0], tex[1], local, coeffs))
+        else:
+            col_d = col_s = le
+        total += col_d * (sp.albedo * i_d) + col_s * (spec_w * i_s)
+    return dr.select(sp.hit, total, 0.0)
+
+
+def _device_lights(lights: list) -> tuple[list, tuple[bool, ...]]:
+    """World vertices and radiance of ``lights`` as opaque Dr.Jit values (a moving light does
+    not recompile kernels), and their two-sidedness."""
+    dev = [([mi.Point3f(*opaque(p)) for p in light_vertices(lt)],
+            mi.Color3f(*opaque(np.asarray(lt.radiance, float).ravel()[:3]))) for lt in lights]
+    return dev, tuple(bool(getattr(lt, "two_sided", False)) for lt in lights)
+
+
+def _shade_kernel(ch: dict, cam: list, lights: list, two_sided: tuple, table) -> mi.TensorXf:
+    h, w = ch["position"].shape[:2]
+    p = mi.Point3f(*split(ch["position"]))
+    wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
+    sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
+    total = _shade(sp, table, lights, two_sided)
+    return merge([total[0], total[1], total[2]], h, w)
+
+
+_shade_frozen = dr.freeze(_shade_kernel, warn_after=16)
+
+
+def shade_tensor(frame, lights: list, f0: np.ndarray | None = None,
+                 textures: dict | None = None, frozen: bool = False) -> mi.TensorXf:
+    """:func:`shade_frame` as an (H, W, 3) ``mi.TensorXf`` left on the device.
+
+    ``frozen=True`` records the shading kernels once with ``dr.freeze`` and replays them for
+    later frames of the same size and light set (only the G-buffer, camera and light
+    positions change): the real-time path, without Python's per-frame tracing overhead.
+    Textured lights are always traced anew (their prefiltered textures are not frozen)."""
+    check_frame(frame, NEEDS)
+    dev, two = _device_lights(lights)
+    f0_t = f0_tensor(frame, f0)
+    has_tex = any(getattr(lt, "texture", None) is not None for lt in lights)
+    if frozen and not has_tex:
+        if frame.camera is None:
+            raise FrameError(f"{frame.where}: polygon-light shading needs the camera")
+        ch = {k: frame[k] for k in NEEDS}
+        ch["f0"] = f0_t
+        with no_gc():
+            return _shade_frozen(ch, opaque(frame.camera.position), dev, two, _table())
+    sp = ShadingPoints.of(frame, f0)
+    cache = {} if textures is None else textures
+    texs = []
+    for lt in lights:
+        img = getattr(lt, "texture", None)
+        if img is None:
+            texs.append(None)
+            continue
+        if id(img) not in cache:
+            cache[id(img)] = PrefilteredTexture(img)
+        texs.append((lt, cache[id(img)]))
+    total = _shade(sp, _table(), dev, two, texs)
+    return merge([total[0], total[1], total[2]], frame.height, frame.width)
+
+
 def shade_frame(frame, lights: list, f0: np.ndarray | None = None,
-                textures: dict | None = None) -> np.ndarray:
+                textures: dict | None = None, frozen: bool = False) -> np.ndarray:
     """Direct light (H, W, 3) of ``frame``'s G-buffer from the polygon ``lights`` by LTC:
     GGX specular with Schlick Fresnel (``f0`` per pixel, see
     :func:`glossrt.lights.shading.f0_image`; default 0) plus Lambertian diffuse
     (``albedo_diffuse``), unshadowed. Lights: objects with ``vertices`` (K, 3) world space,
     ``radiance`` RGB, ``two_sided``, optional ``texture`` (H, W, 3) and ``uv`` (K, 2)
     (:class:`glossrt.lights.scene.PolygonLight`). ``textures``: a cache {id(light texture):
-    PrefilteredTexture} reused across frames."""
-    sp = ShadingPoints.of(frame, f0)
-    t1, t2 = ltc_frame(sp.n, sp.wo)
-    cos_o = dr.clip(dr.dot(sp.n, sp.wo), 0.0, 1.0)
-    coeffs, norm, fres = _table().lookup(sp.alpha, cos_o)
-    # Schlick split of the fit: int f F cos = F0 (norm - fres) + fres (per unit D integral)
-    spec_w = sp.f0 * (norm - fres) + fres
-    total = dr.zeros(mi.Color3f, frame.width * frame.height)
-    cache = {} if textures is None else textures
-    for light in lights:
-        world = [mi.Point3f(*opaque(p)) for p in light_vertices(light)]
-        local = _local(world, sp.p, t1, t2, sp.n)
-        two = bool(getattr(light, "two_sided", False))
-        i_d, i_s = _integrals(local, coeffs, two)
-        le = mi.Color3f(*opaque(np.asarray(light.radiance, float).ravel()[:3]))
-        tex_img = getattr(light, "texture", None)
-        if tex_img is not None:
-            key = id(tex_img)
-            if key not in cache:
-                cache[key] = PrefilteredTexture(tex_img)
-            tex = cache[key]
-            col_d = le * _texture_lookup(light, tex, local, None)
-            col_s = le * _texture_lookup(light, tex, local, coeffs)
-        else:
-            col_d = col_s = le
-        total += col_d * (sp.albedo * i_d) + col_s * (spec_w * i_s)
-    total = dr.select(sp.hit, total, 0.0)
-    out = np.stack([np.array(total[c]) for c in range(3)], -1)
-    return out.reshape(frame.height, frame.width, 3).astype(np.float32)
+    PrefilteredTexture} reused across frames. ``frozen``: see :func:`shade_tensor`."""
+    out = shade_tensor(frame, lights, f0, textures, frozen)
+    return np.array(out, dtype=np.float32).reshape(frame.height, frame.width, 3)

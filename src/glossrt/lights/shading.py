@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick  # noqa: E402
 from ..denoise.common import check_frame, split, view_directions  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
+from ..jit import owned_float  # noqa: E402
 
 NEEDS = ("position", "normal", "roughness", "albedo_diffuse", "mesh_id")
 
@@ -80,17 +81,33 @@ class ShadingPoints:
         """From a Frame's G-buffer (and its camera); ``f0`` (H, W, 3), default 0."""
         check_frame(frame, NEEDS)
         p = mi.Point3f(*split(frame["position"]))
-        n = mi.Vector3f(*split(frame["normal"]))
         wo = view_directions(frame, p, "polygon-light shading")
-        hit = split(frame["mesh_id"])[0] > 0
-        if f0 is None:
-            f0c = dr.zeros(mi.Color3f, frame.width * frame.height)
-        else:
-            f0 = np.asarray(f0, np.float32).reshape(frame.height, frame.width, 3)
-            f0c = mi.Color3f(*split(mi.TensorXf(f0)))
-        alpha = dr.maximum(split(frame["roughness"])[0], ALPHA_MIN)
-        return ShadingPoints(p, n, wo, alpha, mi.Color3f(*split(frame["albedo_diffuse"])), f0c,
-                             hit & (dr.dot(n, wo) > 0))
+        return ShadingPoints.of_channels({k: frame[k] for k in NEEDS}, wo,
+                                         f0_tensor(frame, f0))
+
+    @staticmethod
+    def of_channels(ch: dict, wo: mi.Vector3f, f0: mi.TensorXf) -> ShadingPoints:
+        """From G-buffer tensors ``ch`` (the :data:`NEEDS` channels), view directions and an
+        (H, W, 3) F0 tensor: only Dr.Jit operations (usable inside ``dr.freeze``)."""
+        p = mi.Point3f(*split(ch["position"]))
+        n = mi.Vector3f(*split(ch["normal"]))
+        hit = split(ch["mesh_id"])[0] > 0
+        alpha = dr.maximum(split(ch["roughness"])[0], ALPHA_MIN)
+        return ShadingPoints(p, n, wo, alpha, mi.Color3f(*split(ch["albedo_diffuse"])),
+                             mi.Color3f(*split(f0)), hit & (dr.dot(n, wo) > 0))
+
+
+def f0_tensor(frame, f0: np.ndarray | None) -> mi.TensorXf:
+    """``f0`` (H, W, 3) as a tensor of the frame's size (zeros for ``None``); a clear error
+    when its size does not match."""
+    h, w = frame.height, frame.width
+    if f0 is None:
+        return dr.zeros(mi.TensorXf, (h, w, 3))
+    f0 = np.asarray(f0, np.float32)
+    if f0.size != h * w * 3:
+        raise FrameError(f"{frame.where}: F0 image has shape {f0.shape}, expected ({h}, {w}, 3)")
+    # in Dr.Jit's own memory: an input of the frozen LTC shading (see jit.owned_float)
+    return mi.TensorXf(owned_float(f0), (h, w, 3))
 
 
 def smith_lambda(cos_theta, alpha):

@@ -257,6 +257,9 @@ def glossy_spheres() -> SceneSpec:
 POLYGON_LIGHT_ALPHAS = (0.1, 0.25, 0.5, 1.0)
 #: teapot tessellation of the built-ins (``teapot_mesh(n)``: 2082 vertices, 4032 triangles)
 POLYGON_LIGHT_TEAPOT_N = 8
+#: floor grid (quads per side) and sphere rings of the polygon-light scenes (meshes throughout)
+POLYGON_LIGHT_FLOOR_N = 48
+POLYGON_LIGHT_SPHERE_N = 16
 #: frames of one period of the light's animation
 POLYGON_LIGHT_PERIOD = 96
 #: the quad light at rest (frame 0): centre, half extents, downward tilt (degrees) of its
@@ -311,7 +314,9 @@ def polygon_light_path(frame: int) -> np.ndarray:
 
 
 def polygon_light_scene(alpha: float = 0.25, textured: bool = False,
-                        teapot_n: int = POLYGON_LIGHT_TEAPOT_N) -> SceneSpec:
+                        teapot_n: int = POLYGON_LIGHT_TEAPOT_N,
+                        floor_n: int = POLYGON_LIGHT_FLOOR_N,
+                        sphere_n: int = POLYGON_LIGHT_SPHERE_N) -> SceneSpec:
     """The ``polygon-light`` scenes (Heitz et al. 2016, figs. 1, 6, 7): a Utah teapot (GGX
     ``roughplastic``: orange diffuse + GGX specular, ``alpha``) and a copper sphere (GGX
     ``roughconductor``, ``alpha``) on a grey glossy floor (GGX ``roughplastic``, ``alpha``)
@@ -320,8 +325,11 @@ def polygon_light_scene(alpha: float = 0.25, textured: bool = False,
     (:func:`polygon_light_path`), seen directly and in the floor. ``textured``:
     the light's radiance is a :func:`stained_glass` bitmap instead of a constant. The teapot
     is :func:`glossrt.scenes.teapot.teapot_shape` with ``teapot_n`` x ``teapot_n`` quads per
-    patch, 0.3 units per data unit (0.945 m tall), turned z-up to y-up."""
-    from .teapot import teapot_shape
+    patch, 0.3 units per data unit (0.945 m tall), turned z-up to y-up. Every object is a
+    triangle mesh with vertex normals, so that per-vertex methods (BSPVT shadows) have
+    vertices everywhere: the floor a ``floor_n`` x ``floor_n`` grid, the sphere
+    ``sphere_n`` rings of ``2 sphere_n`` quads."""
+    from .teapot import grid_mesh, mesh_shape, sphere_mesh, teapot_shape
 
     alpha = float(alpha)
     if not 0.0 < alpha <= 1.0:
@@ -340,8 +348,8 @@ def polygon_light_scene(alpha: float = 0.25, textured: bool = False,
     scene = {
         "type": "scene",
         "sensor": _sensor([0, 1.25, 3.4], [0.05, 0.5, -0.4], 55.0, 320, 240),
-        "floor": _rect(
-            T().rotate([1, 0, 0], -90).scale(3.0),
+        "floor": mesh_shape(
+            "floor", *grid_mesh(floor_n), T().rotate([1, 0, 0], -90).scale(3.0),
             # a stronger coat than the default (eta 1.9: F0 = 0.097) for clear reflections
             {"type": "roughplastic", "distribution": "ggx", "alpha": alpha, "int_ior": 1.9,
              "diffuse_reflectance": {"type": "rgb", "value": [0.25, 0.25, 0.27]}},
@@ -350,13 +358,10 @@ def polygon_light_scene(alpha: float = 0.25, textured: bool = False,
             teapot_n, teapot_to_world,
             {"type": "roughplastic", "distribution": "ggx", "alpha": alpha,
              "diffuse_reflectance": {"type": "rgb", "value": [0.75, 0.32, 0.1]}}),
-        "sphere": {
-            "type": "sphere",
-            "center": [0.85, 0.32, -0.25],
-            "radius": 0.32,
-            "bsdf": {"type": "roughconductor", "distribution": "ggx", "material": "Cu",
-                     "alpha": alpha},
-        },
+        "sphere": mesh_shape(
+            "sphere", *sphere_mesh(sphere_n),
+            T().translate([0.85, 0.32, -0.25]).rotate([1, 0, 0], -90).scale(0.32),
+            {"type": "roughconductor", "distribution": "ggx", "material": "Cu", "alpha": alpha}),
         # rest pose: behind the objects, the rectangle's +z normal (its emitting side) turned
         # POLYGON_LIGHT_TILT degrees down from +z, towards the objects and the camera
         "light": _rect(

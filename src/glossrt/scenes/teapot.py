@@ -355,33 +355,81 @@ def _as_matrix(to_world) -> np.ndarray:
     return m.reshape(4, 4)
 
 
-def teapot_shape(n: int = 8, to_world=None, bsdf=None, *, lid: bool = True,
-                 bottom: bool = True, name: str = "teapot"):
-    """A Mitsuba mesh (``mi.Mesh``) of :func:`teapot_mesh`, to put as a value in a scene dict
-    for ``mi.load_dict`` (``{"teapot": teapot_shape(...)}``; the dict key becomes its id).
-
-    ``to_world``: 4x4 matrix or ``mi.ScalarTransform4f`` applied to the data's frame (z up,
-    3.15 tall) -- vertices transformed, normals by the inverse transpose, the winding
-    reversed under a mirroring transform so it stays counter-clockwise from outside.
+def mesh_shape(name: str, v: np.ndarray, f: np.ndarray, nrm: np.ndarray | None = None,
+               to_world=None, bsdf=None):
+    """A Mitsuba mesh (``mi.Mesh``) from vertices ``v`` (V, 3), counter-clockwise faces ``f``
+    (F, 3) and optional vertex normals ``nrm`` (V, 3), transformed by ``to_world`` (4x4 matrix
+    or ``mi.ScalarTransform4f``: vertices transformed, normals by the inverse transpose, the
+    winding reversed under a mirroring transform so it stays counter-clockwise from outside),
+    to put as a value in a scene dict for ``mi.load_dict`` (the dict key becomes its id).
     ``bsdf``: a BSDF dict (or object); Mitsuba's default diffuse when None."""
     from . import mi
 
-    v, f, nrm = teapot_mesh(n, lid=lid, bottom=bottom)
     m = _as_matrix(to_world)
-    v = v.astype(np.float64) @ m[:3, :3].T + m[:3, 3]
-    nrm = nrm.astype(np.float64) @ np.linalg.inv(m[:3, :3])  # (M^-T n) as rows
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    v = np.asarray(v, np.float64) @ m[:3, :3].T + m[:3, 3]
+    f = np.asarray(f)
     if np.linalg.det(m[:3, :3]) < 0.0:
         f = f[:, ::-1]
     props = mi.Properties("mesh")
     if bsdf is not None:
         props["bsdf"] = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
-    mesh = mi.Mesh(name, len(v), len(f), props, has_vertex_normals=True)
+    mesh = mi.Mesh(name, len(v), len(f), props, has_vertex_normals=nrm is not None)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
     params["faces"] = mi.UInt32(np.ascontiguousarray(f, dtype=np.uint32).ravel())
     params.update()
-    # after the positions: an update of vertex_positions may recompute the normals
-    params["vertex_normals"] = mi.Float(nrm.astype(np.float32).ravel())
-    params.update()
+    if nrm is not None:
+        nrm = np.asarray(nrm, np.float64) @ np.linalg.inv(m[:3, :3])  # (M^-T n) as rows
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        # after the positions: an update of vertex_positions may recompute the normals
+        params["vertex_normals"] = mi.Float(nrm.astype(np.float32).ravel())
+        params.update()
     return mesh
+
+
+def teapot_shape(n: int = 8, to_world=None, bsdf=None, *, lid: bool = True,
+                 bottom: bool = True, name: str = "teapot"):
+    """A Mitsuba mesh (``mi.Mesh``) of :func:`teapot_mesh` (see :func:`mesh_shape` for
+    ``to_world`` and ``bsdf``)."""
+    v, f, nrm = teapot_mesh(n, lid=lid, bottom=bottom)
+    return mesh_shape(name, v, f, nrm, to_world, bsdf)
+
+
+def grid_mesh(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The square [-1, 1]^2 at z = 0 as an ``n`` x ``n`` grid of quads (two triangles each,
+    counter-clockwise seen from +z): ``(vertices, faces, normals)`` -- a floor that can carry
+    per-vertex data (BSPVT shadows), where Mitsuba's ``rectangle`` has no vertices."""
+    if n < 1:
+        raise ValueError(f"grid resolution must be >= 1, got {n}")
+    t = np.linspace(-1.0, 1.0, n + 1)
+    x, y = np.meshgrid(t, t, indexing="xy")
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], -1)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="xy")
+    a = (j * (n + 1) + i).ravel()
+    b, c, d = a + 1, a + n + 2, a + n + 1
+    f = np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)])
+    return v, f.astype(np.uint32), np.tile([0.0, 0.0, 1.0], (len(v), 1))
+
+
+def sphere_mesh(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unit sphere as a latitude-longitude mesh: ``n`` rings of ``2 n`` quads (triangles
+    at the poles), seams welded, counter-clockwise seen from outside; normals = positions."""
+    if n < 2:
+        raise ValueError(f"sphere resolution must be >= 2, got {n}")
+    m = 2 * n
+    th = np.linspace(0.0, np.pi, n + 1)[1:-1]
+    ph = np.arange(m) * (2 * np.pi / m)
+    ring = np.stack([np.outer(np.sin(th), np.cos(ph)), np.outer(np.sin(th), np.sin(ph)),
+                     np.outer(np.cos(th), np.ones(m))], -1).reshape(-1, 3)
+    v = np.concatenate([[[0.0, 0.0, 1.0]], ring, [[0.0, 0.0, -1.0]]])
+    south = len(v) - 1
+    k = np.arange(m)
+    k1 = (k + 1) % m
+    faces = [np.stack([np.zeros(m, int), 1 + k, 1 + k1], -1)]
+    for r in range(n - 2):
+        a, b = 1 + r * m + k, 1 + r * m + k1
+        c, d = a + m, b + m
+        faces += [np.stack([a, c, d], -1), np.stack([a, d, b], -1)]
+    last = 1 + (n - 2) * m
+    faces.append(np.stack([last + k, np.full(m, south), last + k1], -1))
+    return v, np.concatenate(faces).astype(np.uint32), v.copy()

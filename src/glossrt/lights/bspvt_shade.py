@@ -1,0 +1,811 @@
+"""Shadowed polygon-light shading with per-vertex binary space partitioning visibility trees
+(BSPVT; H. Okuno and K. Iwasaki, "Interactive Rendering of Shadows for Polygonal Light using a
+Binary Space Partitioning Visibility Tree"), in Dr.Jit (one lane per query; CPU LLVM and CUDA).
+
+What is computed (Okuno & Iwasaki, sec. 3.1, eq. 2)::
+
+    B(wo) = L int_P V(wi) f(wi, wo) cos dwi  ~=  L sum_i v_i int_{P_i} f(wi, wo) cos dwi
+
+where the ``P_i`` are the pieces into which the lines of a vertex's visibility tree cut the
+light polygon ``P`` (projected onto that vertex's visibility cube map), and ``v_i`` is the mean
+visibility stored at the tree leaf the piece falls into. Each piece integral is evaluated with
+linearly transformed cosines (Heitz, Dupuy, Hill, Neubelt 2016) exactly as
+:func:`glossrt.lights.ltc._integrals` does for a whole light: the clamped-cosine integral of the
+piece (diffuse, ``i_d``) and of the piece transformed by the LTC's ``M^-1`` (specular, ``i_s``),
+both with the horizon clipping and one- / two-sided handling of
+:func:`glossrt.lights.polygon.cosine_integral`. With an all-visible tree the sums equal the
+unshadowed ``_integrals`` of the whole light (the pieces partition it).
+
+How (Okuno & Iwasaki, sec. 3.3 and fig. 5; a breadth-first wavefront, Dr.Jit-friendly):
+
+1. Per query (shading point ``p``) and cube face ``f`` (world axes; conventions of
+   :mod:`glossrt.lights.bspvt`: face ``f`` has axis ``k = f // 2``, sign ``sg``, in-face axes
+   ``u = (k + 1) % 3``, ``v = (k + 2) % 3``), the light polygon relative to ``p`` is clipped in 3D
+   against the face's frustum ``sg d_k >= |d_u|``, ``sg d_k >= |d_v|`` (four planes through the
+   origin; Sutherland and Hodgman 1974) and projected gnomonically,
+   ``(s, t) = (d_u, d_v) / (sg d_k)``: a plane through the origin maps to a straight line, so the
+   projected piece is a convex polygon in the face's square ``[-1, 1]^2`` (at most ``K + 4``
+   vertices).
+2. Work items ``(query, face, node, 2D polygon)`` start at the face's root; each level, every
+   item at an internal node is cut by the node's line ``a s + b t + c`` into its left
+   (``d < 0``) and right (``d >= 0``) children (one half-plane Sutherland-Hodgman clip each);
+   empty children are dropped, children at internal nodes form the next level (compacted with
+   ``dr.compress``), children at leaves with mean visibility ``v > 0`` are integrated at once
+   and leaves with ``v = 0`` are dropped without integration (fig. 5 (c), (d)).
+3. A leaf piece is lifted back to directions ``dir(f, s, t) = sg e_k + s e_u + t e_v`` (a
+   polygon on the plane ``sg d_k = 1``: the same solid angle and the same winding seen from
+   ``p``), expressed in the shading frame and integrated; ``v i_d`` and ``v i_s`` are summed
+   per query (``dr.scatter_reduce``).
+
+Pieces carry at most :data:`KMAX` 2D vertices (a convex polygon cut by ``m`` lines has at most
+``K + 4 + m`` vertices; in the tests pieces rarely exceed 8; a piece that would exceed
+``KMAX`` keeps its first ``KMAX`` vertices, i.e. loses a corner: convex still, slightly
+smaller). Pieces with more than 8 vertices (what ``cosine_integral`` takes) are integrated as
+a fan of up to 3 sub-polygons sharing vertex 0 (the integrals add: the shared edges cancel and
+every sub-polygon has the piece's winding).
+
+Textured lights (Heitz et al. 2016, sec. 5.3, glossrt's form in :mod:`glossrt.lights.ltc`):
+each piece's integral is weighted by the prefiltered texture looked up where the piece's
+vector form factor (its mean direction, in the untransformed or ``M^-1`` space) meets the
+*whole* light's plane, with the whole light's affine uv map and the filter width from that
+distance and the whole light's area. (For a single piece covering the light this is exactly
+:func:`glossrt.lights.ltc._texture_lookup`.)
+
+Two shading modes on top of :func:`visible_integrals`: :func:`shade_vertices` (the paper's
+per-vertex shading, at each tree's own vertex position and normal) and :func:`shade_pixels`
+(per pixel: the three vertex trees of the pixel's triangle evaluated with the pixel's own
+position, normal, view and BRDF, blended by barycentrics; the paper's sec. 5 names
+interpolating vertex trees for per-fragment shadows as future work). Both combine ``i_d``,
+``i_s`` with albedo, ``F0``, the LTC norm and Fresnel moment as :func:`ltc.shade_frame` does.
+"""
+
+from __future__ import annotations
+
+import types
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from .. import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..errors import GlossrtError  # noqa: E402
+from ..jit import opaque  # noqa: E402
+from .ltc import PrefilteredTexture, _apply_minv, _local, _table, ltc_frame  # noqa: E402
+from .polygon import _edge_sum, cosine_integral  # noqa: E402
+from .shading import ShadingPoints, light_vertices  # noqa: E402
+
+__all__ = ["KMAX", "DeviceTrees", "shade_pixels", "shade_points", "shade_vertices",
+           "visible_integrals"]
+
+#: Most 2D vertices a piece keeps (see the module docstring).
+KMAX = 16
+#: Vertex slot counts the wavefront rounds up to (each size compiles its own kernels).
+_SLOT_SIZES = (4, 6, 8, 12, KMAX)
+#: Vertices per ``cosine_integral`` call (``polygon.K_MAX``); larger pieces are fanned.
+_KI = 8
+
+
+# --------------------------------------------------------------------------------------------
+# trees on the device
+
+
+def _owned(t: type, a: np.ndarray):
+    """NumPy data as an evaluated Dr.Jit array in memory Dr.Jit allocated (a kernel writes
+    the copy). Arrays built straight from NumPy may keep NumPy's buffer, whose alignment
+    varies between calls, and the LLVM backend then compiles new kernels (cache misses)."""
+    dt = {mi.Float: np.float32, mi.Int32: np.int32, mi.UInt32: np.uint32}[t]
+    if np.size(a) == 0:
+        return t()
+    out = t(np.ascontiguousarray(a, dt)) + dr.opaque(t, 0)
+    dr.eval(out)
+    return out
+
+
+def _dr_vec(t: type, a: np.ndarray):
+    """(N, C) NumPy rows as a Dr.Jit C-vector type ``t`` in Dr.Jit-owned memory."""
+    return t(*(_owned(mi.Float, a[:, c]) for c in range(a.shape[1])))
+
+
+def _int_array(name: str, x: Any, ndim: int, width: int | None) -> np.ndarray:
+    a = np.asarray(x)
+    if not np.issubdtype(a.dtype, np.integer):
+        raise GlossrtError(f"BSPVT {name} must be integers, got dtype {a.dtype}")
+    if a.ndim != ndim or (width is not None and a.shape[-1] != width):
+        want = "(N,)" if ndim == 1 else f"(N, {width})"
+        raise GlossrtError(f"BSPVT {name} must have shape {want}, got {a.shape}")
+    return a.astype(np.int64)
+
+
+def _float_array(name: str, x: Any, shape_tail: tuple) -> np.ndarray:
+    try:
+        a = np.asarray(x, np.float64)
+    except (TypeError, ValueError) as e:
+        raise GlossrtError(f"BSPVT {name} must be numeric: {e}") from e
+    if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail:
+        raise GlossrtError(f"BSPVT {name} must have shape (N, {', '.join(map(str, shape_tail))})"
+                           f", got {a.shape}" if shape_tail else
+                           f"BSPVT {name} must have shape (N,), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise GlossrtError(f"BSPVT {name} contain NaN or Inf")
+    return a
+
+
+def _tree_depth(children: np.ndarray, roots: np.ndarray) -> int:
+    """Most internal nodes on a root-to-leaf path (levels of the wavefront); a GlossrtError
+    when some node is reachable by more than ``N`` steps (a cycle)."""
+    n = len(children)
+    frontier = np.unique(roots[roots >= 0])
+    depth = 0
+    while frontier.size:
+        depth += 1
+        if depth > n:
+            raise GlossrtError("BSPVT children contain a cycle (a node is its own descendant)")
+        nxt = children[frontier].ravel()
+        frontier = np.unique(nxt[nxt >= 0])
+    return depth
+
+
+@dataclass
+class DeviceTrees:
+    """The flat tree arrays of all vertices, uploaded once (opaque Dr.Jit arrays).
+
+    ``lines`` (3 N floats: ``a, b, c`` per node), ``children`` (2 N: left, right), ``leaf_value``
+    (L), ``roots`` (6 V: per vertex and face), ``positions`` / ``normals`` (V lanes);
+    ``n_vertices`` = V and ``depth`` = most internal nodes on a root-to-leaf path. Build it with
+    :meth:`of` from any object with the attributes of :class:`glossrt.lights.bspvt.BSPVT`."""
+
+    lines: mi.Float
+    children: mi.Int32
+    leaf_value: mi.Float
+    roots: mi.Int32
+    positions: mi.Point3f
+    normals: mi.Vector3f
+    n_vertices: int
+    depth: int
+
+    @classmethod
+    def of(cls, trees: Any) -> DeviceTrees:
+        """Validate and upload ``trees`` (``lines`` (N, 3), ``children`` (N, 2), ``leaf_value``
+        (L,), ``roots`` (V, 6), ``positions`` and ``normals`` (V, 3)); a :class:`DeviceTrees`
+        is returned as it is. Raises GlossrtError naming the problem: wrong shapes, NaN / Inf,
+        child or root codes out of range, leaf values outside [0, 1], cycles."""
+        if isinstance(trees, DeviceTrees):
+            return trees
+        for attr in ("lines", "children", "leaf_value", "roots", "positions", "normals"):
+            if not hasattr(trees, attr):
+                raise GlossrtError(f"BSPVT trees need the attribute {attr!r}")
+        lines = _float_array("lines", trees.lines, (3,))
+        children = _int_array("children", trees.children, 2, 2)
+        leaf = _float_array("leaf_value", trees.leaf_value, ())
+        roots = _int_array("roots", trees.roots, 2, 6)
+        pos = _float_array("positions", trees.positions, (3,))
+        nrm = _float_array("normals", trees.normals, (3,))
+        n, nl, nv = len(lines), len(leaf), len(roots)
+        if len(children) != n:
+            raise GlossrtError(f"BSPVT children ({len(children)}) and lines ({n}) differ in "
+                               "length")
+        if len(pos) != nv or len(nrm) != nv:
+            raise GlossrtError(f"BSPVT positions / normals ({len(pos)}, {len(nrm)}) must have "
+                               f"one row per vertex of roots ({nv})")
+        if nl == 0 or nv == 0:
+            raise GlossrtError(f"BSPVT has no {'leaves' if nl == 0 else 'vertices'}")
+        if np.any((leaf < 0) | (leaf > 1)):
+            raise GlossrtError("BSPVT leaf values (mean visibilities) must lie in [0, 1]")
+        for name, codes in (("children", children), ("roots", roots)):
+            bad = ((codes >= 0) & (codes >= n)) | ((codes < 0) & (~codes >= nl))
+            if bad.any():
+                raise GlossrtError(f"BSPVT {name} contain codes out of range ({int(bad.sum())}"
+                                   f"; {n} nodes, {nl} leaves)")
+        ab = np.hypot(lines[:, 0], lines[:, 1])
+        if np.any(ab < 1e-6):
+            raise GlossrtError("BSPVT lines need (a, b) != 0")
+        depth = _tree_depth(children, roots)
+        if n == 0:  # keep the gathers valid (never read)
+            lines, children = np.zeros((1, 3)), np.full((1, 2), -1)
+        nl_ = np.linalg.norm(nrm, axis=1)
+        if np.any(nl_ < 1e-12):
+            raise GlossrtError("BSPVT normals must be non-zero")
+        nrm = nrm / nl_[:, None]
+        return cls(_owned(mi.Float, lines.ravel()), _owned(mi.Int32, children.ravel()),
+                   _owned(mi.Float, leaf), _owned(mi.Int32, roots.ravel()),
+                   _dr_vec(mi.Point3f, pos), _dr_vec(mi.Vector3f, nrm), nv, depth)
+
+
+# --------------------------------------------------------------------------------------------
+# cube faces and clipping (branch-free per lane)
+
+
+def _face_axes(f: mi.UInt32):
+    k = f >> 1
+    sg = dr.select((f & 1) == 0, mi.Float(1.0), mi.Float(-1.0))
+    return k, sg
+
+
+def _face_coords(f: mi.UInt32, d) -> tuple:
+    """``(w, x, y) = (sg d_k, d_u, d_v)`` of face ``f`` (per lane)."""
+    k, sg = _face_axes(f)
+    w = sg * dr.select(k == 0, d.x, dr.select(k == 1, d.y, d.z))
+    x = dr.select(k == 0, d.y, dr.select(k == 1, d.z, d.x))
+    y = dr.select(k == 0, d.z, dr.select(k == 1, d.x, d.y))
+    return w, x, y
+
+
+def _lift(f: mi.UInt32, s: mi.Float, t: mi.Float) -> mi.Vector3f:
+    """``dir(f, s, t) = sg e_k + s e_u + t e_v`` (unnormalised; BSPVT conventions)."""
+    k, sg = _face_axes(f)
+    return mi.Vector3f(dr.select(k == 0, sg, dr.select(k == 1, t, s)),
+                       dr.select(k == 0, s, dr.select(k == 1, sg, t)),
+                       dr.select(k == 0, t, dr.select(k == 1, s, sg)))
+
+
+def _clip(comps: list, n: mi.UInt32, dist: list, kout: int) -> tuple[list, mi.UInt32]:
+    """Sutherland and Hodgman (1974): the convex polygon ``comps`` (a list over coordinates of
+    lists over vertex slots; the first ``n`` slots used) clipped to ``{dist >= 0}`` (``dist``: a
+    value per slot, affine in the coordinates). Returns the clipped polygon with ``kout``
+    slots and its count (emissions beyond ``kout`` are dropped). Vertex order is kept, so the
+    winding is too. Each edge ``a -> b`` emits ``a`` if ``d_a >= 0`` and, if exactly one end is
+    inside, the crossing ``a + (b - a) d_a / (d_a - d_b)``; emitted values go to slot ``c``
+    (the running count) through ``dr.select``."""
+    k = len(dist)
+    width = dr.width(n)
+    zero = dr.zeros(mi.Float, width)
+    out = [[zero] * kout for _ in comps]
+    c = dr.zeros(mi.UInt32, width)
+    j = 0
+    for i in range(k):
+        active = n > i
+        if i + 1 < k:
+            wrap = n > i + 1
+            b = [dr.select(wrap, comp[i + 1], comp[0]) for comp in comps]
+            db = dr.select(wrap, dist[i + 1], dist[0])
+        else:
+            b = [comp[0] for comp in comps]
+            db = dist[0]
+        a, da = [comp[i] for comp in comps], dist[i]
+        a_in, b_in = da >= 0.0, db >= 0.0
+        emit_a = active & a_in
+        crosses = active & (a_in ^ b_in)
+        t = da / dr.select(crosses, da - db, 1.0)
+        p = [ac + (bc - ac) * t for ac, bc in zip(a, b, strict=True)]
+        for value, emit in ((a, emit_a), (p, crosses)):
+            for s in range(min(j, kout - 1) + 1):
+                hit = emit & (c == s)
+                for ci in range(len(comps)):
+                    out[ci][s] = dr.select(hit, value[ci], out[ci][s])
+            c = c + dr.select(emit, mi.UInt32(1), mi.UInt32(0))
+            j += 1
+    return out, dr.minimum(c, kout)
+
+
+def _area2(s: list, t: list, n: mi.UInt32) -> mi.Float:
+    """Twice the signed area of the 2D polygon (first ``n`` slots; shoelace formula)."""
+    acc = dr.zeros(mi.Float, dr.width(n))
+    k = len(s)
+    for i in range(k):
+        if i + 1 < k:
+            wrap = n > i + 1
+            sb, tb = dr.select(wrap, s[i + 1], s[0]), dr.select(wrap, t[i + 1], t[0])
+        else:
+            sb, tb = s[0], t[0]
+        acc = acc + dr.select(n > i, s[i] * tb - sb * t[i], 0.0)
+    return acc
+
+
+# --------------------------------------------------------------------------------------------
+# the wavefront
+
+
+class _Items:
+    """Work items: query ``q``, face ``f``, node code ``code`` (tree encoding), 2D polygon
+    ``s``, ``t`` (lists of slots) with ``n`` vertices used."""
+
+    __slots__ = ("code", "f", "n", "q", "s", "t")
+
+    def __init__(self, q, f, code, n, s, t):
+        self.q, self.f, self.code, self.n, self.s, self.t = q, f, code, n, s, t
+
+    def fields(self) -> list:
+        return [self.q, self.f, self.code, self.n, *self.s, *self.t]
+
+    def take(self, idx: mi.UInt32) -> _Items:
+        g = dr.gather
+        return _Items(g(mi.UInt32, self.q, idx), g(mi.UInt32, self.f, idx),
+                      g(mi.Int32, self.code, idx), g(mi.UInt32, self.n, idx),
+                      [g(mi.Float, x, idx) for x in self.s], [g(mi.Float, x, idx) for x in self.t])
+
+    def trim(self) -> _Items:
+        """Keep as many vertex slots as the items use, rounded up to one of
+        :data:`_SLOT_SIZES` (fewer slots: smaller kernels; few sizes: few kernels to compile).
+        Extra slots are zero (ignored: every use reads the first ``n``)."""
+        used = int(dr.max(self.n)[0])
+        k = next(b for b in _SLOT_SIZES if b >= used)
+        if k < len(self.s):
+            self.s, self.t = self.s[:k], self.t[:k]
+        elif k > len(self.s):
+            pad = [dr.zeros(mi.Float, dr.width(self.n))] * (k - len(self.s))
+            self.s, self.t = self.s + pad, self.t + pad
+        return self
+
+
+def _split(dev: DeviceTrees, items: _Items, idx: mi.UInt32, n_items) -> _Items:
+    """The children ``idx`` of the items' nodes: lanes ``[0, N)`` are left children
+    (``d < 0``), ``[N, 2N)`` right ones (``d >= 0``) of item ``idx mod N`` (Okuno & Iwasaki,
+    sec. 3.2-3.3: the node's line splits the projected light)."""
+    side = idx >= n_items
+    par = dr.select(side, idx - n_items, idx)
+    it = items.take(par)
+    node = mi.UInt32(it.code)
+    a = dr.gather(mi.Float, dev.lines, node * 3)
+    b = dr.gather(mi.Float, dev.lines, node * 3 + 1)
+    c = dr.gather(mi.Float, dev.lines, node * 3 + 2)
+    sgn = dr.select(side, mi.Float(1.0), mi.Float(-1.0))
+    dist = [sgn * (a * s + b * t + c) for s, t in zip(it.s, it.t, strict=True)]
+    (s, t), n = _clip([it.s, it.t], it.n, dist, min(len(it.s) + 1, KMAX))
+    child = dr.gather(mi.Int32, dev.children, node * 2 + mi.UInt32(side))
+    return _Items(it.q, it.f, child, n, s, t)
+
+
+def _children_masks(dev: DeviceTrees, items: _Items, n_items):
+    """For the 2N children of the items: (non-empty at an internal node, non-empty at a leaf
+    with mean visibility > 0). A child is non-empty when some parent vertex lies strictly on
+    its side (otherwise it has zero area)."""
+    width = 2 * dr.width(items.n)
+    idx = dr.arange(mi.UInt32, width)
+    side = idx >= n_items
+    par = dr.select(side, idx - n_items, idx)
+    code = dr.gather(mi.Int32, items.code, par)
+    n = dr.gather(mi.UInt32, items.n, par)
+    node = mi.UInt32(code)
+    a = dr.gather(mi.Float, dev.lines, node * 3)
+    b = dr.gather(mi.Float, dev.lines, node * 3 + 1)
+    c = dr.gather(mi.Float, dev.lines, node * 3 + 2)
+    sgn = dr.select(side, mi.Float(1.0), mi.Float(-1.0))
+    some = dr.zeros(mi.Bool, width)
+    for k in range(len(items.s)):
+        d = sgn * (a * dr.gather(mi.Float, items.s[k], par)
+                   + b * dr.gather(mi.Float, items.t[k], par) + c)
+        some = some | ((n > k) & (d > 0.0))
+    child = dr.gather(mi.Int32, dev.children, node * 2 + mi.UInt32(side))
+    leaf = child < 0
+    # Okuno & Iwasaki, sec. 3.3 / fig. 5 (d): a leaf with mean visibility 0 is dropped
+    val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~child), leaf)
+    return some & ~leaf, some & leaf & (val > 0.0)
+
+
+@dataclass
+class _Queries:
+    """Per-query data the leaf integration gathers (evaluated arrays)."""
+
+    t1: mi.Vector3f
+    t2: mi.Vector3f
+    n: mi.Vector3f
+    coeffs: mi.Vector4f
+    plane_d: tuple | None = None
+    plane_s: tuple | None = None
+
+
+def _tex_plane(verts: list) -> tuple:
+    """The whole light's plane data for :func:`_tex_eval`: ``(v0, e1, e2, unit normal, area)``
+    of the (possibly ``M^-1``-transformed) local polygon, as in ``ltc._texture_lookup``."""
+    e1, e2 = verts[1] - verts[0], verts[len(verts) - 1] - verts[0]
+    area = dr.zeros(mi.Float, dr.width(verts[0]))
+    for j in range(1, len(verts) - 1):
+        area = area + 0.5 * dr.norm(dr.cross(verts[j] - verts[0], verts[j + 1] - verts[0]))
+    return (mi.Vector3f(verts[0]), mi.Vector3f(e1), mi.Vector3f(e2),
+            dr.normalize(dr.cross(e1, e2)), area)
+
+
+def _tex_eval(uv: tuple, tex: PrefilteredTexture, plane: tuple, f: mi.Vector3f) -> mi.Color3f:
+    """Heitz et al. 2016, sec. 5.3, as ``ltc._texture_lookup`` but for a given vector form
+    factor ``f`` (a piece's) and the whole light's ``plane`` (:func:`_tex_plane`): the
+    prefiltered texture where ``f`` meets the plane, uv by the light's affine map (``uv``:
+    opaque ``(u0, v0, u1, v1, ul, vl)`` at its vertices 0, 1 and last), filter width
+    ``|t| / sqrt(area)``."""
+    v0, e1, e2, nrm, area = plane
+    dirn = dr.normalize(f)
+    denom = dr.dot(dirn, nrm)
+    t = dr.dot(v0, nrm) / dr.select(dr.abs(denom) > 1e-8, denom, 1e-8)
+    r = dirn * t - v0
+    g11, g12, g22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
+    b1, b2 = dr.dot(r, e1), dr.dot(r, e2)
+    det = dr.maximum(g11 * g22 - g12 * g12, 1e-30)
+    s = (g22 * b1 - g12 * b2) / det
+    q = (g11 * b2 - g12 * b1) / det
+    u0, w0, u1, w1, ul, wl = uv
+    u = u0 + s * (u1 - u0) + q * (ul - u0)
+    v = w0 + s * (w1 - w0) + q * (wl - w0)
+    sigma_uv = dr.abs(t) / dr.sqrt(dr.maximum(area, 1e-30))
+    return tex.eval(mi.Point2f(u, v), sigma_uv)
+
+
+def _gather_tuple(src: tuple, q: mi.UInt32) -> tuple:
+    return tuple(dr.gather(type(x), x, q) for x in src)
+
+
+def _accumulate(pieces: _Items, dev: DeviceTrees, qd: _Queries, acc: dict, two_sided,
+                texture) -> None:
+    """Integrate the (evaluated, trimmed) leaf pieces and add ``v i_d``, ``v i_s`` (colours
+    with a texture) to the per-query accumulators (Okuno & Iwasaki, eq. 2: sum over pieces of
+    mean visibility times the piece's LTC integral). Pieces with more than 8 vertices are
+    fans of sub-polygons sharing vertex 0, ``[0..7]``, ``[0, 7..13]``, ``[0, 13..15]``: the
+    first for every piece, the others on the compacted pieces that have them."""
+    _accumulate_groups(pieces, [0], dev, qd, acc, two_sided, texture)
+    k = len(pieces.s)
+    more = [g for g in (1, 2) if _fan_start(g) + 1 < k]
+    if more:
+        idx = dr.compress(pieces.n > _KI)
+        if dr.width(idx):
+            _accumulate_groups(pieces.take(idx), more, dev, qd, acc, two_sided, texture)
+    acc["pieces"] += dr.width(pieces.q)
+
+
+def _fan_start(g: int) -> int:
+    return 0 if g == 0 else _KI - 1 + (_KI - 2) * (g - 1)
+
+
+def _accumulate_groups(pieces: _Items, groups: list, dev: DeviceTrees, qd: _Queries, acc: dict,
+                       two_sided, texture) -> None:
+    q = pieces.q
+    val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~pieces.code))
+    t1 = dr.gather(mi.Vector3f, qd.t1, q)
+    t2 = dr.gather(mi.Vector3f, qd.t2, q)
+    nn = dr.gather(mi.Vector3f, qd.n, q)
+    coeffs = dr.gather(mi.Vector4f, qd.coeffs, q)
+    local = []
+    for s, t in zip(pieces.s, pieces.t, strict=True):
+        # back to directions (a polygon on the face's plane sg d_k = 1), in the shading frame
+        d = _lift(pieces.f, s, t)
+        local.append(mi.Vector3f(dr.dot(d, t1), dr.dot(d, t2), dr.dot(d, nn)))
+    i_d = i_s = None
+    for g in groups:
+        start = _fan_start(g)
+        if g == 0:
+            verts, cnt = local[:_KI], pieces.n
+        else:
+            verts = [local[0]] + local[start:start + _KI - 1]
+            rest = dr.maximum(mi.Int32(pieces.n) - start, 0)
+            cnt = mi.UInt32(dr.select(rest >= 2, dr.minimum(rest, _KI - 1) + 1, 0))
+        # Heitz et al. 2016 (as ltc._integrals): identity and M^-1-transformed piece
+        d_g = cosine_integral(verts, cnt, two_sided)
+        s_g = cosine_integral(_apply_minv(coeffs, verts), cnt, two_sided)
+        i_d = d_g if i_d is None else i_d + d_g
+        i_s = s_g if i_s is None else i_s + s_g
+    if texture is None:
+        w_d, w_s = val * i_d, val * i_s
+    else:
+        light_uv, tex = texture
+        # the whole piece's vector form factor (Lambert / Arvo edge sum over all vertices)
+        f_d = _edge_sum(local, pieces.n, True)
+        f_s = _edge_sum(_apply_minv(coeffs, local), pieces.n, True)
+        col_d = _tex_eval(light_uv, tex, _gather_tuple(qd.plane_d, q), f_d)
+        col_s = _tex_eval(light_uv, tex, _gather_tuple(qd.plane_s, q), f_s)
+        w_d, w_s = col_d * (val * i_d), col_s * (val * i_s)
+    # Okuno & Iwasaki, eq. 2: B ~= L sum_i v_i int_{P_i} f cos
+    dr.scatter_reduce(dr.ReduceOp.Add, acc["d"], w_d, q)
+    dr.scatter_reduce(dr.ReduceOp.Add, acc["s"], w_s, q)
+
+
+def _light_array(vertices: Any) -> np.ndarray:
+    return light_vertices(types.SimpleNamespace(vertices=vertices))
+
+
+def _check_lanes(tree_index: mi.UInt32, dev: DeviceTrees, *vecs) -> None:
+    ok = dr.all(tree_index < dev.n_vertices)
+    fin = dr.all(dr.all(dr.isfinite(mi.Vector3f(vecs[0]))))
+    for v in vecs[1:]:
+        fin = fin & dr.all(dr.all(dr.isfinite(v)))
+    dr.eval(ok, fin)
+    if not bool(ok[0]):
+        raise GlossrtError(f"tree_index out of range (the trees have {dev.n_vertices} vertices)")
+    if not bool(fin[0]):
+        raise GlossrtError("shading points, normals, views or LTC coefficients contain NaN or "
+                           "Inf")
+
+
+def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Vector3f,
+                      wo: mi.Vector3f, coeffs: mi.Vector4f, light_vertices: np.ndarray,
+                      two_sided: bool, texture: tuple | None = None,
+                      stats: dict | None = None) -> tuple:
+    """Shadowed LTC integrals ``(i_d, i_s)`` of one polygon light, one lane per query
+    (Okuno & Iwasaki, eq. 2; the algorithm in the module docstring).
+
+    ``trees``: a :class:`DeviceTrees` or any object with the BSPVT attributes (uploaded on
+    each call: pass a :class:`DeviceTrees` to reuse it); ``tree_index``: the vertex whose tree
+    each query reads; ``p``, ``n``, ``wo``: shading point, unit normal, unit view (towards the
+    viewer; the visibility is looked up for directions from ``p`` even where ``p`` is not the
+    tree's vertex); ``coeffs``: the LTC ``M^-1`` coefficients of each query
+    (``LTCTable.lookup``); ``light_vertices``: (K, 3) world, ``3 <= K <= 8``, convex, planar;
+    ``two_sided``: as :func:`glossrt.lights.polygon.cosine_integral`.
+
+    Returns ``(i_d, i_s)`` (``mi.Float``): the sums over leaf pieces of mean visibility times
+    the clamped-cosine integral of the piece and of its ``M^-1`` transform. With an
+    all-visible tree they equal ``ltc._integrals`` of the whole light (exactly 0 where that is:
+    light below the horizon, behind a one-sided light, plane through ``p``). ``texture``:
+    ``(light, PrefilteredTexture)`` for a textured light (``light.uv`` (K, 2)): then colours
+    ``(col_d, col_s)`` (``mi.Color3f``), each piece weighted by the prefiltered texture (module
+    docstring). ``stats``: a dict to receive ``levels``, ``items`` (split work items) and
+    ``pieces`` (integrated leaf pieces).
+
+    Cost: a few kernels and host synchronisations per tree level (compaction), plus Python
+    tracing of ~1-2 ms per level whatever the number of lanes. On the CPU, pass inputs in
+    Dr.Jit-owned memory (not arrays built straight from NumPy, whose buffer alignment varies
+    between calls and makes the LLVM backend compile new kernels; see ``_owned``)."""
+    dev = DeviceTrees.of(trees)
+    lv = _light_array(light_vertices)
+    tree_index = mi.UInt32(tree_index)
+    p, n, wo, coeffs = mi.Point3f(p), mi.Vector3f(n), mi.Vector3f(wo), mi.Vector4f(coeffs)
+    width = dr.width(tree_index)
+    for name, x in (("p", p), ("n", n), ("wo", wo), ("coeffs", coeffs)):
+        if dr.width(x) != width:
+            raise GlossrtError(f"visible_integrals: {name} has {dr.width(x)} lanes, "
+                               f"tree_index {width}")
+    if width == 0:
+        empty = mi.Color3f() if texture is not None else mi.Float()
+        return empty, type(empty)(empty)
+    _check_lanes(tree_index, dev, p, n, wo, coeffs)
+    # opaque: one- and two-sided lights share kernels (cosine_integral takes a per-lane mask)
+    two_sided = dr.opaque(mi.Bool, bool(two_sided))
+    if texture is not None:
+        light, tex = texture
+        if not isinstance(tex, PrefilteredTexture):
+            raise GlossrtError("texture must be (light, PrefilteredTexture)")
+        uv = np.asarray(getattr(light, "uv", None), np.float64)
+        if uv.shape != (len(lv), 2) or not np.all(np.isfinite(uv)):
+            raise GlossrtError(f"a textured light needs finite uv ({len(lv)}, 2), got "
+                               f"{uv.shape}")
+        tex_arg = (tuple(opaque([*uv[0], *uv[1], *uv[-1]])), tex)
+    else:
+        tex_arg = None
+
+    # per query: shading frame, whole-light integrals (for exact zeros and pruning)
+    t1, t2 = ltc_frame(n, wo)
+    world = [mi.Point3f(*opaque(v)) for v in lv]
+    local = _local(world, p, t1, t2, n)
+    local_s = _apply_minv(coeffs, local)
+    whole_d = cosine_integral(local, None, two_sided)
+    whole_s = cosine_integral(local_s, None, two_sided)
+    rel = [mi.Vector3f(v - p) for v in world]
+    qd = _Queries(t1, t2, n, coeffs)
+    if tex_arg is not None:
+        qd.plane_d, qd.plane_s = _tex_plane(local), _tex_plane(local_s)
+    dr.eval(qd.t1, qd.t2, qd.n, qd.coeffs, whole_d, whole_s, rel, qd.plane_d, qd.plane_s)
+    live = dr.compress((whole_d > 0.0) | (whole_s > 0.0))
+    zero = mi.Color3f(0.0) if tex_arg is not None else mi.Float(0.0)
+    acc = {"d": dr.zeros(type(zero), width), "s": dr.zeros(type(zero), width), "pieces": 0}
+    st = {"levels": 0, "items": 0}
+    n_live = dr.width(live)
+    if n_live:
+        # root items: query x face, the light clipped to each face's frustum, projected
+        lanes = dr.arange(mi.UInt32, 6 * n_live)
+        nq = dr.opaque(mi.UInt32, n_live)
+        f = lanes // nq
+        q = dr.gather(mi.UInt32, live, lanes - f * nq)
+        ws, xs, ys = [], [], []
+        for v in rel:
+            w, x, y = _face_coords(f, dr.gather(mi.Vector3f, v, q))
+            ws.append(w)
+            xs.append(x)
+            ys.append(y)
+        comps, cnt = [ws, xs, ys], dr.full(mi.UInt32, len(rel), dr.width(q))
+        for sx, sy in ((-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0)):
+            # the face's frustum: w + sx x >= 0, w + sy y >= 0 (planes through the origin)
+            dist = [w + sx * x + sy * y for w, x, y in zip(*comps, strict=True)]
+            comps, cnt = _clip(comps, cnt, dist, len(dist) + 1)
+        s_l, t_l = [], []
+        for w, x, y in zip(*comps, strict=True):
+            # gnomonic projection: (s, t) = (d_u, d_v) / (sg d_k); w > 0 inside the frustum
+            inv = dr.select(w > 0.0, dr.rcp(w), 0.0)
+            s_l.append(dr.clip(x * inv, -1.0, 1.0))
+            t_l.append(dr.clip(y * inv, -1.0, 1.0))
+        tree = dr.gather(mi.UInt32, tree_index, q)
+        code = dr.gather(mi.Int32, dev.roots, tree * 6 + f)
+        roots = _Items(q, f, code, cnt, s_l, t_l)
+        keep = (cnt >= 3) & (dr.abs(_area2(s_l, t_l, cnt)) > 0.0)
+        leaf = code < 0
+        val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code), leaf)
+        keep_int, keep_leaf = keep & ~leaf, keep & leaf & (val > 0.0)
+        dr.eval(roots.fields(), keep_int, keep_leaf)
+        idx_l = dr.compress(keep_leaf)
+        if dr.width(idx_l):
+            _accumulate(roots.take(idx_l).trim(), dev, qd, acc, two_sided, tex_arg)
+        idx_i = dr.compress(keep_int)
+        items = roots.take(idx_i) if dr.width(idx_i) else None
+        del roots
+        while items is not None:
+            dr.eval(items.fields())
+            items = items.trim()
+            st["levels"] += 1
+            st["items"] += dr.width(items.n)
+            if st["levels"] > dev.depth:
+                raise GlossrtError("BSPVT traversal deeper than the trees (internal error)")
+            n_items = dr.opaque(mi.UInt32, dr.width(items.n))
+            keep_int, keep_leaf = _children_masks(dev, items, n_items)
+            dr.eval(keep_int, keep_leaf)
+            idx_l = dr.compress(keep_leaf)
+            if dr.width(idx_l):
+                pieces = _split(dev, items, idx_l, n_items)
+                dr.eval(pieces.fields())
+                _accumulate(pieces.trim(), dev, qd, acc, two_sided, tex_arg)
+            idx_i = dr.compress(keep_int)
+            items = _split(dev, items, idx_i, n_items) if dr.width(idx_i) else None
+    # exact zeros where the whole light gives 0 (as ltc._integrals)
+    i_d = dr.select(whole_d > 0.0, acc["d"], zero)
+    i_s = dr.select(whole_s > 0.0, acc["s"], zero)
+    dr.eval(i_d, i_s)
+    if stats is not None:
+        stats.update(st, pieces=acc["pieces"], queries=width, live=n_live)
+    return i_d, i_s
+
+
+# --------------------------------------------------------------------------------------------
+# shading
+
+
+def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
+                 tree_index: Sequence[mi.UInt32], weights: Sequence[mi.Float] | None = None,
+                 textures: dict | None = None) -> tuple[mi.Color3f, mi.Color3f]:
+    """Shadowed direct light (diffuse, specular) at the shading points ``sp``, summed over the
+    polygon ``lights`` (objects with ``vertices``, ``radiance``, ``two_sided``, optional
+    ``texture`` and ``uv``; :class:`glossrt.lights.scene.PolygonLight`).
+
+    Each lane reads the trees ``tree_index[j]`` (one ``mi.UInt32`` per lane each) and blends
+    the shadowed integrals with ``weights[j]`` (default: one tree, weight 1). The BRDF is
+    combined as in :func:`glossrt.lights.ltc.shade_frame`: diffuse ``L albedo i_d``, specular
+    ``L (F0 (norm - fres) + fres) i_s``; 0 where ``sp.hit`` is False. ``textures``: a cache
+    {id(light texture): PrefilteredTexture} reused across calls."""
+    dev = DeviceTrees.of(trees)
+    width = dr.width(sp.p)
+    idx = [mi.UInt32(t) for t in tree_index]
+    if not idx:
+        raise GlossrtError("shade_points needs at least one tree index per lane")
+    w = [mi.Float(x) for x in weights] if weights is not None else [mi.Float(1.0)]
+    if len(w) != len(idx):
+        raise GlossrtError(f"{len(idx)} tree indices but {len(w)} weights")
+    for t in idx:
+        if dr.width(t) != width:
+            raise GlossrtError(f"tree indices have {dr.width(t)} lanes, the points {width}")
+    cos_o = dr.clip(dr.dot(sp.n, sp.wo), 0.0, 1.0)
+    coeffs, norm, fres = _table().lookup(sp.alpha, cos_o)
+    # as ltc.shade_frame: Schlick split of the fit, int f F cos = F0 (norm - fres) + fres
+    spec_w = sp.f0 * (norm - fres) + fres
+    m = len(idx)
+    if m == 1:
+        lane_q, tree = dr.arange(mi.UInt32, width), idx[0]
+    else:
+        lanes = dr.arange(mi.UInt32, m * width)
+        nw = dr.opaque(mi.UInt32, width)
+        j = lanes // nw
+        lane_q = lanes - j * nw
+        tree = dr.gather(mi.UInt32, idx[-1], lane_q)
+        for jj in range(m - 2, -1, -1):
+            tree = dr.select(j == jj, dr.gather(mi.UInt32, idx[jj], lane_q), tree)
+    g = (lambda x: x) if m == 1 else (lambda x: dr.gather(type(x), x, lane_q))
+    args = (tree, g(sp.p), g(sp.n), g(sp.wo), g(coeffs))
+    total_d = dr.zeros(mi.Color3f, width)
+    total_s = dr.zeros(mi.Color3f, width)
+    cache = {} if textures is None else textures
+    for light in lights:
+        lv = light_vertices(light)
+        le = mi.Color3f(*opaque(np.asarray(light.radiance, float).ravel()[:3]))
+        tex_img = getattr(light, "texture", None)
+        tex = None
+        if tex_img is not None:
+            key = id(tex_img)
+            if key not in cache:
+                cache[key] = PrefilteredTexture(tex_img)
+            tex = (light, cache[key])
+        i_d, i_s = visible_integrals(dev, *args, lv, bool(getattr(light, "two_sided", False)),
+                                     texture=tex)
+        if m == 1:
+            b_d, b_s = w[0] * i_d, w[0] * i_s
+        else:
+            b_d = b_s = None
+            for jj in range(m):
+                k = dr.arange(mi.UInt32, width) + jj * width
+                d_j = w[jj] * dr.gather(type(i_d), i_d, k)
+                s_j = w[jj] * dr.gather(type(i_s), i_s, k)
+                b_d = d_j if b_d is None else b_d + d_j
+                b_s = s_j if b_s is None else b_s + s_j
+        total_d = total_d + le * (sp.albedo * b_d)
+        total_s = total_s + le * (spec_w * b_s)
+    total_d = dr.select(sp.hit, total_d, 0.0)
+    total_s = dr.select(sp.hit, total_s, 0.0)
+    dr.eval(total_d, total_s)
+    return total_d, total_s
+
+
+def _np_vec(name: str, x: Any, rows: int, cols: int | None = 3) -> np.ndarray:
+    try:
+        a = np.asarray(x, np.float64)
+    except (TypeError, ValueError) as e:
+        raise GlossrtError(f"{name} must be numeric: {e}") from e
+    if cols is None and a.ndim == 0:
+        a = np.full(rows, float(a))
+    shape = (rows,) if cols is None else (rows, cols)
+    if a.shape != shape:
+        raise GlossrtError(f"{name} must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise GlossrtError(f"{name} contains NaN or Inf")
+    return a
+
+
+
+
+def _points(p, n, wo, alpha, albedo, f0, rows: int, hit=None) -> ShadingPoints:
+    from ..brdf.ggx import ALPHA_MIN
+
+    p = _np_vec("positions", p, rows)
+    n = _np_vec("normals", n, rows)
+    wo = _np_vec("view directions", wo, rows)
+    alpha = _np_vec("alpha", alpha, rows, None)
+    albedo = _np_vec("albedo", albedo, rows)
+    f0 = np.zeros((rows, 3)) if f0 is None else _np_vec("f0", f0, rows)
+    for name, v in (("normals", n), ("view directions", wo)):
+        ln = np.linalg.norm(v, axis=1)
+        if np.any(ln < 1e-12):
+            raise GlossrtError(f"{name} must be non-zero")
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    wo = wo / np.linalg.norm(wo, axis=1, keepdims=True)
+    ok = np.sum(n * wo, axis=1) > 0
+    if hit is not None:
+        h = np.asarray(hit, bool)
+        if h.shape != (rows,):
+            raise GlossrtError(f"hit must have shape ({rows},), got {h.shape}")
+        ok &= h
+    return ShadingPoints(_dr_vec(mi.Point3f, p), _dr_vec(mi.Vector3f, n),
+                         _dr_vec(mi.Vector3f, wo),
+                         _owned(mi.Float, np.maximum(alpha, ALPHA_MIN)),
+                         _dr_vec(mi.Color3f, albedo), _dr_vec(mi.Color3f, f0),
+                         _owned(mi.UInt32, ok) != 0)
+
+
+def _np_color(c: mi.Color3f) -> np.ndarray:
+    return np.stack([np.asarray(c[i], np.float32) for i in range(3)], -1)
+
+
+def shade_vertices(trees: Any, lights: Sequence, wo: Any, alpha: Any, albedo: Any,
+                   f0: Any = None, textures: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's per-vertex shading (Okuno & Iwasaki, sec. 3.3): each vertex shaded at its
+    own position and normal (``trees.positions``, ``trees.normals``) with its own tree.
+
+    ``wo`` (V, 3) view directions (towards the viewer), ``alpha`` (V,) GGX roughness (or a
+    scalar), ``albedo`` and ``f0`` (V, 3). Returns (diffuse, specular), (V, 3) float32 each
+    (:func:`shade_points`; 0 where the view is below the vertex's tangent plane)."""
+    dev = DeviceTrees.of(trees)
+    nv = dev.n_vertices
+    pos = np.stack([np.asarray(dev.positions[c], np.float64) for c in range(3)], -1)
+    nrm = np.stack([np.asarray(dev.normals[c], np.float64) for c in range(3)], -1)
+    sp = _points(pos, nrm, wo, alpha, albedo, f0, nv)
+    d, s = shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)], textures=textures)
+    return _np_color(d), _np_color(s)
+
+
+def shade_pixels(trees: Any, lights: Sequence, p: Any, n: Any, wo: Any, alpha: Any,
+                 albedo: Any, f0: Any, triangles: Any, barycentrics: Any, hit: Any = None,
+                 textures: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel shading: each pixel evaluates the trees of its triangle's three vertices
+    with its own position ``p``, normal ``n``, view ``wo``, ``alpha``, ``albedo`` and ``f0``
+    (P, 3) / (P,) and blends the shadowed integrals by its ``barycentrics`` (P, 3);
+    ``triangles`` (P, 3) are the vertex (tree) indices; ``hit`` (P,) optional mask. Returns
+    (diffuse, specular), (P, 3) float32 each (:func:`shade_points`)."""
+    dev = DeviceTrees.of(trees)
+    tri = np.asarray(triangles)
+    rows = tri.shape[0] if tri.ndim == 2 else -1
+    if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
+        raise GlossrtError(f"triangles must be (P, 3) integers, got {tri.shape} {tri.dtype}")
+    if tri.size and (tri.min() < 0 or tri.max() >= dev.n_vertices):
+        raise GlossrtError(f"triangle vertex indices out of range [0, {dev.n_vertices})")
+    bary = _np_vec("barycentrics", barycentrics, rows)
+    if rows == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    sp = _points(p, n, wo, alpha, albedo, f0, rows, hit)
+    idx = [_owned(mi.UInt32, tri[:, j]) for j in range(3)]
+    wts = [_owned(mi.Float, bary[:, j]) for j in range(3)]
+    d, s = shade_points(dev, lights, sp, idx, wts, textures=textures)
+    return _np_color(d), _np_color(s)
