@@ -1,5 +1,5 @@
-"""The ``glossrt`` command line: info | render | light | ltc-fit | denoise | compare | experiment
-| demo | bench."""
+"""The ``glossrt`` command line: info | render | light | bspvt | ltc-fit | denoise | compare
+| experiment | demo | bench."""
 
 from __future__ import annotations
 
@@ -233,8 +233,17 @@ def cmd_light(args) -> int:
 
     if args.frames < 1:
         raise GlossrtError(f"--frames must be >= 1, got {args.frames}")
+    if args.spp is None:
+        args.spp = 1 if args.method == "ratio" else 64
     if args.spp < 1:
         raise GlossrtError(f"--spp must be >= 1, got {args.spp}")
+    trees = None
+    if args.method == "bspvt":
+        from .lights.bspvt import BSPVT
+
+        if not args.bspvt:
+            raise GlossrtError("--method bspvt needs --bspvt FILE (glossrt bspvt build)")
+        trees = BSPVT.load(args.bspvt)
     size = scenes.parse_size(args.size) if args.size else None
     setup = scenes.load(args.scene, size=size, frames=args.frames)
     r = render.Renderer(setup, seed=args.seed)
@@ -255,6 +264,18 @@ def cmd_light(args) -> int:
             if args.method == "ltc":
                 img = shade_frame(gb, lights, f0=f0, textures=cache)
                 p.update(i + 1)
+            elif args.method == "bspvt":
+                from .lights.shadows import shade_bspvt
+
+                img = shade_bspvt(setup.scene, gb, trees, lights, args.mode, f0=f0,
+                                  textures=cache)
+                p.update(i + 1)
+            elif args.method == "ratio":
+                from .lights.ratio import render_ratio
+
+                img = render_ratio(gb, lights, setup.scene, spp=args.spp, f0=f0,
+                                   seed=args.seed + 7919 * i).image
+                p.update(i + 1)
             else:
                 img = lmc.render_mc(gb, lights, args.spp, f0=f0,
                                     scene=None if args.no_shadows else setup.scene,
@@ -265,8 +286,9 @@ def cmd_light(args) -> int:
                                      "roughness", "mesh_id", "motion")}
             ch["color"] = img
             meta = {"scene": setup.name, "method": args.method, "lights": len(lights),
-                    "shadows": args.method == "mc" and not args.no_shadows,
-                    "spp": args.spp if args.method == "mc" else None,
+                    "shadows": (args.method in ("bspvt", "ratio")
+                                or (args.method == "mc" and not args.no_shadows)),
+                    "spp": args.spp if args.method in ("mc", "ratio") else None,
                     "seconds": times[-1]}
             f = Frame(channels=ch, camera=gb.camera, prev_camera=gb.prev_camera, index=i,
                       meta=meta)
@@ -276,6 +298,26 @@ def cmd_light(args) -> int:
     later = times[1:] or times
     print(f"wrote {args.frames} frame(s) to {out}; {args.method}: "
           f"{1000 * sorted(later)[len(later) // 2]:.1f} ms per frame (median)")
+    return 0
+
+
+def cmd_bspvt(args) -> int:
+    """glossrt bspvt build: Okuno & Iwasaki's precomputation for a scene, with Table-1 stats."""
+    from . import scenes
+    from .lights.shadows import build_scene_trees
+
+    setup = scenes.load(args.scene)
+    trees = build_scene_trees(setup.scene, resolution=args.resolution, epsilon=args.epsilon,
+                              method=args.method, progress=True)
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        out.parent.mkdir(parents=True)
+    trees.save(str(out))
+    st = trees.stats()
+    st["visibility_seconds"] = trees.info.get("visibility_seconds")
+    st["file_bytes"] = out.stat().st_size
+    print(json.dumps(st, indent=2, default=str))
+    print(f"wrote {out}")
     return 0
 
 
@@ -365,14 +407,34 @@ def build_parser() -> argparse.ArgumentParser:
             "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",
             "glossrt light polygon-light --method ltc --frames 8 --size 320x240 --out out/ltc")
     p.add_argument("scene", help="built-in scene name or Mitsuba XML path")
-    p.add_argument("--method", choices=["ltc", "mc"], default="ltc")
-    p.add_argument("--spp", type=int, default=64,
-                   help="mc: samples per pixel (each one light + one BRDF sample per light)")
+    p.add_argument("--method", choices=["ltc", "mc", "bspvt", "ratio"], default="ltc",
+                   help="ltc: unshadowed LTC; mc: Monte Carlo reference; bspvt: LTC with "
+                        "BSPVT shadows (needs --bspvt); ratio: LTC x denoised ratio of "
+                        "shadowed to unshadowed 1-spp-per-sample estimates (Heitz 2018)")
+    p.add_argument("--spp", type=int, default=None,
+                   help="mc: samples per pixel, default 64 (each one light + one BRDF sample "
+                        "per light); ratio: default 1")
+    p.add_argument("--bspvt", help="bspvt: trees built by `glossrt bspvt build` for this scene")
+    p.add_argument("--mode", choices=["vertex", "pixel"], default="vertex",
+                   help="bspvt: per-vertex shading (the paper's) or per-pixel")
     p.add_argument("--no-shadows", action="store_true", help="mc: no visibility (as LTC)")
     p.add_argument("--frames", type=int, default=1)
     p.add_argument("--size", help="WxH (default: the scene's film size)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output folder (EXR + PNG per frame)")
+
+    p = add("bspvt", cmd_bspvt,
+            "build BSPVT shadow trees for a scene (Okuno & Iwasaki; per-vertex cube maps)",
+            "glossrt bspvt build polygon-light --out teapot.bspvt.npz --resolution 32")
+    p.add_argument("action", choices=["build"])
+    p.add_argument("scene", help="built-in scene name or Mitsuba XML path")
+    p.add_argument("--out", required=True, help="output .npz")
+    p.add_argument("--resolution", type=int, default=64, help="cube-map face size (texels)")
+    p.add_argument("--epsilon", type=float, default=0.0,
+                   help="leaf threshold: misclassified texels per cluster")
+    p.add_argument("--method", choices=["batched", "nelder-mead"], default="batched",
+                   help="split-line search: glossrt's exact batched search or the paper's "
+                        "Nelder-Mead (slow)")
 
     p = add("ltc-fit", cmd_ltc_fit, "fit glossrt's GGX LTC table (minutes)",
             "glossrt ltc-fit --out ltc_ggx.npz")

@@ -1,0 +1,205 @@
+"""Shadowed polygon-light shading of Frames (issue 6): the glue between scenes, G-buffers and
+the BSPVT pieces (:mod:`glossrt.lights.bspvt` builds the trees, :mod:`glossrt.lights.bspvt_shade`
+integrates the visible pieces) and the ratio-estimator peer (:mod:`glossrt.lights.ratio`).
+
+* :func:`build_scene_trees`: visibility cube maps of every mesh vertex of a scene (emitters
+  removed) and their trees, with the build statistics of the paper's Table 1;
+* :func:`pixel_triangles`: for each pixel of a G-buffer, the triangle it sees (three global
+  vertex indices, in the numbering of :func:`glossrt.lights.bspvt.scene_vertices`) and its
+  barycentric coordinates, by tracing a ray from the camera to the pixel's ``position``;
+* :func:`shade_bspvt`: direct light with BSPVT shadows of a Frame, per vertex (Okuno &
+  Iwasaki's mode: vertices shaded with their own view and material, colours interpolated
+  across triangles) or per pixel (their future work: each pixel evaluates its triangle's
+  three vertex trees with its own G-buffer data and blends by barycentrics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .. import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..denoise.common import check_frame, split, view_directions  # noqa: E402
+from ..errors import FrameError, GlossrtError  # noqa: E402
+
+MODES = ("vertex", "pixel")
+
+
+def scene_meshes(scene: mi.Scene) -> list:
+    """The non-emitting ``mi.Mesh`` shapes in the order of
+    :func:`glossrt.lights.bspvt.scene_vertices` (whose ``offsets`` number their vertices)."""
+    from ..scenes import stable_shapes
+
+    return [s for s in stable_shapes(scene) if isinstance(s, mi.Mesh) and not s.is_emitter()]
+
+
+def build_scene_trees(scene: mi.Scene, resolution: int = 64, epsilon: float = 0.0,
+                      method: str = "batched", progress: bool = True, **kwargs):
+    """Okuno & Iwasaki's precomputation for ``scene``: visibility cube maps at every vertex
+    of its non-emitting meshes against its non-emitting shapes
+    (:func:`glossrt.lights.bspvt.visibility_cubemaps` on
+    :func:`glossrt.lights.bspvt.occluders`), then the trees
+    (:func:`glossrt.lights.bspvt.build_trees`, ``kwargs`` passed on). The returned trees'
+    ``info`` adds the visibility and total seconds (``stats()`` has the tree build's)."""
+    import time
+
+    from . import bspvt
+
+    pos, nrm, _ = bspvt.scene_vertices(scene)
+    if len(pos) == 0:
+        raise GlossrtError("the scene has no mesh vertices to precompute visibility at "
+                           "(BSPVT needs triangle meshes; analytic shapes only occlude)")
+    t0 = time.perf_counter()
+    vis = bspvt.visibility_cubemaps(bspvt.occluders(scene), pos, nrm, resolution,
+                                    progress=progress)
+    t1 = time.perf_counter()
+    trees = bspvt.build_trees(vis, epsilon, method, positions=pos, normals=nrm,
+                              progress=progress, **kwargs)
+    t2 = time.perf_counter()
+    trees.info.update({"visibility_seconds": t1 - t0, "tree_seconds": t2 - t1,
+                       "total_seconds": t2 - t0})
+    return trees
+
+
+def vertex_materials(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per vertex (numbering of :func:`scene_vertices`): GGX alpha (V,), diffuse albedo and
+    F0 (V, 3) of each mesh's BSDF: alpha and F0 as the G-buffer and
+    :func:`glossrt.lights.shading.f0_image` take them
+    (:func:`glossrt.render.materials.describe_bsdf`), the albedo as the renderer's
+    ``albedo_diffuse`` (``eval_diffuse_reflectance`` at the vertex's texture coordinates)."""
+    from ..brdf.ggx import ALPHA_MIN
+    from ..render.materials import describe_bsdf
+
+    alpha, albedo, f0 = [], [], []
+    for m in scene_meshes(scene):
+        d = describe_bsdf(m.bsdf())
+        k = m.vertex_count()
+        alpha.append(np.full(k, max(float(d.alpha), ALPHA_MIN)))
+        f0.append(np.tile(np.asarray(d.f0, np.float64).ravel()[:3], (k, 1)))
+        si = dr.zeros(mi.SurfaceInteraction3f, k)
+        if m.has_vertex_texcoords():
+            uv = np.array(m.vertex_texcoords_buffer(), np.float32).reshape(-1, 2)
+            si.uv = mi.Point2f(uv[:, 0], uv[:, 1])
+        si.wi = mi.Vector3f(0, 0, 1)
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        if not d.has_diffuse:  # (conductors: no diffuse lobe; their "reflectance" is not one)
+            albedo.append(np.zeros((k, 3)))
+            continue
+        rho = m.bsdf().eval_diffuse_reflectance(si)
+        albedo.append(np.stack([np.broadcast_to(np.asarray(rho[c], np.float64), (k,))
+                                for c in range(3)], -1))  # (a constant texture: width 1)
+    return np.concatenate(alpha), np.concatenate(albedo), np.concatenate(f0)
+
+
+@dataclass
+class PixelTriangles:
+    """Per pixel (flattened, row-major): ``vertices`` (N, 3) int64 global vertex indices of the
+    triangle seen, ``bary`` (N, 3) float32 barycentric weights of those vertices, ``valid``
+    (N,) bool (False on background and on shapes without per-vertex data)."""
+
+    vertices: np.ndarray
+    bary: np.ndarray
+    valid: np.ndarray
+
+
+def pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets: np.ndarray) -> PixelTriangles:
+    """The triangle each pixel of ``frame`` sees and its barycentrics, for the ``meshes``
+    (``mi.Mesh`` objects of ``scene``) whose vertices are numbered from ``offsets[i]`` on.
+
+    A ray from the camera position to the G-buffer's ``position`` (stopping just short of it
+    would miss it: it runs 1% past) finds the same surface point; Mitsuba's ``prim_uv``
+    ``(b1, b2)`` weights the triangle's vertices ``(1 - b1 - b2, b1, b2)``."""
+    check_frame(frame, ("position", "mesh_id"))
+    if frame.camera is None:
+        raise FrameError(f"{frame.where}: per-vertex shading needs the camera")
+    from ..scenes import _registry_id
+
+    p = mi.Point3f(*split(frame["position"]))
+    hit = split(frame["mesh_id"])[0] > 0
+    c = frame.camera.position
+    o = mi.Point3f(float(c[0]), float(c[1]), float(c[2]))
+    d = p - o
+    dist = dr.norm(d)
+    ray = mi.Ray3f(o, d / dr.maximum(dist, 1e-12))
+    ray.maxt = dist * 1.01 + 1e-4
+    pi = scene.ray_intersect_preliminary(ray, active=hit)
+    shape_id = dr.reinterpret_array(mi.UInt32, pi.shape)
+    dr.eval(shape_id, pi.prim_index, pi.prim_uv)
+    sid = np.array(shape_id)
+    prim = np.array(pi.prim_index).astype(np.int64)
+    b1 = np.array(pi.prim_uv.x)
+    b2 = np.array(pi.prim_uv.y)
+    n = sid.size
+    verts = np.zeros((n, 3), np.int64)
+    valid = np.zeros(n, bool)
+    for mesh, off in zip(meshes, offsets, strict=True):
+        sel = (sid == _registry_id(mi.ShapePtr, mesh)) & np.array(hit)
+        if not sel.any():
+            continue
+        faces = np.array(mesh.faces_buffer()).reshape(-1, 3).astype(np.int64)
+        ok = sel & (prim < len(faces))
+        verts[ok] = faces[prim[ok]] + int(off)
+        valid |= ok
+    bary = np.stack([1.0 - b1 - b2, b1, b2], -1).astype(np.float32)
+    bary[~valid] = 0.0
+    return PixelTriangles(verts, bary, valid)
+
+
+def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex",
+                f0: np.ndarray | None = None, textures: dict | None = None) -> np.ndarray:
+    """Direct light (H, W, 3) of ``frame`` from the polygon ``lights`` with BSPVT shadows
+    (Okuno & Iwasaki, eq. 2 per vertex tree; see the module docstring for ``mode``).
+
+    ``trees`` must have been built for ``scene``'s vertices (:func:`build_scene_trees`);
+    ``f0`` (H, W, 3) is the per-pixel F0 of the ``pixel`` mode (the ``vertex`` mode takes
+    materials per mesh, :func:`vertex_materials`). Pixels on shapes without trees (the lights
+    themselves, analytic shapes) and background pixels get 0."""
+    from . import bspvt_shade
+    from .shading import NEEDS
+
+    if mode not in MODES:
+        raise GlossrtError(f"unknown BSPVT mode {mode!r}; choose one of {MODES}")
+    meshes = scene_meshes(scene)
+    offsets = np.cumsum([0] + [m.vertex_count() for m in meshes])
+    if int(offsets[-1]) != int(trees.vertex_count):
+        raise GlossrtError(f"the trees hold {trees.vertex_count} vertices but the scene's "
+                           f"meshes have {int(offsets[-1])}: built for another scene?")
+    check_frame(frame, NEEDS)
+    pt = pixel_triangles(scene, frame, meshes, offsets[:-1])
+    h, w = frame.height, frame.width
+    out = np.zeros((h * w, 3), np.float32)
+    if not pt.valid.any():
+        return out.reshape(h, w, 3)
+    if mode == "vertex":
+        pos = np.asarray(trees.positions, np.float64)
+        cam = np.asarray(frame.camera.position, np.float64)
+        wo = cam[None, :] - pos
+        wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
+        alpha, albedo, vf0 = vertex_materials(scene)
+        d, s = bspvt_shade.shade_vertices(trees, lights, wo, alpha, albedo, vf0,
+                                          textures=textures)
+        col = d + s
+        v = pt.vertices[pt.valid]
+        out[pt.valid] = np.einsum("pk,pkc->pc", pt.bary[pt.valid], col[v])
+        return out.reshape(h, w, 3)
+    sel = np.flatnonzero(pt.valid)
+
+    def chan(name):
+        return frame.numpy(name).reshape(h * w, -1)[sel]
+
+    p = chan("position")
+    wo_all = view_directions(frame, mi.Point3f(*split(frame["position"])))
+    wo = np.stack([np.asarray(wo_all[c]) for c in range(3)], -1)[sel]
+    f0p = np.zeros((len(sel), 3)) if f0 is None else np.asarray(f0, np.float64).reshape(
+        h * w, 3)[sel]
+    d, s = bspvt_shade.shade_pixels(trees, lights, p, chan("normal"), wo,
+                                    chan("roughness")[:, 0], chan("albedo_diffuse"), f0p,
+                                    pt.vertices[sel], pt.bary[sel], textures=textures)
+    out[sel] = d + s
+    return out.reshape(h, w, 3)
