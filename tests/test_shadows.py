@@ -160,3 +160,31 @@ def test_cli_build_and_shade(tmp_path, capsys):
     assert main(["light", "polygon-light", "--method", "bspvt", "--size", "24x18", "--out",
                  str(tmp_path / "x")]) == 2
     assert "--bspvt FILE" in capsys.readouterr().err
+
+
+def test_vertex_inside_geometry_is_dark_not_nan():
+    """A vertex inside a closed mesh sees nothing: every texel blocked, one leaf of value 0
+    per face, and its shading is exactly 0 (no NaN), while a vertex outside is lit."""
+    from glossrt.lights.bspvt import build_trees, occluders, visibility_cubemaps
+    from glossrt.lights.bspvt_shade import shade_vertices
+    from glossrt.scenes.teapot import sphere_mesh
+
+    scene = mi.load_dict({"type": "scene", "ball": mesh_shape("ball", *sphere_mesh(8))})
+    # (off-centre: rays through the exact centre graze the mesh's vertices and edges)
+    pos = np.array([[0.013, -0.021, 0.007], [0.0, 0.0, 3.0]])
+    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    vis = visibility_cubemaps(occluders(scene), pos, nrm, 8, progress=False)
+    assert vis[0].max() == 0 and vis[1, 4].min() == 1  # +z face of the outside vertex
+    trees = build_trees(vis, positions=pos, normals=nrm, progress=False)
+    assert np.all(trees.roots[0] < 0) and np.all(trees.leaf_value[~trees.roots[0]] == 0)
+
+    class Quad:
+        vertices = np.array([[-1, -1, 5.0], [-1, 1, 5.0], [1, 1, 5.0], [1, -1, 5.0]])
+        radiance = np.ones(3)
+        two_sided = True
+
+    d, s = shade_vertices(trees, [Quad()], np.array([[0, 0, 1.0]] * 2), 0.3,
+                          np.full((2, 3), 0.5), np.full((2, 3), 0.04))
+    assert np.all(np.isfinite(d)) and np.all(np.isfinite(s))
+    assert np.all(d[0] == 0) and np.all(s[0] == 0)
+    assert d[1].min() > 0.01 and s[1].min() > 0.001

@@ -135,6 +135,8 @@ def cmd_experiment(args) -> int:
         return _experiment_lobes(out, size, args.spp)
     if args.which == "ltc":
         return _experiment_ltc(out, size, args.spp, args.polygons, args.published)
+    if args.which == "bspvt":
+        return _experiment_bspvt(out, size, args.spp, args.resolution)
     res = experiments.denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
                                 ref_spp=args.spp, static_frames=args.static_frames)
     md = res.markdown()
@@ -185,6 +187,25 @@ def _experiment_ltc(out, size, spp: int, polygons: int, published: str | None) -
     (out / "ltc.md").write_text(md + "\n")
     print(md)
     print(f"wrote {out / 'ltc.md'} and {out / 'ltc_images.png'}")
+    return 0
+
+
+def _experiment_bspvt(out, size, spp: int, resolution: int) -> int:
+    """Okuno & Iwasaki measurements (RESULTS.md): shadow error per alpha and light position
+    for BSPVT per vertex / per pixel, the ratio estimator and unshadowed LTC, and Table 1."""
+    from . import bspvt_experiments as be
+
+    res = be.images(size=size, ref_spp=spp, resolution=resolution, progress=print)
+    res.montage(out / "bspvt_images.png")
+    rows = be.table1(resolution=resolution, progress=print)
+    md = (f"## shadows vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp, R = {resolution})\n\n"
+          f"mean absolute error (time per frame)\n\n{res.markdown()}\n\n"
+          f"## Table 1\n\n{be.table1_markdown(rows, resolution)}")
+    (out / "bspvt.md").write_text(md + "\n")
+    (out / "bspvt.json").write_text(json.dumps({"rows": res.rows, "table1": rows}, indent=2,
+                                               default=float))
+    print(md)
+    print(f"wrote {out / 'bspvt.md'} and {out / 'bspvt_images.png'}")
     return 0
 
 
@@ -459,10 +480,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-every", type=int, default=10)
     p.add_argument("--spp", type=int, default=1024)
     p.add_argument("--static-frames", type=int, default=60)
-    p.add_argument("--which", choices=["denoisers", "lobes", "ltc"], default="denoisers",
+    p.add_argument("--which", choices=["denoisers", "lobes", "ltc", "bspvt"],
+                   default="denoisers",
                    help="denoisers: Schied 2017 comparison; lobes: Tokuyoshi 2015 figs. 4-6 "
                         "and upsampling (uses --size and --spp); ltc: Heitz et al. 2016 "
-                        "accuracy and images (uses --size, --spp, --polygons, --published)")
+                        "accuracy and images (uses --size, --spp, --polygons, --published); "
+                        "bspvt: Okuno & Iwasaki shadows and Table 1 (--size, --spp, "
+                        "--resolution)")
+    p.add_argument("--resolution", type=int, default=64,
+                   help="bspvt: cube-map face size of the visibility maps")
     p.add_argument("--polygons", type=int, default=2000,
                    help="ltc: random polygons for the accuracy statistics (0: skip)")
     p.add_argument("--published", default=None,
