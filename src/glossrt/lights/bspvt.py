@@ -1144,6 +1144,8 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
         chunks = [active[i:i + per] for i in range(0, len(active), per)]
         if threads is None:
             threads = min(os.cpu_count() or 1, MAX_THREADS)
+        if int(threads) != threads or threads < 1:
+            raise GlossrtError(f"threads must be a positive integer, got {threads}")
         workers = max(1, min(int(threads), len(chunks)))
 
         def run(chunk):
@@ -1184,11 +1186,14 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
     lines, children, leaf_value, roots, leaf_e, leaf_code = _assemble(
         table, split_id, split_line, nv * 6, budget)
     info = {
-        "method": method, "angles": angles if method == "batched" else None,
-        "max_leaves": max_leaves, "max_depth": int(max_depth), "stalled": stalled,
+        "method": method,
+        "angles": (angles if isinstance(angles, str) else int(angles))
+        if method == "batched" else None,
+        "max_leaves": None if max_leaves is None else int(max_leaves),
+        "max_depth": int(max_depth), "stalled": stalled,
         "build_seconds": time.perf_counter() - t0,
         "leaves_over_epsilon": int(np.count_nonzero(leaf_e > eps)),
-        "depth": int(np.floor(np.log2(leaf_code.max()))) if len(leaf_code) else 0,
+        "depth": int(leaf_code.max()).bit_length() - 1 if len(leaf_code) else 0,
         "stalled_splits": stats["stalled_splits"],
     }
     return BSPVT(lines=lines, children=children, leaf_value=leaf_value,
