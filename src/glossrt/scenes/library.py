@@ -402,3 +402,75 @@ _register_polygon_light_alphas()
 )
 def polygon_light_textured() -> SceneSpec:
     return polygon_light_scene(0.25, textured=True)
+
+
+#: GGX alpha of the light-shapes spheres, left to right: mirror-like to rough
+LIGHT_SHAPES_ALPHAS = (0.01, 0.05, 0.15, 0.4)
+
+
+def _planar_mesh_light(name: str, pts2: np.ndarray, to_world, radiance) -> object:
+    """A convex polygon light (2D points ``pts2`` counter-clockwise in its xy plane, emitting
+    towards +z) as a triangle-fan mesh with an ``area`` emitter."""
+    from .teapot import mesh_shape
+
+    pts2 = np.asarray(pts2, np.float64)
+    v = np.c_[pts2, np.zeros(len(pts2))]
+    f = np.array([[0, k, k + 1] for k in range(1, len(pts2) - 1)], np.uint32)
+    return mesh_shape(name, v, f, None, to_world, _diffuse((0, 0, 0)),
+                      {"type": "area", "radiance": {"type": "rgb", "value": list(radiance)}})
+
+
+@builtin(
+    "light-shapes",
+    "four GGX spheres from mirror-like to rough (alpha 0.01 / 0.05 / 0.15 / 0.4) on a glossy "
+    "floor, reflecting lights of recognisable shapes: a window of four panes, a triangle, a "
+    "ring of twelve quads and a textured light (Kimura & Tokoi, fig. 8)",
+)
+def light_shapes() -> SceneSpec:
+    """The highlight-shape scene (issue 7): dark rough-plastic spheres (diffuse 0.03, so the
+    highlights dominate) in a row; the lights (a 2 x 2 block: window, triangle / ring,
+    stained glass) hang above the camera's view, in front of the spheres and facing them, so
+    each sphere shows all four shapes, sharp on the left, blurred on the right."""
+    lights_to = (T().look_at(origin=[0.0, 2.0, 1.25], target=[0.0, 0.42, 0.0], up=[0, 1, 0])
+                 @ T().scale([1.5, 1.5, 1.0]))
+    scene: dict = {
+        "type": "scene",
+        "sensor": _sensor([0, 1.0, 3.6], [0, 0.42, 0], 50.0, 320, 180),
+        "floor": _rect(T().rotate([1, 0, 0], -90).scale(4.0),
+                       {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2,
+                        "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.2, 0.21]}}),
+    }
+    for k, a in enumerate(LIGHT_SHAPES_ALPHAS):
+        scene[f"sphere{k}"] = {
+            "type": "sphere", "center": [-1.5 + k, 0.42, 0.0], "radius": 0.42,
+            "bsdf": {"type": "roughplastic", "distribution": "ggx", "alpha": a, "int_ior": 1.6,
+                     "diffuse_reflectance": {"type": "rgb", "value": [0.03, 0.03, 0.03]}}}
+    radiance = (20.0, 20.0, 18.0)
+    area = {"type": "area", "radiance": {"type": "rgb", "value": list(radiance)}}
+    # in the lights' plane (look_at frame: x, y), a 2 x 2 block of shapes ~0.7 m each
+    # window: 2 x 2 panes of 0.3 with 0.08 frame bars
+    for i in range(2):
+        for j in range(2):
+            cx, cy = -0.45 + (i - 0.5) * 0.38, 0.42 + (j - 0.5) * 0.38
+            scene[f"light_window{2 * i + j}"] = _rect(
+                lights_to @ T().translate([cx, cy, 0.0]).scale([0.15, 0.15, 1.0]),
+                _diffuse((0, 0, 0)), area)
+    tri = np.array([[-0.36, -0.3], [0.36, -0.3], [0.0, 0.34]])
+    scene["light_triangle"] = _planar_mesh_light(
+        "light_triangle", tri, lights_to @ T().translate([0.45, 0.42, 0.0]), radiance)
+    # ring of 12 quads (annulus 0.2 - 0.34)
+    for q in range(12):
+        a0, a1 = 2 * math.pi * q / 12, 2 * math.pi * (q + 0.8) / 12
+        quad = np.array([[0.2 * math.cos(a0), 0.2 * math.sin(a0)],
+                         [0.34 * math.cos(a0), 0.34 * math.sin(a0)],
+                         [0.34 * math.cos(a1), 0.34 * math.sin(a1)],
+                         [0.2 * math.cos(a1), 0.2 * math.sin(a1)]])
+        scene[f"light_ring{q:02d}"] = _planar_mesh_light(
+            f"light_ring{q:02d}", quad, lights_to @ T().translate([-0.45, -0.42, 0.0]),
+            radiance)
+    tex = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(stained_glass(peak=40.0)),
+                        "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"})
+    scene["light_textured"] = _rect(
+        lights_to @ T().translate([0.45, -0.42, 0.0]).scale([0.36, 0.26, 1.0]),
+        _diffuse((0, 0, 0)), {"type": "area", "radiance": tex})
+    return SceneSpec(scene, max_depth=3)

@@ -356,13 +356,14 @@ def _as_matrix(to_world) -> np.ndarray:
 
 
 def mesh_shape(name: str, v: np.ndarray, f: np.ndarray, nrm: np.ndarray | None = None,
-               to_world=None, bsdf=None):
+               to_world=None, bsdf=None, emitter=None):
     """A Mitsuba mesh (``mi.Mesh``) from vertices ``v`` (V, 3), counter-clockwise faces ``f``
     (F, 3) and optional vertex normals ``nrm`` (V, 3), transformed by ``to_world`` (4x4 matrix
     or ``mi.ScalarTransform4f``: vertices transformed, normals by the inverse transpose, the
     winding reversed under a mirroring transform so it stays counter-clockwise from outside),
     to put as a value in a scene dict for ``mi.load_dict`` (the dict key becomes its id).
-    ``bsdf``: a BSDF dict (or object); Mitsuba's default diffuse when None."""
+    ``bsdf``: a BSDF dict (or object); Mitsuba's default diffuse when None. ``emitter``: an
+    emitter dict (or object), e.g. ``{"type": "area", ...}``, for a mesh light."""
     from . import mi
 
     m = _as_matrix(to_world)
@@ -373,6 +374,8 @@ def mesh_shape(name: str, v: np.ndarray, f: np.ndarray, nrm: np.ndarray | None =
     props = mi.Properties("mesh")
     if bsdf is not None:
         props["bsdf"] = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
+    if emitter is not None:
+        props["emitter"] = mi.load_dict(emitter) if isinstance(emitter, dict) else emitter
     mesh = mi.Mesh(name, len(v), len(f), props, has_vertex_normals=nrm is not None)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
