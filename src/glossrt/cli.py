@@ -270,6 +270,7 @@ def cmd_light(args) -> int:
     r = render.Renderer(setup, seed=args.seed)
     out = _writable_dir(args.out)
     cache: dict = {}
+    hl_state: dict = {}
     work = args.frames * (args.spp if args.method == "mc" else 1)
     desc = f"{args.method} {setup.name} {setup.size[0]}x{setup.size[1]}"
     times = []
@@ -291,6 +292,15 @@ def cmd_light(args) -> int:
                 img = shade_bspvt(setup.scene, gb, trees, lights, args.mode, f0=f0,
                                   textures=cache)
                 p.update(i + 1)
+            elif args.method == "highlight":
+                from .lights.highlights import HighlightRenderer
+
+                if "hl" not in hl_state:
+                    hl_state["hl"] = HighlightRenderer(args.samples, args.distribution,
+                                                       args.sampling, not args.no_cull)
+                hl = hl_state["hl"]
+                img = hl(gb, lights, hl.maps(setup, i, lights), f0, i)
+                p.update(i + 1)
             elif args.method == "ratio":
                 from .lights.ratio import render_ratio
 
@@ -310,6 +320,7 @@ def cmd_light(args) -> int:
                     "shadows": (args.method in ("bspvt", "ratio")
                                 or (args.method == "mc" and not args.no_shadows)),
                     "spp": args.spp if args.method in ("mc", "ratio") else None,
+                    "samples": args.samples if args.method == "highlight" else None,
                     "seconds": times[-1]}
             f = Frame(channels=ch, camera=gb.camera, prev_camera=gb.prev_camera, index=i,
                       meta=meta)
@@ -428,10 +439,23 @@ def build_parser() -> argparse.ArgumentParser:
             "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",
             "glossrt light polygon-light --method ltc --frames 8 --size 320x240 --out out/ltc")
     p.add_argument("scene", help="built-in scene name or Mitsuba XML path")
-    p.add_argument("--method", choices=["ltc", "mc", "bspvt", "ratio"], default="ltc",
+    p.add_argument("--method", choices=["ltc", "mc", "bspvt", "ratio", "highlight"],
+                   default="ltc",
                    help="ltc: unshadowed LTC; mc: Monte Carlo reference; bspvt: LTC with "
                         "BSPVT shadows (needs --bspvt); ratio: LTC x denoised ratio of "
-                        "shadowed to unshadowed 1-spp-per-sample estimates (Heitz 2018)")
+                        "shadowed to unshadowed 1-spp-per-sample estimates (Heitz 2018); "
+                        "highlight: specular reflection of the lights' shapes through a light "
+                        "environment map (Kimura & Tokoi 2004)")
+    p.add_argument("--samples", type=int, default=4,
+                   help="highlight: microfacet normals per pixel (the paper: 4)")
+    p.add_argument("--distribution", choices=["ellipsoidal", "ggx"], default="ellipsoidal",
+                   help="highlight: the paper's ellipsoidal distribution or GGX visible "
+                        "normals with filtered importance sampling")
+    p.add_argument("--sampling", choices=["texture", "hash", "regular"], default="texture",
+                   help="highlight (ellipsoidal): normal texture with embedded random "
+                        "numbers, per-pixel hash, or the 13-point regular pattern")
+    p.add_argument("--no-cull", action="store_true",
+                   help="highlight: no bounding-sphere culling")
     p.add_argument("--spp", type=int, default=None,
                    help="mc: samples per pixel, default 64 (each one light + one BRDF sample "
                         "per light); ratio: default 1")

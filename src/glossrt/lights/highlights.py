@@ -1,0 +1,288 @@
+"""Highlights that show the light's shape on rough surfaces (Kimura & Tokoi 2004; issue 7):
+the scene's polygon lights rendered into a light environment map seen from a probe point per
+object, sampled per pixel with microfacet normals drawn from a roughness distribution, each
+sample reflecting the view into the map.
+
+For a pixel with normal ``n``, view ``v`` (towards the eye) and ``N`` microfacet normals
+``h_k`` (Kimura & Tokoi, secs. 4-5)::
+
+    L_o = sum_k w_k  F(v . h_k) G(n, h_k, v, l_k) L_env(l_k),   l_k = 2 (v . h_k) h_k - v
+
+* ``distribution="ellipsoidal"`` (the paper): ``h_k`` from the ellipsoidal distribution
+  ``D_s(delta; R_r)`` with ``theta`` uniform on ``[0, pi)`` (:mod:`glossrt.brdf.ellipsoidal`;
+  ``R_r`` from the pixel's GGX alpha by matching the median microfacet angle), ``w_k = 1/N``
+  for random samples (the microfacet-normal texture with embedded random numbers, secs. 5.1,
+  5.3, or a per-pixel hash generator) or the 13-point regular pattern's ``D_s`` weights
+  (sec. 7.2); ``G = min(1, G_m, G_s)`` (sec. 4.2);
+* ``distribution="ggx"`` (beyond the paper): GGX visible-normal sampling (Heitz 2018) with
+  filtered importance sampling (Colbert & Krivanek 2007): each sample reads the pre-filtered
+  level of the map chosen from its pdf; ``w_k = G2 / G1(v) / N``.
+
+``F`` is Schlick's Fresnel with the material's ``F0`` (glossrt's addition; the paper's
+highlights are the reflected light alone, i.e. ``F = 1``). ``L_env`` holds the lights only
+(the paper's light environment map), so the method gives the specular reflection of the
+lights; diffuse light is not part of it. Bounding-sphere culling (sec. 6) skips pixels whose
+mirror direction misses every light's sphere enlarged by the lobe's spread.
+"""
+
+from __future__ import annotations
+
+from .. import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick  # noqa: E402
+from ..denoise.common import check_frame, merge, split  # noqa: E402
+from ..errors import GlossrtError  # noqa: E402
+from ..jit import opaque  # noqa: E402
+from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices, smith_lambda  # noqa: E402,F401
+
+
+def shade_plain(frame, lights: list, f0: np.ndarray | None = None) -> np.ndarray:
+    """The paper's baseline "plain shading" (sec. 7.1): every light as a point light at its
+    centroid with intensity ``radiance x area x cos`` (a small Lambertian emitter), GGX
+    specular (the shared BRDF of :mod:`glossrt.lights.shading`) and Schlick F; no light
+    shape, no environment map. Specular only, like the highlight methods. (H, W, 3)."""
+    from .scene import PolygonLight
+    from .shading import brdf_cos
+
+    sp = ShadingPoints.of(frame, f0)
+    total = dr.zeros(mi.Color3f, frame.width * frame.height)
+    for lt in lights:
+        if not isinstance(lt, PolygonLight):
+            lt = PolygonLight(light_vertices(lt), lt.radiance, bool(getattr(lt, "two_sided",
+                                                                               False)))
+        c = mi.Point3f(*opaque(np.asarray(lt.centroid, float)))
+        ln = mi.Vector3f(*opaque(np.asarray(lt.normal, float)))
+        le = mi.Color3f(*opaque(np.asarray(lt.radiance, float).ravel()[:3]))
+        area = dr.opaque(mi.Float, float(lt.area))
+        d = c - sp.p
+        dist2 = dr.squared_norm(d)
+        wi = d * dr.rsqrt(dr.maximum(dist2, 1e-12))
+        cos_l = -dr.dot(ln, wi)
+        if getattr(lt, "two_sided", False):
+            cos_l = dr.abs(cos_l)
+        _, spec = brdf_cos(sp, wi)
+        total += dr.select(cos_l > 0, spec * le * (area * cos_l / dr.maximum(dist2, 1e-12)),
+                           0.0)
+    out = merge([total[0], total[1], total[2]], frame.height, frame.width)
+    return np.array(out, dtype=np.float32).reshape(frame.height, frame.width, 3)
+
+
+DISTRIBUTIONS = ("ellipsoidal", "ggx")
+SAMPLINGS = ("texture", "hash", "regular")
+
+
+def _groups(alpha: np.ndarray, hit: np.ndarray) -> list[tuple[float, np.ndarray]]:
+    """Pixels grouped by material roughness (the paper's normal texture, regular pattern and
+    bounding-sphere enlargement are per material): (alpha, flat pixel indices)."""
+    vals = np.unique(alpha[hit])
+    return [(float(a), np.flatnonzero(hit & (alpha == a))) for a in vals]
+
+
+def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, samples: int,
+              distribution: str, sampling: str, frame_index: int, texture=None,
+              level0: int = 128, offset=0, fis_samples: int | None = None) -> mi.Color3f:
+    """The module docstring's estimator for one material (scalar ``alpha``); hash samples
+    use sample indices ``offset + k`` (``offset`` an opaque ``mi.UInt32`` for references
+    summed over batches, so one kernel serves every batch); ``fis_samples``: the sample
+    count that sets GGX's filtered-importance-sampling level (default ``samples``)."""
+    from ..brdf import ellipsoidal as el
+
+    n, v = sp.n, sp.wo
+    total = dr.zeros(mi.Color3f, dr.width(n))
+    if distribution == "ellipsoidal":
+        ratio = float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
+        if sampling == "regular":
+            hs = el.regular_normals(n, ratio)
+        elif sampling == "texture":
+            hs = [(h, 1.0 / samples) for h in texture.sample_normals(n, pix_x, pix_y, samples,
+                                                                       frame_index)]
+        else:
+            hs = []
+            for k in range(samples):
+                u, vv = el.hash_uniforms(pix_idx, offset + k, frame_index)
+                # Kimura & Tokoi, sec. 5.1: delta(U) by the inverse CDF, theta = pi V
+                hs.append((el.microfacet_normal(n, el.ellipsoidal_sample(u, ratio),
+                                                dr.pi * vv), 1.0 / samples))
+        for h, w in hs:
+            l = el.reflect(v, h)  # noqa: E741
+            g = el.geometric_attenuation(n, h, v, l)
+            f = fresnel_schlick(dr.dot(v, h), sp.f0)
+            total += f * (g * w) * env(l, 0.0)
+        return total
+    # GGX: visible normals (Heitz 2018) + filtered importance sampling (Colbert & Krivanek 2007)
+    from .envmap import fis_lod
+
+    frame = mi.Frame3f(n)
+    vl = frame.to_local(v)
+    a = max(alpha, ALPHA_MIN)
+    for k in range(samples):
+        from ..brdf.ellipsoidal import hash_uniforms
+
+        u1, u2 = hash_uniforms(pix_idx, offset + k, frame_index)
+        hx, hy, hz = _sample_vndf(vl, a, u1, u2)
+        hl = mi.Vector3f(hx, hy, hz)
+        ll = 2.0 * dr.dot(vl, hl) * hl - vl
+        ok = (ll.z > 0) & (vl.z > 0)
+        vh = dr.maximum(dr.dot(vl, hl), 1e-8)
+        # pdf of l: D_wo(h) / (4 v.h) = G1(v) D(h) / (4 cos_o)
+        g1v = dr.rcp(1.0 + smith_lambda(vl.z, a))
+        pdf = g1v * D_ggx(hz, a) / (4.0 * dr.maximum(vl.z, 1e-8))
+        lod = fis_lod(pdf, fis_samples or samples, level0)
+        # weight f cos / pdf = F G2 / G1(v) (height-correlated G2, the shared BRDF)
+        g2 = dr.rcp(1.0 + smith_lambda(vl.z, a) + smith_lambda(dr.maximum(ll.z, 1e-8), a))
+        f = fresnel_schlick(vh, sp.f0)
+        w = dr.select(ok, g2 / g1v, 0.0) / samples
+        total += f * w * env(frame.to_world(ll), lod)
+    return total
+
+
+def _sample_vndf(vl, a, u1, u2):
+    from ..brdf.ggx import sample_vndf
+
+    return sample_vndf(vl.x, vl.y, vl.z, a, u1, u2)
+
+
+def spread_angle(alpha: float, distribution: str, q: float = 0.99) -> float:
+    """The angle (radians) from the normal within which a fraction ``q`` of the microfacet
+    normals lie, for the bounding-sphere enlargement (Kimura & Tokoi, sec. 6): ellipsoidal
+    ``|delta|`` quantile (``D_s`` is symmetric: ``delta(1/2 + q/2)``), GGX ``theta_h``
+    quantile of the projected NDF (``P(tan^2 theta < x) = x / (alpha^2 + x)``)."""
+    from ..brdf import ellipsoidal as el
+
+    if distribution == "ellipsoidal":
+        ratio = float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
+        return float(el.ellipsoidal_sample(0.5 + 0.5 * q, ratio))
+    return float(np.arctan(max(alpha, ALPHA_MIN) * np.sqrt(q / (1.0 - q))))
+
+
+class HighlightRenderer:
+    """Light-shape highlights of G-buffers (module docstring); keeps the per-material normal
+    textures between frames. ``samples`` per pixel (4, the paper's), ``distribution``
+    ``"ellipsoidal"`` | ``"ggx"``, ``sampling`` ``"texture"`` (normal texture with embedded
+    random numbers) | ``"hash"`` (per-pixel hash generator) | ``"regular"`` (13 points, the
+    ellipsoidal distribution only), ``cull`` the bounding-sphere test, ``resolution`` of the
+    light cube maps (the paper: 256)."""
+
+    def __init__(self, samples: int = 4, distribution: str = "ellipsoidal",
+                 sampling: str = "texture", cull: bool = True, resolution: int = 128,
+                 supersample: int = 2, texture_size: int = 64) -> None:
+        if distribution not in DISTRIBUTIONS:
+            raise GlossrtError(f"unknown distribution {distribution!r}; choose one of "
+                               f"{DISTRIBUTIONS}")
+        if sampling not in SAMPLINGS:
+            raise GlossrtError(f"unknown sampling {sampling!r}; choose one of {SAMPLINGS}")
+        if distribution == "ggx" and sampling != "hash":
+            sampling = "hash"  # GGX + FIS draws its own uniforms from the hash generator
+        if int(samples) < 1:
+            raise GlossrtError(f"samples must be >= 1, got {samples}")
+        self.samples, self.distribution, self.sampling = int(samples), distribution, sampling
+        self.cull, self.resolution, self.supersample = bool(cull), resolution, supersample
+        self.texture_size = texture_size
+        self._textures: dict = {}
+        self.last_stats: dict = {}
+
+    def reset(self) -> None:
+        self._textures.clear()
+
+    def maps(self, setup, frame_index: int, lights: list | None = None):
+        """The light cube maps of ``setup`` at ``frame_index`` (probe per object)."""
+        from .envmap import CubeMapSet, probe_points
+        from .scene import polygon_lights
+
+        lights = polygon_lights(setup, frame_index) if lights is None else lights
+        return CubeMapSet.render(lights, probe_points(setup), self.resolution,
+                                 supersample=self.supersample)
+
+    def _texture(self, ratio: float):
+        from ..brdf.ellipsoidal import NormalTexture
+
+        key = round(ratio, 9)
+        if key not in self._textures:
+            self._textures[key] = NormalTexture(ratio, self.texture_size, self.texture_size)
+        return self._textures[key]
+
+    def __call__(self, frame, lights: list, maps, f0: np.ndarray | None = None,
+                 frame_index: int = 0, offset=0, fis_samples: int | None = None) -> np.ndarray:
+        """Specular reflection (H, W, 3) of the ``lights`` in ``frame``'s G-buffer through the
+        light cube ``maps`` (:meth:`maps`); ``f0`` per pixel (default 0: then only ``F``'s
+        Schlick term lights it; pass :func:`glossrt.lights.shading.f0_image`)."""
+        from ..brdf import ellipsoidal as el
+        from .envmap import cull_mask, light_spheres, lobe_spread
+
+        check_frame(frame, NEEDS)
+        h, w = frame.height, frame.width
+        sp = ShadingPoints.of(frame, f0)
+        alpha = frame.numpy("roughness")[..., 0].ravel()
+        hit = np.array(sp.hit)
+        mesh_id = mi.UInt32(split(frame["mesh_id"])[0])
+        centres, radii = light_spheres(lights)
+        total = dr.zeros(mi.Color3f, w * h)
+        stats = {"pixels": int(hit.sum()), "shaded": 0}
+        for a, idx_np in _groups(alpha, hit):
+            idx = mi.UInt32(idx_np.astype(np.uint32))
+            sub = ShadingPoints(*(dr.gather(type(x), x, idx) for x in (
+                sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)))
+            if self.cull and len(lights):
+                spread = lobe_spread(spread_angle(a, self.distribution))
+                keep = cull_mask(sub.p, el.reflect(sub.wo, sub.n), centres, radii, spread)
+                sel = dr.compress(keep)
+                if dr.width(sel) == 0:
+                    continue
+                idx = dr.gather(mi.UInt32, idx, sel)
+                sub = ShadingPoints(*(dr.gather(type(x), x, sel) for x in (
+                    sub.p, sub.n, sub.wo, sub.alpha, sub.albedo, sub.f0, sub.hit)))
+            stats["shaded"] += dr.width(idx)
+            ids = dr.gather(mi.UInt32, mesh_id, idx)
+
+            def env(d, lod, ids=ids):
+                return maps.lookup(ids, d, lod)
+
+            tex = None
+            if self.distribution == "ellipsoidal" and self.sampling == "texture":
+                tex = self._texture(float(el.ratio_from_alpha(min(a, el.ALPHA_MAX))))
+            col = _estimate(sub, env, idx % w, idx // w, idx, a, self.samples,
+                            self.distribution, self.sampling, frame_index, tex,
+                            int(maps.resolutions[0]), offset, fis_samples)
+            dr.scatter(total, col, idx)
+        self.last_stats = stats
+        out = merge([total[0], total[1], total[2]], h, w)
+        return np.array(out, dtype=np.float32).reshape(h, w, 3)
+
+
+def reference(frame, lights: list, maps, f0: np.ndarray | None = None,
+              distribution: str = "ellipsoidal", samples: int = 1024, batch: int = 16,
+              frame_index: int = 0, fis: bool = False,
+              progress=None) -> np.ndarray:
+    """The converged reference of the same reflection model: ``samples`` hash-sampled
+    microfacet normals per pixel, no culling, summed over batches of ``batch`` (one kernel for
+    all batches). GGX: unfiltered (level 0) unless ``fis``."""
+    hr = HighlightRenderer(batch, distribution, "hash", cull=False)
+    acc = None
+    n_batches = max(1, -(-int(samples) // int(batch)))
+    for b in range(n_batches):
+        img = hr(frame, lights, maps, f0, frame_index,
+                 offset=dr.opaque(mi.UInt32, b * batch),
+                 fis_samples=None if fis else 1 << 30)
+        acc = img if acc is None else acc + img
+        if progress is not None:
+            progress(b + 1, n_batches)
+    return acc / n_batches
+
+
+def shade_highlights(setup, frame, frame_index: int = 0, lights: list | None = None,
+                     f0: np.ndarray | None = None, **options) -> np.ndarray:
+    """One-call form: light cube maps of ``setup`` at ``frame_index`` and the highlights of
+    ``frame`` (options of :class:`HighlightRenderer`)."""
+    from .scene import polygon_lights
+    from .shading import f0_image
+
+    lights = polygon_lights(setup, frame_index) if lights is None else lights
+    hr = HighlightRenderer(**options)
+    maps = hr.maps(setup, frame_index, lights)
+    return hr(frame, lights, maps, f0_image(setup, frame) if f0 is None else f0, frame_index)
