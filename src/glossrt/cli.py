@@ -137,6 +137,8 @@ def cmd_experiment(args) -> int:
         return _experiment_ltc(out, size, args.spp, args.polygons, args.published)
     if args.which == "bspvt":
         return _experiment_bspvt(out, size, args.spp, args.resolution)
+    if args.which == "highlights":
+        return _experiment_highlights(out, size, args.spp)
     res = experiments.denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
                                 ref_spp=args.spp, static_frames=args.static_frames)
     md = res.markdown()
@@ -206,6 +208,24 @@ def _experiment_bspvt(out, size, spp: int, resolution: int) -> int:
                                                default=float))
     print(md)
     print(f"wrote {out / 'bspvt.md'} and {out / 'bspvt_images.png'}")
+    return 0
+
+
+def _experiment_highlights(out, size, spp: int) -> int:
+    """Kimura & Tokoi measurements (RESULTS.md): RMSE vs samples per roughness, Table 1."""
+    from . import highlight_experiments as he
+
+    conv = he.convergence(size=size, ref_samples=spp, progress=print)
+    conv.montage(out / "highlights.png")
+    t = he.timing(size=size)
+    md = (f"## RMSE against the same model's reference ({size[0]}x{size[1]}, {spp} samples)"
+          f"\n\n{conv.markdown()}\n\n## Table 1 (ratios to plain shading)\n\n"
+          f"{he.timing_markdown(t)}")
+    (out / "highlights.md").write_text(md + "\n")
+    (out / "highlights.json").write_text(json.dumps({"rows": conv.rows, "timing": t},
+                                                    indent=2, default=float))
+    print(md)
+    print(f"wrote {out / 'highlights.md'} and {out / 'highlights.png'}")
     return 0
 
 
@@ -504,13 +524,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-every", type=int, default=10)
     p.add_argument("--spp", type=int, default=1024)
     p.add_argument("--static-frames", type=int, default=60)
-    p.add_argument("--which", choices=["denoisers", "lobes", "ltc", "bspvt"],
+    p.add_argument("--which", choices=["denoisers", "lobes", "ltc", "bspvt", "highlights"],
                    default="denoisers",
                    help="denoisers: Schied 2017 comparison; lobes: Tokuyoshi 2015 figs. 4-6 "
                         "and upsampling (uses --size and --spp); ltc: Heitz et al. 2016 "
                         "accuracy and images (uses --size, --spp, --polygons, --published); "
                         "bspvt: Okuno & Iwasaki shadows and Table 1 (--size, --spp, "
-                        "--resolution)")
+                        "--resolution); highlights: Kimura & Tokoi convergence and Table 1 "
+                        "(--size, --spp = reference samples)")
     p.add_argument("--resolution", type=int, default=64,
                    help="bspvt: cube-map face size of the visibility maps")
     p.add_argument("--polygons", type=int, default=2000,

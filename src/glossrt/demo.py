@@ -268,6 +268,29 @@ def section_bspvt(ctx: DemoContext, report: Report) -> None:
     ctx.timings["BSPVT section"] = time.perf_counter() - t0
 
 
+@register_section("highlights", order=75)
+def section_highlights(ctx: DemoContext, report: Report) -> None:
+    from . import highlight_experiments as he
+
+    t0 = time.perf_counter()
+    scale = min(1.0, ctx.frames[0].width / 160)
+    size = (max(32, int(160 * scale) // 2 * 2), max(18, int(90 * scale) // 2 * 2))
+    ref = 256 if scale >= 1 else 32
+    conv = he.convergence(size=size, ref_samples=ref, counts=(4, 16))
+    s = report.section(
+        "Light-shape highlights",
+        "Kimura & Tokoi 2004 on light-shapes: the lights rendered into a cube map per object, "
+        "sampled with microfacet normals (the paper's ellipsoidal distribution: normal texture "
+        "with embedded random numbers, per-pixel hash, 13-point regular pattern; and GGX "
+        "visible normals with filtered importance sampling), against the converged reference "
+        f"of the same model ({ref} samples), RMSE per sphere roughness. See docs/RESULTS.md.")
+    _markdown_table(s, conv.markdown(), "RMSE against the same model's reference")
+    keys = list(conv.images)
+    for i in range(0, len(keys), 3):
+        s.images_row([(k, conv.images[k]) for k in keys[i:i + 3]], name=f"highlights_{i}")
+    ctx.timings["highlights section"] = time.perf_counter() - t0
+
+
 @register_section("timings", order=90)
 def section_timings(ctx: DemoContext, report: Report) -> None:
     info = backend.info()

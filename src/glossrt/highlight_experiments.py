@@ -1,0 +1,162 @@
+"""Measurements behind docs/RESULTS.md for light-shape highlights (Kimura & Tokoi; issue 7).
+
+* :func:`convergence`: on ``light-shapes``, RMSE against the converged reference of the same
+  reflection model (many hash-sampled normals, no culling) per sphere roughness, for the
+  ellipsoidal distribution with the normal texture and the hash generator at 1-64 samples,
+  the 13-point regular pattern, and GGX visible-normal sampling with filtered importance
+  sampling (against the GGX reference);
+* :func:`timing`: the paper's Table 1 as ratios measured side by side in one run: plain
+  shading (point lights, no shape), regular sampling, random sampling (4), each with and
+  without bounding-sphere culling.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+SAMPLE_COUNTS = (1, 4, 16, 64)
+
+
+def _frame(size, frame_index: int = 0):
+    from . import render, scenes
+    from .lights.scene import polygon_lights
+    from .lights.shading import f0_image
+
+    setup = scenes.load("light-shapes", size=size)
+    gb = render.Renderer(setup).render(frame_index)
+    return setup, gb, polygon_lights(setup, frame_index), f0_image(setup, gb)
+
+
+@dataclass
+class Convergence:
+    size: tuple[int, int]
+    ref_samples: int
+    alphas: list[float]
+    rows: list[dict] = field(default_factory=list)
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def markdown(self) -> str:
+        head = "| method | samples | " + " | ".join(f"alpha {a:g}" for a in self.alphas) + \
+            " | all |"
+        lines = [head, "|" + "---|" * (len(self.alphas) + 3)]
+        for r in self.rows:
+            lines.append(f"| {r['method']} | {r['samples']} | "
+                         + " | ".join(f"{v:.4f}" for v in r["rmse"]) + f" | {r['all']:.4f} |")
+        return "\n".join(lines)
+
+    def montage(self, path: str | Path) -> Path:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from .report.page import tonemap
+
+        keys = list(self.images)
+        w, h = self.size
+        fig, axes = plt.subplots(len(keys), 1, figsize=(8, len(keys) * 8 * h / w + 0.3),
+                                 squeeze=False)
+        for ax, k in zip(axes[:, 0], keys, strict=True):
+            ax.imshow(tonemap(self.images[k]), interpolation="nearest")
+            ax.set_title(k, fontsize=8)
+            ax.axis("off")
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        return Path(path)
+
+
+def convergence(size=(320, 180), ref_samples: int = 2048, counts=SAMPLE_COUNTS,
+                progress: Callable[[str], None] | None = None) -> Convergence:
+    """RMSE per roughness and overall (module docstring)."""
+    from .lights.highlights import HighlightRenderer, reference, shade_plain
+
+    say = progress or (lambda _m: None)
+    setup, gb, lights, f0 = _frame(size)
+    hr = HighlightRenderer()
+    maps = hr.maps(setup, 0, lights)
+    rough = gb.numpy("roughness")[..., 0]
+    hit = gb.numpy("mesh_id")[..., 0] > 0
+    from .scenes.library import LIGHT_SHAPES_ALPHAS
+
+    alphas = list(LIGHT_SHAPES_ALPHAS)
+    masks = [hit & np.isclose(rough, a, rtol=1e-4) for a in alphas]
+    say(f"references ({ref_samples} samples): ellipsoidal, GGX")
+    refs = {"ellipsoidal": reference(gb, lights, maps, f0, "ellipsoidal", ref_samples),
+            "ggx": reference(gb, lights, maps, f0, "ggx", ref_samples)}
+    res = Convergence(tuple(size), ref_samples, alphas)
+
+    def add(method, samples, img, ref):
+        err = [float(np.sqrt(np.mean((img - ref)[m] ** 2))) for m in masks]
+        res.rows.append({"method": method, "samples": samples, "rmse": err,
+                         "all": float(np.sqrt(np.mean((img - ref)[hit] ** 2)))})
+
+    res.images["plain shading (point lights)"] = shade_plain(gb, lights, f0)
+    for n in counts:
+        say(f"{n} samples")
+        for sampling in ("texture", "hash"):
+            img = HighlightRenderer(n, "ellipsoidal", sampling)(gb, lights, maps, f0)
+            add(f"ellipsoidal, {sampling}", n, img, refs["ellipsoidal"])
+            if n == 4 and sampling == "texture":
+                res.images["ellipsoidal, normal texture, 4 samples (the paper)"] = img
+        img = HighlightRenderer(n, "ggx", "hash")(gb, lights, maps, f0)
+        add("GGX VNDF + FIS", n, img, refs["ggx"])
+        if n == 4:
+            res.images["GGX visible normals + FIS, 4 samples"] = img
+    img = HighlightRenderer(13, "ellipsoidal", "regular")(gb, lights, maps, f0)
+    add("ellipsoidal, regular", 13, img, refs["ellipsoidal"])
+    res.images["ellipsoidal, 13-point regular"] = img
+    res.images[f"ellipsoidal reference ({ref_samples})"] = refs["ellipsoidal"]
+    res.images[f"GGX reference ({ref_samples})"] = refs["ggx"]
+    return res
+
+
+def timing(size=(640, 360), repeats: int = 5) -> dict:
+    """Table 1 as ratios to plain shading, interleaved (module docstring); the light maps are
+    rendered once (their cost, per frame for moving lights, is reported apart)."""
+    import drjit as dr
+
+    from .lights.highlights import HighlightRenderer, shade_plain
+
+    setup, gb, lights, f0 = _frame(size)
+    hr = HighlightRenderer()
+    t0 = time.perf_counter()
+    maps = hr.maps(setup, 0, lights)
+    dr.sync_thread()
+    maps_s = time.perf_counter() - t0
+    cases = {"plain": lambda: shade_plain(gb, lights, f0)}
+    for cull in (False, True):
+        tag = "culling" if cull else "no culling"
+        for name, kw in (("regular 13", {"samples": 13, "sampling": "regular"}),
+                         ("random 4 (texture)", {"samples": 4, "sampling": "texture"}),
+                         ("random 4 (hash)", {"samples": 4, "sampling": "hash"}),
+                         ("GGX FIS 4", {"samples": 4, "distribution": "ggx"})):
+            r = HighlightRenderer(cull=cull, **kw)
+            cases[f"{name}, {tag}"] = (lambda r=r: r(gb, lights, maps, f0))
+    for fn in cases.values():  # compile
+        fn()
+    res = {k: [] for k in cases}
+    for _ in range(repeats):
+        for k, fn in cases.items():
+            t0 = time.perf_counter()
+            fn()
+            dr.sync_thread()
+            res[k].append(time.perf_counter() - t0)
+    med = {k: statistics.median(v) for k, v in res.items()}
+    return {"size": list(size), "seconds": med, "maps_seconds": maps_s,
+            "ratio_to_plain": {k: v / med["plain"] for k, v in med.items()}}
+
+
+def timing_markdown(t: dict) -> str:
+    lines = ["| method | ms / frame | x plain |", "|---|---|---|"]
+    for k, v in t["seconds"].items():
+        lines.append(f"| {k} | {1000 * v:.1f} | {t['ratio_to_plain'][k]:.2f} |")
+    lines.append(f"\n(light cube maps, 6 x 128^2 per object, rendered once: "
+                 f"{1000 * t['maps_seconds']:.0f} ms)")
+    return "\n".join(lines)
