@@ -288,6 +288,13 @@ def section_highlights(ctx: DemoContext, report: Report) -> None:
     keys = list(conv.images)
     for i in range(0, len(keys), 3):
         s.images_row([(k, conv.images[k]) for k in keys[i:i + 3]], name=f"highlights_{i}")
+    ref_e = conv.images[f"ellipsoidal reference ({ref})"]
+    ref_g = conv.images[f"GGX reference ({ref})"]
+    s.error_map("highlights_err_paper", conv.images[
+        "ellipsoidal, normal texture, 4 samples (the paper)"], ref_e,
+        caption="relative error of the paper's method (4 samples) against its reference")
+    s.error_map("highlights_err_ggx", conv.images["GGX visible normals + FIS, 4 samples"],
+                ref_g, caption="relative error of GGX + FIS (4 samples) against GGX's reference")
     ctx.timings["highlights section"] = time.perf_counter() - t0
 
 
