@@ -76,7 +76,16 @@ import numpy as np  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
 from ..jit import opaque  # noqa: E402
-from .ltc import PrefilteredTexture, _apply_minv, _local, _table, ltc_frame  # noqa: E402
+from .ltc import (  # noqa: E402
+    PrefilteredTexture,
+    _apply_minv,
+    _local,
+    _table,
+    _tex_eval,
+    _tex_plane,
+    light_uv,
+    ltc_frame,
+)
 from .polygon import _edge_sum, cosine_integral  # noqa: E402
 from .shading import ShadingPoints, light_vertices  # noqa: E402
 
@@ -390,40 +399,6 @@ class _Queries:
     plane_s: tuple | None = None
 
 
-def _tex_plane(verts: list) -> tuple:
-    """The whole light's plane data for :func:`_tex_eval`: ``(v0, e1, e2, unit normal, area)``
-    of the (possibly ``M^-1``-transformed) local polygon, as in ``ltc._texture_lookup``."""
-    e1, e2 = verts[1] - verts[0], verts[len(verts) - 1] - verts[0]
-    area = dr.zeros(mi.Float, dr.width(verts[0]))
-    for j in range(1, len(verts) - 1):
-        area = area + 0.5 * dr.norm(dr.cross(verts[j] - verts[0], verts[j + 1] - verts[0]))
-    return (mi.Vector3f(verts[0]), mi.Vector3f(e1), mi.Vector3f(e2),
-            dr.normalize(dr.cross(e1, e2)), area)
-
-
-def _tex_eval(uv: tuple, tex: PrefilteredTexture, plane: tuple, f: mi.Vector3f) -> mi.Color3f:
-    """Heitz et al. 2016, sec. 5.3, as ``ltc._texture_lookup`` but for a given vector form
-    factor ``f`` (a piece's) and the whole light's ``plane`` (:func:`_tex_plane`): the
-    prefiltered texture where ``f`` meets the plane, uv by the light's affine map (``uv``:
-    opaque ``(u0, v0, u1, v1, ul, vl)`` at its vertices 0, 1 and last), filter width
-    ``|t| / sqrt(area)``."""
-    v0, e1, e2, nrm, area = plane
-    dirn = dr.normalize(f)
-    denom = dr.dot(dirn, nrm)
-    t = dr.dot(v0, nrm) / dr.select(dr.abs(denom) > 1e-8, denom, 1e-8)
-    r = dirn * t - v0
-    g11, g12, g22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-    b1, b2 = dr.dot(r, e1), dr.dot(r, e2)
-    det = dr.maximum(g11 * g22 - g12 * g12, 1e-30)
-    s = (g22 * b1 - g12 * b2) / det
-    q = (g11 * b2 - g12 * b1) / det
-    u0, w0, u1, w1, ul, wl = uv
-    u = u0 + s * (u1 - u0) + q * (ul - u0)
-    v = w0 + s * (w1 - w0) + q * (wl - w0)
-    sigma_uv = dr.abs(t) / dr.sqrt(dr.maximum(area, 1e-30))
-    return tex.eval(mi.Point2f(u, v), sigma_uv)
-
-
 def _gather_tuple(src: tuple, q: mi.UInt32) -> tuple:
     return tuple(dr.gather(type(x), x, q) for x in src)
 
@@ -559,7 +534,7 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
         if uv.shape != (len(lv), 2) or not np.all(np.isfinite(uv)):
             raise GlossrtError(f"a textured light needs finite uv ({len(lv)}, 2), got "
                                f"{uv.shape}")
-        tex_arg = (tuple(opaque([*uv[0], *uv[1], *uv[-1]])), tex)
+        tex_arg = (light_uv(light), tex)
     else:
         tex_arg = None
 

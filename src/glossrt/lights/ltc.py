@@ -204,35 +204,52 @@ class PrefilteredTexture:
         return out
 
 
-def _texture_lookup(light, tex: PrefilteredTexture, local: list, coeffs) -> mi.Color3f:
-    """Heitz et al. 2016, sec. 5.3: the prefiltered texture where the transformed polygon's
-    vector form factor points, at a width from its distance and size (module docstring)."""
-    verts = local if coeffs is None else _apply_minv(coeffs, local)
-    f = form_factor_vector(verts)
-    # plane of the transformed polygon
+def _tex_plane(verts: list) -> tuple:
+    """The whole light's plane data for :func:`_tex_eval`: ``(v0, e1, e2, unit normal, area)``
+    of the (possibly ``M^-1``-transformed) local polygon, as in :func:`_texture_lookup`."""
     e1, e2 = verts[1] - verts[0], verts[len(verts) - 1] - verts[0]
-    nrm = dr.cross(e1, e2)
-    area = mi.Float(0.0)  # of the (convex, planar) polygon, by its fan of triangles
+    area = dr.zeros(mi.Float, dr.width(verts[0]))
     for j in range(1, len(verts) - 1):
-        area += 0.5 * dr.norm(dr.cross(verts[j] - verts[0], verts[j + 1] - verts[0]))
-    nrm = dr.normalize(nrm)
+        area = area + 0.5 * dr.norm(dr.cross(verts[j] - verts[0], verts[j + 1] - verts[0]))
+    return (mi.Vector3f(verts[0]), mi.Vector3f(e1), mi.Vector3f(e2),
+            dr.normalize(dr.cross(e1, e2)), area)
+
+
+def _tex_eval(uv: tuple, tex: PrefilteredTexture, plane: tuple, f: mi.Vector3f) -> mi.Color3f:
+    """Heitz et al. 2016, sec. 5.3, for a vector form factor ``f`` (of the whole polygon,
+    or of a piece of it: BSPVT shadows) and the whole light's ``plane`` (:func:`_tex_plane`): the
+    prefiltered texture where ``f`` meets the plane, uv by the light's affine map (``uv``:
+    opaque ``(u0, v0, u1, v1, ul, vl)`` at its vertices 0, 1 and last), filter width
+    ``|t| / sqrt(area)``."""
+    v0, e1, e2, nrm, area = plane
     dirn = dr.normalize(f)
     denom = dr.dot(dirn, nrm)
-    t = dr.dot(verts[0], nrm) / dr.select(dr.abs(denom) > 1e-8, denom, 1e-8)
-    hit = dirn * t
-    # affine coordinates of the hit in the polygon's first edges, mapped to the light's uv
+    t = dr.dot(v0, nrm) / dr.select(dr.abs(denom) > 1e-8, denom, 1e-8)
+    r = dirn * t - v0
     g11, g12, g22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-    r = hit - verts[0]
     b1, b2 = dr.dot(r, e1), dr.dot(r, e2)
     det = dr.maximum(g11 * g22 - g12 * g12, 1e-30)
     s = (g22 * b1 - g12 * b2) / det
     q = (g11 * b2 - g12 * b1) / det
-    uv = np.asarray(light.uv, np.float64)
-    uv0, uv1, uvl = (uv[0], uv[1], uv[-1])
-    u = uv0[0] + s * (uv1[0] - uv0[0]) + q * (uvl[0] - uv0[0])
-    v = uv0[1] + s * (uv1[1] - uv0[1]) + q * (uvl[1] - uv0[1])
+    u0, w0, u1, w1, ul, wl = uv
+    u = u0 + s * (u1 - u0) + q * (ul - u0)
+    v = w0 + s * (w1 - w0) + q * (wl - w0)
     sigma_uv = dr.abs(t) / dr.sqrt(dr.maximum(area, 1e-30))
     return tex.eval(mi.Point2f(u, v), sigma_uv)
+
+
+def light_uv(light) -> tuple:
+    """A textured light's uv at its vertices 0, 1 and last, as opaque scalars for
+    :func:`_tex_eval`."""
+    uv = np.asarray(light.uv, np.float64)
+    return tuple(opaque([uv[0][0], uv[0][1], uv[1][0], uv[1][1], uv[-1][0], uv[-1][1]]))
+
+
+def _texture_lookup(light, tex: PrefilteredTexture, local: list, coeffs) -> mi.Color3f:
+    """Heitz et al. 2016, sec. 5.3: the prefiltered texture where the transformed polygon's
+    vector form factor points, at a width from its distance and size (module docstring)."""
+    verts = local if coeffs is None else _apply_minv(coeffs, local)
+    return _tex_eval(light_uv(light), tex, _tex_plane(verts), form_factor_vector(verts))
 
 
 def _finite(c: mi.Color3f) -> mi.Color3f:
