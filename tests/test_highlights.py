@@ -92,7 +92,7 @@ def test_estimator_matches_quadrature():
 
 def test_error_falls_with_samples_and_regular_beats_random():
     f, lights, maps, f0 = setup_plane(0.15, 24, 18)
-    ref = reference(f, lights, maps, f0, samples=2048, batch=32)
+    ref = reference(f, lights, maps, f0, samples=1024, batch=32)
 
     def err(**kw):
         img = HighlightRenderer(cull=False, **kw)(f, lights, maps, f0)

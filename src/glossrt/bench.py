@@ -233,8 +233,8 @@ def ltc(ctx: BenchContext) -> dict:
 @benchmark("bspvt")
 def bspvt(ctx: BenchContext) -> dict:
     """Okuno & Iwasaki's BSPVT shadows on ``polygon-light`` (4965 vertices): precomputation
-    (visibility rays and trees, 32x32 cube maps: the 64x64 default is in
-    ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a frame at the
+    (visibility rays and trees, 32x32 cube maps, 8x8 below 320 pixels wide: the 64x64
+    default is in ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a frame at the
     bench size per vertex (the paper's mode) and per pixel, with unshadowed LTC and the ratio
     estimator at 1 spp beside them, interleaved in one run. GPU targets (issue 6): build 50x
     faster than the paper's 2.7 min for 17K vertices; per-vertex shading of 512x512 at
@@ -248,8 +248,9 @@ def bspvt(ctx: BenchContext) -> dict:
 
     w, h = ctx.size
     setup = scenes.load("polygon-light", size=(w, h))
+    res = 32 if w >= 320 else 8  # tiny bench sizes (tests) build tiny maps
     t0 = time.perf_counter()
-    trees = build_scene_trees(setup.scene, 32, progress=False)
+    trees = build_scene_trees(setup.scene, res, progress=False)
     build_s = time.perf_counter() - t0
     gb = render.Renderer(setup).render(0)
     lights = polygon_lights(setup, 0)
@@ -266,7 +267,7 @@ def bspvt(ctx: BenchContext) -> dict:
     med = {k: statistics.median(v) for k, v in res.items()}
     st = trees.stats()
     return {"scene": "polygon-light", "size": [w, h], "vertices": st["vertices"],
-            "resolution": 32, "build_s": build_s,
+            "resolution": res, "build_s": build_s,
             "build_ms_per_vertex": 1000 * build_s / st["vertices"],
             "visibility_s": trees.info["visibility_seconds"],
             "leaves_per_vertex": st["leaves_per_vertex"], "data_mb": st["data_mb"],
