@@ -234,9 +234,9 @@ def ltc(ctx: BenchContext) -> dict:
 def bspvt(ctx: BenchContext) -> dict:
     """Okuno & Iwasaki's BSPVT shadows on ``polygon-light`` (4965 vertices): precomputation
     (visibility rays and trees, 32x32 cube maps, 8x8 below 320 pixels wide: the 64x64
-    default is in ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a frame at the
-    bench size per vertex (the paper's mode) and per pixel, with unshadowed LTC and the ratio
-    estimator at 1 spp beside them, interleaved in one run. GPU targets (issue 6): build 50x
+    default is in ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a
+    frame at the bench size per vertex (the paper's mode) and per pixel, with unshadowed LTC
+    and the ratio estimator at 1 spp beside them, interleaved in one run. GPU targets (issue 6): build 50x
     faster than the paper's 2.7 min for 17K vertices; per-vertex shading of 512x512 at
     200 fps or more."""
     from . import render, scenes

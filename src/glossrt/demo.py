@@ -252,7 +252,8 @@ def section_bspvt(ctx: DemoContext, report: Report) -> None:
         "Polygon-light shadows: BSPVT",
         "Okuno & Iwasaki's binary space partitioning visibility trees on polygon-light "
         f"({size[0]}x{size[1]}, {res}x{res} cube maps per vertex, the moving light at frames "
-        f"{', '.join(str(r['frame']) for r in out.rows[:2])}): mean absolute error against a shadowed Monte Carlo reference ({spp} spp) of "
+        f"{', '.join(str(r['frame']) for r in out.rows[:2])}): mean absolute error against a "
+        f"shadowed Monte Carlo reference ({spp} spp) of "
         "BSPVT per vertex (the paper's mode) and per pixel, the ratio estimator (Heitz, Hill & "
         "McGuire 2018, 4 spp, cross-bilateral denoised) and LTC without shadows, with the time "
         "per frame; the error split as in the paper's fig. 8 into LTC's (unshadowed LTC vs "
