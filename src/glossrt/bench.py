@@ -236,9 +236,9 @@ def bspvt(ctx: BenchContext) -> dict:
     (visibility rays and trees, 32x32 cube maps, 8x8 below 320 pixels wide: the 64x64
     default is in ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a
     frame at the bench size per vertex (the paper's mode) and per pixel, with unshadowed LTC
-    and the ratio estimator at 1 spp beside them, interleaved in one run. GPU targets (issue 6): build 50x
-    faster than the paper's 2.7 min for 17K vertices; per-vertex shading of 512x512 at
-    200 fps or more."""
+    and the ratio estimator at 1 spp beside them, interleaved in one run. GPU targets
+    (issue 6): build 50x faster than the paper's 2.7 min for 17K vertices; per-vertex shading
+    of 512x512 at 200 fps or more."""
     from . import render, scenes
     from .lights.ltc import shade_frame
     from .lights.ratio import render_ratio
