@@ -155,3 +155,32 @@ def test_cli_highlight(tmp_path):
         assert main(["light", "light-shapes", "--method", "highlight", *extra, "--size",
                      "32x18", "--out", str(out)]) == 0
         assert (out / "frame_0000.exr").exists()
+
+
+def test_frozen_path_matches_the_traced_one():
+    """``frozen=True`` (one dr.freeze'd kernel, per-pixel roughness) gives the traced
+    estimator's result (hash samples, no culling) on every frame of a moving camera, and
+    records once per distribution."""
+    from glossrt import render, scenes
+    from glossrt.lights import highlights as H
+    from glossrt.lights.scene import polygon_lights
+    from glossrt.lights.shading import f0_image
+
+    setup = scenes.load("light-shapes", size=(40, 24), frames=3, orbit=20.0)
+    r = render.Renderer(setup)
+    for dist in ("ellipsoidal", "ggx"):
+        traced = H.HighlightRenderer(4, dist, "hash", cull=False)
+        frozen = H.HighlightRenderer(4, dist, "hash", cull=False, frozen=True)
+        before = H._fast_frozen.n_recordings
+        for i in range(3):
+            gb = r.render(i)
+            lights = polygon_lights(setup, i)
+            f0 = f0_image(setup, gb)
+            maps = traced.maps(setup, i, lights)
+            a = traced(gb, lights, maps, f0, i)
+            b = frozen(gb, lights, maps, f0, i)
+            assert a.max() > 0.05
+            np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5)
+        assert H._fast_frozen.n_recordings - before <= 1
+    with pytest.raises(GlossrtError, match="frozen"):
+        H.HighlightRenderer(sampling="texture", frozen=True)

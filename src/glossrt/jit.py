@@ -63,3 +63,13 @@ def owned_float(values):
         dr.opaque(mi.Float, 0.0)
     dr.eval(out)
     return out
+
+
+def owned(t, values):
+    """:func:`owned_float` for any flat Dr.Jit type ``t`` (``mi.UInt32``, ``mi.Float``, ...):
+    NumPy data copied by a kernel into memory Dr.Jit allocated, evaluated."""
+    import numpy as np
+
+    out = t(np.ascontiguousarray(values).ravel()) + dr.opaque(t, 0)
+    dr.eval(out)
+    return out

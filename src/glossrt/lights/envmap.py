@@ -70,7 +70,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque, owned_float  # noqa: E402
+from ..jit import opaque, owned, owned_float  # noqa: E402
 from .bspvt import cube_coords  # noqa: E402
 from .shading import light_vertices  # noqa: E402
 
@@ -387,8 +387,9 @@ class LightCubeMap:
 
 
 def _tables(res: list[int], offsets: np.ndarray):
-    return (mi.Float(np.asarray(res, np.float32)), mi.UInt32(np.asarray(res, np.uint32)),
-            mi.UInt32(np.asarray(offsets, np.uint32)))
+    return (owned(mi.Float, np.asarray(res, np.float32)),
+            owned(mi.UInt32, np.asarray(res, np.uint32)),
+            owned(mi.UInt32, np.asarray(offsets, np.uint32)))
 
 
 def _render_faces(lights: list, probe: np.ndarray, r: int, ss: int) -> np.ndarray:
@@ -616,8 +617,8 @@ class CubeMapSet:
         flat = (np.concatenate([m.flat for m in self.maps.values()]) if ids
                 else np.zeros(3 * self.texel_count, np.float32))
         self.data = owned_float(flat)
-        self._base = mi.UInt32(base)
-        self._has = mi.UInt32(has)
+        self._base = owned(mi.UInt32, base)  # frozen-function inputs: see jit.owned_float
+        self._has = owned(mi.UInt32, has)
         self._n_ids = n_ids
         offsets = maps[ids[0]].level_offsets if ids else np.zeros(1, np.int64)
         self._tables = _tables(self.resolutions, offsets)

@@ -96,7 +96,8 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     n, v = sp.n, sp.wo
     total = dr.zeros(mi.Color3f, dr.width(n))
     if distribution == "ellipsoidal":
-        ratio = float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
+        ratio = (float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
+                 if isinstance(alpha, float) else _ratio_dr(alpha))
         if sampling == "regular":
             hs = el.regular_normals(n, ratio)
         elif sampling == "texture":
@@ -120,7 +121,7 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
 
     frame = mi.Frame3f(n)
     vl = frame.to_local(v)
-    a = max(alpha, ALPHA_MIN)
+    a = max(alpha, ALPHA_MIN) if isinstance(alpha, float) else dr.maximum(alpha, ALPHA_MIN)
     for k in range(samples):
         from ..brdf.ellipsoidal import hash_uniforms
 
@@ -142,6 +143,44 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     return total
 
 
+def _ratio_dr(alpha: mi.Float) -> mi.Float:
+    """Per lane :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha` (its closed form
+    ``R = sqrt(1 + alpha^2) / alpha - 1``, alpha clamped to ``(0, ALPHA_MAX]``, so R >= 1)."""
+    from ..brdf.ellipsoidal import ALPHA_MAX
+
+    a = dr.clip(alpha, 1e-6, ALPHA_MAX)
+    return dr.maximum(dr.sqrt(1.0 + a * a) / a - 1.0, 1.0)
+
+
+def _fast_kernel(ch: dict, cam: list, data, base, has, tables, n_ids: int, n_levels: int,
+                 frame_index, samples: int, distribution: str, level0: int) -> mi.TensorXf:
+    """The frozen path's body (:class:`HighlightRenderer` with ``frozen=True``): every pixel
+    at once, per-lane roughness (ratio by its closed form), hash samples, no culling."""
+    from .envmap import _lookup_dr
+
+    h, w = ch["position"].shape[:2]
+    p = mi.Point3f(*split(ch["position"]))
+    wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
+    sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
+    ids = mi.UInt32(split(ch["mesh_id"])[0])
+    inside = ids < n_ids
+    idx = dr.select(inside, ids, 0)
+    active = sp.hit & inside & (dr.gather(mi.UInt32, has, idx, inside) > 0)
+    b = dr.gather(mi.UInt32, base, idx, active)
+
+    def env(d, lod):
+        return _lookup_dr(data, b, active, tables, n_levels, d, lod)
+
+    pix = dr.arange(mi.UInt32, h * w)
+    col = _estimate(sp, env, pix % w, pix // w, pix, sp.alpha, samples, distribution, "hash",
+                    frame_index, None, level0)
+    col = dr.select(sp.hit, col, 0.0)
+    return merge([col[0], col[1], col[2]], h, w)
+
+
+_fast_frozen = dr.freeze(_fast_kernel, warn_after=16)
+
+
 def _sample_vndf(vl, a, u1, u2):
     from ..brdf.ggx import sample_vndf
 
@@ -156,7 +195,8 @@ def spread_angle(alpha: float, distribution: str, q: float = 0.99) -> float:
     from ..brdf import ellipsoidal as el
 
     if distribution == "ellipsoidal":
-        ratio = float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
+        ratio = (float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
+                 if isinstance(alpha, float) else _ratio_dr(alpha))
         return float(el.ellipsoidal_sample(0.5 + 0.5 * q, ratio))
     return float(np.arctan(max(alpha, ALPHA_MIN) * np.sqrt(q / (1.0 - q))))
 
@@ -167,11 +207,14 @@ class HighlightRenderer:
     ``"ellipsoidal"`` | ``"ggx"``, ``sampling`` ``"texture"`` (normal texture with embedded
     random numbers) | ``"hash"`` (per-pixel hash generator) | ``"regular"`` (13 points, the
     ellipsoidal distribution only), ``cull`` the bounding-sphere test, ``resolution`` of the
-    light cube maps (the paper: 256)."""
+    light cube maps (the paper: 256). ``frozen=True``: every pixel in one ``dr.freeze``d
+    kernel (recorded once, replayed for later frames: the GPU path; per-pixel roughness,
+    hash samples, no culling), same estimator as the traced path up to float rounding of the
+    per-pixel ratio."""
 
     def __init__(self, samples: int = 4, distribution: str = "ellipsoidal",
                  sampling: str = "texture", cull: bool = True, resolution: int = 128,
-                 supersample: int = 2, texture_size: int = 64) -> None:
+                 supersample: int = 2, texture_size: int = 64, frozen: bool = False) -> None:
         if distribution not in DISTRIBUTIONS:
             raise GlossrtError(f"unknown distribution {distribution!r}; choose one of "
                                f"{DISTRIBUTIONS}")
@@ -184,6 +227,11 @@ class HighlightRenderer:
         self.samples, self.distribution, self.sampling = int(samples), distribution, sampling
         self.cull, self.resolution, self.supersample = bool(cull), resolution, supersample
         self.texture_size = texture_size
+        if frozen and (sampling != "hash" or cull):
+            raise GlossrtError("frozen=True is the real-time path: per-pixel hash samples "
+                               "(sampling='hash', or distribution='ggx') and no culling "
+                               "(cull=False)")
+        self.frozen = bool(frozen)
         self._textures: dict = {}
         self.last_stats: dict = {}
 
@@ -217,6 +265,21 @@ class HighlightRenderer:
 
         check_frame(frame, NEEDS)
         h, w = frame.height, frame.width
+        if self.frozen and offset == 0 and fis_samples is None:
+            from ..jit import no_gc
+
+            if frame.camera is None:
+                raise GlossrtError(f"{frame.where}: highlights need the camera")
+            ch = {k: frame[k] for k in NEEDS}
+            ch["f0"] = f0_tensor(frame, f0)
+            with no_gc():
+                out = _fast_frozen(ch, opaque(frame.camera.position), maps.data, maps._base,
+                                   maps._has, maps._tables, maps._n_ids, maps.n_levels,
+                                   dr.opaque(mi.UInt32, int(frame_index)), self.samples,
+                                   self.distribution, int(maps.resolutions[0]))
+            self.last_stats = {"pixels": int(np.count_nonzero(
+                frame.numpy("mesh_id") > 0)), "shaded": None}
+            return np.array(out, dtype=np.float32).reshape(h, w, 3)
         sp = ShadingPoints.of(frame, f0)
         alpha = frame.numpy("roughness")[..., 0].ravel()
         hit = np.array(sp.hit)
