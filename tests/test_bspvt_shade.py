@@ -32,6 +32,7 @@ backend.ensure()
 import mitsuba as mi  # noqa: E402
 
 from glossrt.errors import GlossrtError  # noqa: E402
+from glossrt.jit import owned  # noqa: E402
 from glossrt.lights import bspvt_shade as bs  # noqa: E402
 from glossrt.lights.ltc import (  # noqa: E402
     PrefilteredTexture,
@@ -236,7 +237,7 @@ class Queries:
         self.coeffs, self.norm, self.fres = _table().lookup_np(self.alpha, cos_o)
 
     def dr(self):
-        return (bs._owned(mi.UInt32, self.tree), vec(self.p, mi.Point3f), vec(self.n),
+        return (owned(mi.UInt32, self.tree), vec(self.p, mi.Point3f), vec(self.n),
                 vec(self.wo), vec(self.coeffs, mi.Vector4f))
 
     @staticmethod
@@ -507,7 +508,7 @@ def test_shade_pixels_blends_the_three_trees():
 
     def single(vertex):
         sp = bs._points(p, n, wo, alpha, albedo, f0, npx)
-        d, s = bs.shade_points(tr, lights, sp, [bs._owned(mi.UInt32, np.full(npx, vertex))])
+        d, s = bs.shade_points(tr, lights, sp, [owned(mi.UInt32, np.full(npx, vertex))])
         return bs._np_color(d), bs._np_color(s)
 
     same = np.tile([0, 1, 2], (npx, 1))

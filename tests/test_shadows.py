@@ -41,11 +41,9 @@ T = mi.ScalarTransform4f
 
 
 def _setup(spec_or_dict, size, name="test"):
-    spec = spec_or_dict
-    d = spec.scene_dict if hasattr(spec, "scene_dict") else spec
-    return scenes.SceneSetup(name, mi.load_dict(d), size=size,
-                             object_paths=getattr(spec, "object_paths", None),
-                             max_depth=getattr(spec, "max_depth", None))
+    spec = spec_or_dict if isinstance(spec_or_dict, scenes.SceneSpec) else \
+        scenes.SceneSpec(spec_or_dict)
+    return scenes.from_spec(name, spec, size=size)
 
 
 def coarse_polygon_light(size=(48, 36), alpha=0.25):

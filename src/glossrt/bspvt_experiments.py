@@ -26,17 +26,13 @@ DENSITIES = {"coarse": (4, 24, 8), "default": (8, 48, 16), "fine": (12, 72, 24)}
 METHODS = ("bspvt-vertex", "bspvt-pixel", "ratio", "ltc (no shadows)")
 
 
-def _setup(alpha: float, size, density=DENSITIES["default"], frames: int = 1):
-    import mitsuba as mi
-
+def _setup(alpha: float, size, density=DENSITIES["default"]):
     from . import scenes
     from .scenes.library import polygon_light_scene
 
     spec = polygon_light_scene(alpha, teapot_n=density[0], floor_n=density[1],
                                sphere_n=density[2])
-    return scenes.SceneSetup(f"polygon-light-a{alpha:g}", mi.load_dict(spec.scene_dict),
-                             size=size, object_paths=spec.object_paths,
-                             max_depth=spec.max_depth)
+    return scenes.from_spec(f"polygon-light-a{alpha:g}", spec, size=size)
 
 
 def _timed(fn):
@@ -118,7 +114,7 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
     res = ShadowResults(tuple(size), ref_spp, resolution)
     trees = None
     for a in alphas:
-        setup = _setup(a, size, frames=max(frames) + 1)
+        setup = _setup(a, size)
         if trees is None:
             say(f"building trees (R = {resolution}) ...")
             trees = build_scene_trees(setup.scene, resolution, epsilon, progress=False)

@@ -159,6 +159,16 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+def _finish_experiment(out, stem: str, md: str, figure: str, data: dict | None = None) -> int:
+    """Write an experiment's ``STEM.md`` (and ``STEM.json`` with ``data``), print it."""
+    (out / f"{stem}.md").write_text(md + "\n")
+    if data is not None:
+        (out / f"{stem}.json").write_text(json.dumps(data, indent=2, default=float))
+    print(md)
+    print(f"wrote {out / (stem + '.md')} and {out / figure}")
+    return 0
+
+
 def _experiment_ltc(out, size, spp: int, polygons: int, published: str | None) -> int:
     """Heitz et al. 2016 measurements (RESULTS.md): polygon_integral against the quadrature,
     LTC images against Monte Carlo per alpha and textured (montage with error maps), and the
@@ -185,11 +195,7 @@ def _experiment_ltc(out, size, spp: int, polygons: int, published: str | None) -
     res = le.images(size=size, ref_spp=spp, textured=True, progress=print)
     res.montage(out / "ltc_images.png")
     parts.append(f"## LTC vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp)\n\n{res.markdown()}")
-    md = "\n\n".join(parts)
-    (out / "ltc.md").write_text(md + "\n")
-    print(md)
-    print(f"wrote {out / 'ltc.md'} and {out / 'ltc_images.png'}")
-    return 0
+    return _finish_experiment(out, "ltc", "\n\n".join(parts), "ltc_images.png")
 
 
 def _experiment_bspvt(out, size, spp: int, resolution: int) -> int:
@@ -203,12 +209,8 @@ def _experiment_bspvt(out, size, spp: int, resolution: int) -> int:
     md = (f"## shadows vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp, R = {resolution})\n\n"
           f"mean absolute error (time per frame)\n\n{res.markdown()}\n\n"
           f"## Table 1\n\n{be.table1_markdown(rows, resolution)}")
-    (out / "bspvt.md").write_text(md + "\n")
-    (out / "bspvt.json").write_text(json.dumps({"rows": res.rows, "table1": rows}, indent=2,
-                                               default=float))
-    print(md)
-    print(f"wrote {out / 'bspvt.md'} and {out / 'bspvt_images.png'}")
-    return 0
+    return _finish_experiment(out, "bspvt", md, "bspvt_images.png",
+                              {"rows": res.rows, "table1": rows})
 
 
 def _experiment_highlights(out, size, spp: int) -> int:
@@ -221,12 +223,8 @@ def _experiment_highlights(out, size, spp: int) -> int:
     md = (f"## RMSE against the same model's reference ({size[0]}x{size[1]}, {spp} samples)"
           f"\n\n{conv.markdown()}\n\n## Table 1 (ratios to plain shading)\n\n"
           f"{he.timing_markdown(t)}")
-    (out / "highlights.md").write_text(md + "\n")
-    (out / "highlights.json").write_text(json.dumps({"rows": conv.rows, "timing": t},
-                                                    indent=2, default=float))
-    print(md)
-    print(f"wrote {out / 'highlights.md'} and {out / 'highlights.png'}")
-    return 0
+    return _finish_experiment(out, "highlights", md, "highlights.png",
+                              {"rows": conv.rows, "timing": t})
 
 
 def _experiment_lobes(out, size, spp: int) -> int:
@@ -252,11 +250,7 @@ def _experiment_lobes(out, size, spp: int) -> int:
     print("spatio-temporal upsampling ...", flush=True)
     st = ue.spatio_temporal(size=size, ref_spp=spp)
     parts.append(f"## spatio-temporal upsampling (glossy-cornell)\n\n{st.markdown()}")
-    md = "\n\n".join(parts)
-    (out / "lobes.md").write_text(md + "\n")
-    print(md)
-    print(f"wrote {out / 'lobes.md'} and {out / 'fig6.png'}")
-    return 0
+    return _finish_experiment(out, "lobes", "\n\n".join(parts), "fig6.png")
 
 
 def cmd_light(args) -> int:

@@ -55,21 +55,24 @@ def owned_float(values):
     """A NumPy array as an evaluated ``mi.Float`` in memory Dr.Jit allocated itself (a kernel
     writes the copy). Arrays built straight from NumPy can keep the NumPy buffer, whose
     alignment varies between calls, and then ``dr.freeze`` re-records now and then (seen as
-    a nondeterministic second recording): inputs of frozen functions go through this."""
+    a nondeterministic second recording) and the LLVM backend misses its kernel cache:
+    inputs of frozen functions and long-lived tables go through this."""
     import mitsuba as mi
-    import numpy as np
 
-    out = mi.Float(np.ascontiguousarray(values, dtype=np.float32).ravel()) + \
-        dr.opaque(mi.Float, 0.0)
-    dr.eval(out)
-    return out
+    return owned(mi.Float, values)
 
 
 def owned(t, values):
-    """:func:`owned_float` for any flat Dr.Jit type ``t`` (``mi.UInt32``, ``mi.Float``, ...):
-    NumPy data copied by a kernel into memory Dr.Jit allocated, evaluated."""
+    """:func:`owned_float` for a flat Dr.Jit type ``t`` (``mi.Float``, ``mi.Int32``,
+    ``mi.UInt32``): the data converted to ``t``'s dtype, copied by a kernel into memory
+    Dr.Jit allocated, evaluated (empty input: an empty array)."""
+    import mitsuba as mi
     import numpy as np
 
-    out = t(np.ascontiguousarray(values).ravel()) + dr.opaque(t, 0)
+    dt = {mi.Float: np.float32, mi.Int32: np.int32, mi.UInt32: np.uint32}[t]
+    a = np.ascontiguousarray(values, dtype=dt).ravel()
+    if a.size == 0:
+        return t()
+    out = t(a) + dr.opaque(t, 0)
     dr.eval(out)
     return out

@@ -135,9 +135,9 @@ def load_published_table(path: str | Path):
 def _cell_l1(table, norm: np.ndarray, cells: list[tuple[int, int]]) -> np.ndarray:
     """The fit error L1 (:func:`glossrt.lights.ltc_fit.lobe_errors`) of ``table``'s matrices
     at glossrt's nodes ``cells`` (lobe norms from glossrt's table, the same for both)."""
-    from .lights.ltc_fit import _Objective, minv_matrix, node_config
+    from .lights.ltc_fit import _Objective, grid_axes, minv_matrix, node_config
 
-    alpha, cos_o = node_config(*_grid(table))
+    alpha, cos_o = node_config(*grid_axes(table.n_r))
     coeffs = table.host["minv"].astype(np.float64)
     out = np.full(len(cells), np.nan)
     for k, (j, i) in enumerate(cells):
@@ -147,12 +147,6 @@ def _cell_l1(table, norm: np.ndarray, cells: list[tuple[int, int]]) -> np.ndarra
         except np.linalg.LinAlgError:
             pass
     return out
-
-
-def _grid(table):
-    from .lights.ltc_fit import grid_axes
-
-    return grid_axes(table.n_r)
 
 
 def compare_with_published(path: str | Path, polygons: int = 2000, cell_step: int = 1,

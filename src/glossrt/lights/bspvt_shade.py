@@ -75,7 +75,7 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque  # noqa: E402
+from ..jit import opaque, owned  # noqa: E402
 from .ltc import (  # noqa: E402
     PrefilteredTexture,
     _apply_minv,
@@ -85,6 +85,7 @@ from .ltc import (  # noqa: E402
     _tex_plane,
     light_uv,
     ltc_frame,
+    prefiltered,
 )
 from .polygon import _edge_sum, cosine_integral  # noqa: E402
 from .shading import ShadingPoints, light_vertices  # noqa: E402
@@ -104,21 +105,9 @@ _KI = 8
 # trees on the device
 
 
-def _owned(t: type, a: np.ndarray):
-    """NumPy data as an evaluated Dr.Jit array in memory Dr.Jit allocated (a kernel writes
-    the copy). Arrays built straight from NumPy may keep NumPy's buffer, whose alignment
-    varies between calls, and the LLVM backend then compiles new kernels (cache misses)."""
-    dt = {mi.Float: np.float32, mi.Int32: np.int32, mi.UInt32: np.uint32}[t]
-    if np.size(a) == 0:
-        return t()
-    out = t(np.ascontiguousarray(a, dt)) + dr.opaque(t, 0)
-    dr.eval(out)
-    return out
-
-
 def _dr_vec(t: type, a: np.ndarray):
     """(N, C) NumPy rows as a Dr.Jit C-vector type ``t`` in Dr.Jit-owned memory."""
-    return t(*(_owned(mi.Float, a[:, c]) for c in range(a.shape[1])))
+    return t(*(owned(mi.Float, a[:, c]) for c in range(a.shape[1])))
 
 
 def _int_array(name: str, x: Any, ndim: int, width: int | None) -> np.ndarray:
@@ -221,8 +210,8 @@ class DeviceTrees:
         if np.any(nl_ < 1e-12):
             raise GlossrtError("BSPVT normals must be non-zero")
         nrm = nrm / nl_[:, None]
-        return cls(_owned(mi.Float, lines.ravel()), _owned(mi.Int32, children.ravel()),
-                   _owned(mi.Float, leaf), _owned(mi.Int32, roots.ravel()),
+        return cls(owned(mi.Float, lines.ravel()), owned(mi.Int32, children.ravel()),
+                   owned(mi.Float, leaf), owned(mi.Int32, roots.ravel()),
                    _dr_vec(mi.Point3f, pos), _dr_vec(mi.Vector3f, nrm), nv, depth)
 
 
@@ -510,7 +499,7 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     Cost: a few kernels and host synchronisations per tree level (compaction), plus Python
     tracing of ~1-2 ms per level whatever the number of lanes. On the CPU, pass inputs in
     Dr.Jit-owned memory (not arrays built straight from NumPy, whose buffer alignment varies
-    between calls and makes the LLVM backend compile new kernels; see ``_owned``)."""
+    between calls and makes the LLVM backend compile new kernels; see ``glossrt.jit.owned``)."""
     dev = DeviceTrees.of(trees)
     lv = _light_array(light_vertices)
     tree_index = mi.UInt32(tree_index)
@@ -668,13 +657,7 @@ def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
     for light in lights:
         lv = light_vertices(light)
         le = mi.Color3f(*opaque(np.asarray(light.radiance, float).ravel()[:3]))
-        tex_img = getattr(light, "texture", None)
-        tex = None
-        if tex_img is not None:
-            key = id(tex_img)
-            if key not in cache:
-                cache[key] = PrefilteredTexture(tex_img)
-            tex = (light, cache[key])
+        tex = prefiltered(light, cache)
         i_d, i_s = visible_integrals(dev, *args, lv, bool(getattr(light, "two_sided", False)),
                                      texture=tex)
         if m == 1:
@@ -735,9 +718,9 @@ def _points(p, n, wo, alpha, albedo, f0, rows: int, hit=None) -> ShadingPoints:
         ok &= h
     return ShadingPoints(_dr_vec(mi.Point3f, p), _dr_vec(mi.Vector3f, n),
                          _dr_vec(mi.Vector3f, wo),
-                         _owned(mi.Float, np.maximum(alpha, ALPHA_MIN)),
+                         owned(mi.Float, np.maximum(alpha, ALPHA_MIN)),
                          _dr_vec(mi.Color3f, albedo), _dr_vec(mi.Color3f, f0),
-                         _owned(mi.UInt32, ok) != 0)
+                         owned(mi.UInt32, ok) != 0)
 
 
 def _np_color(c: mi.Color3f) -> np.ndarray:
@@ -780,7 +763,7 @@ def shade_pixels(trees: Any, lights: Sequence, p: Any, n: Any, wo: Any, alpha: A
     if rows == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
     sp = _points(p, n, wo, alpha, albedo, f0, rows, hit)
-    idx = [_owned(mi.UInt32, tri[:, j]) for j in range(3)]
-    wts = [_owned(mi.Float, bary[:, j]) for j in range(3)]
+    idx = [owned(mi.UInt32, tri[:, j]) for j in range(3)]
+    wts = [owned(mi.Float, bary[:, j]) for j in range(3)]
     d, s = shade_points(dev, lights, sp, idx, wts, textures=textures)
     return _np_color(d), _np_color(s)

@@ -35,11 +35,11 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick  # noqa: E402
+from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick, sample_vndf  # noqa: E402
 from ..denoise.common import check_frame, merge, split  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..jit import opaque  # noqa: E402
-from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices, smith_lambda  # noqa: E402,F401
+from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices, smith_lambda  # noqa: E402
 
 
 def shade_plain(frame, lights: list, f0: np.ndarray | None = None) -> np.ndarray:
@@ -123,10 +123,8 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     vl = frame.to_local(v)
     a = max(alpha, ALPHA_MIN) if isinstance(alpha, float) else dr.maximum(alpha, ALPHA_MIN)
     for k in range(samples):
-        from ..brdf.ellipsoidal import hash_uniforms
-
-        u1, u2 = hash_uniforms(pix_idx, offset + k, frame_index)
-        hx, hy, hz = _sample_vndf(vl, a, u1, u2)
+        u1, u2 = el.hash_uniforms(pix_idx, offset + k, frame_index)
+        hx, hy, hz = sample_vndf(vl.x, vl.y, vl.z, a, u1, u2)
         hl = mi.Vector3f(hx, hy, hz)
         ll = 2.0 * dr.dot(vl, hl) * hl - vl
         ok = (ll.z > 0) & (vl.z > 0)
@@ -179,12 +177,6 @@ def _fast_kernel(ch: dict, cam: list, data, base, has, tables, n_ids: int, n_lev
 
 
 _fast_frozen = dr.freeze(_fast_kernel, warn_after=16)
-
-
-def _sample_vndf(vl, a, u1, u2):
-    from ..brdf.ggx import sample_vndf
-
-    return sample_vndf(vl.x, vl.y, vl.z, a, u1, u2)
 
 
 def spread_angle(alpha: float, distribution: str, q: float = 0.99) -> float:
@@ -289,8 +281,7 @@ class HighlightRenderer:
         stats = {"pixels": int(hit.sum()), "shaded": 0}
         for a, idx_np in _groups(alpha, hit):
             idx = mi.UInt32(idx_np.astype(np.uint32))
-            sub = ShadingPoints(*(dr.gather(type(x), x, idx) for x in (
-                sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)))
+            sub = sp.take(idx)
             if self.cull and len(lights):
                 spread = lobe_spread(spread_angle(a, self.distribution))
                 keep = cull_mask(sub.p, el.reflect(sub.wo, sub.n), centres, radii, spread)
@@ -298,8 +289,7 @@ class HighlightRenderer:
                 if dr.width(sel) == 0:
                     continue
                 idx = dr.gather(mi.UInt32, idx, sel)
-                sub = ShadingPoints(*(dr.gather(type(x), x, sel) for x in (
-                    sub.p, sub.n, sub.wo, sub.alpha, sub.albedo, sub.f0, sub.hit)))
+                sub = sub.take(sel)
             stats["shaded"] += dr.width(idx)
             ids = dr.gather(mi.UInt32, mesh_id, idx)
 

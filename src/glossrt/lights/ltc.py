@@ -252,6 +252,17 @@ def _texture_lookup(light, tex: PrefilteredTexture, local: list, coeffs) -> mi.C
     return _tex_eval(light_uv(light), tex, _tex_plane(verts), form_factor_vector(verts))
 
 
+def prefiltered(light, cache: dict) -> tuple | None:
+    """``(light, PrefilteredTexture)`` for a textured light (built once per texture and kept
+    in ``cache``, keyed by the texture's id), ``None`` for an untextured one."""
+    img = getattr(light, "texture", None)
+    if img is None:
+        return None
+    if id(img) not in cache:
+        cache[id(img)] = PrefilteredTexture(img)
+    return light, cache[id(img)]
+
+
 def _finite(c: mi.Color3f) -> mi.Color3f:
     return dr.select(dr.isfinite(c[0] + c[1] + c[2]), c, 0.0)
 
@@ -323,16 +334,7 @@ def shade_tensor(frame, lights: list, f0: np.ndarray | None = None,
             return _shade_frozen(ch, opaque(frame.camera.position), dev, two, _table())
     sp = ShadingPoints.of(frame, f0)
     cache = {} if textures is None else textures
-    texs = []
-    for lt in lights:
-        img = getattr(lt, "texture", None)
-        if img is None:
-            texs.append(None)
-            continue
-        if id(img) not in cache:
-            cache[id(img)] = PrefilteredTexture(img)
-        texs.append((lt, cache[id(img)]))
-    total = _shade(sp, _table(), dev, two, texs)
+    total = _shade(sp, _table(), dev, two, [prefiltered(lt, cache) for lt in lights])
     return merge([total[0], total[1], total[2]], frame.height, frame.width)
 
 

@@ -193,6 +193,24 @@ def _pdf_brdf(sp: ShadingPoints, frame: mi.Frame3f, wo_l: mi.Vector3f, q: mi.Flo
     return dr.select(cos_i > 0, q * cos_i / dr.pi + (1.0 - q) * p_s, 0.0)
 
 
+def sample_batches(sp_full: ShadingPoints, spp: int, seed: int):
+    """``spp`` samples per pixel of ``sp_full`` in batches of at most :data:`MAX_LANES` lanes:
+    yields ``(shading points, rng, k)`` with ``k`` consecutive lanes per pixel (sum them with
+    ``dr.block_sum(x, k)``) and the random stream of sample ``s`` of pixel ``p`` seeded by
+    ``s n_pix + p`` and ``seed``, so results do not depend on the batching."""
+    n_pix = dr.width(sp_full.p)
+    kk = max(1, min(spp, MAX_LANES // max(n_pix, 1)))
+    done = 0
+    while done < spp:
+        k = min(kk, spp - done)
+        lane = dr.arange(mi.UInt32, n_pix * k)
+        pix = lane // k
+        rng = mi.PCG32(n_pix * k, mi.UInt64(lane % k + done) * n_pix + mi.UInt64(pix),
+                       dr.opaque(mi.UInt64, seed))
+        yield sp_full.take(pix), rng, k
+        done += k
+
+
 def render_mc(frame, lights: list, spp: int, f0: np.ndarray | None = None, scene=None,
               seed: int = 0, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Monte Carlo direct lighting (H, W, 3) of ``frame``'s G-buffer by the polygon
@@ -203,21 +221,10 @@ def render_mc(frame, lights: list, spp: int, f0: np.ndarray | None = None, scene
     if spp < 1:
         raise GlossrtError(f"spp must be >= 1, got {spp}")
     h, w = frame.height, frame.width
-    n_pix = w * h
-    sp_full = ShadingPoints.of(frame, f0)
     lts = [_Light(lt) for lt in lights]
-    kk = max(1, min(spp, MAX_LANES // max(n_pix, 1)))
-    acc = dr.zeros(mi.Color3f, n_pix)
+    acc = dr.zeros(mi.Color3f, w * h)
     done = 0
-    while done < spp:
-        k = min(kk, spp - done)
-        lane = dr.arange(mi.UInt32, n_pix * k)
-        pix = lane // k
-        sp = ShadingPoints(*(dr.gather(type(v), v, pix) for v in (
-            sp_full.p, sp_full.n, sp_full.wo, sp_full.alpha, sp_full.albedo, sp_full.f0,
-            sp_full.hit)))
-        rng = mi.PCG32(n_pix * k, mi.UInt64(lane % k + done) * n_pix + mi.UInt64(pix),
-                       dr.opaque(mi.UInt64, seed))
+    for sp, rng, k in sample_batches(ShadingPoints.of(frame, f0), spp, seed):
         est = estimate(sp, lts, rng, scene)
         est = dr.select(dr.isfinite(est), est, 0.0)
         acc += mi.Color3f(*(dr.block_sum(est[c], k) for c in range(3)))

@@ -77,7 +77,7 @@ from ..brdf.ggx import sample_vndf  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..frame import RADIANCE, Frame  # noqa: E402
 from .ltc import shade_frame  # noqa: E402
-from .mc import MAX_LANES, _Light, _pdf_brdf, _spec_weight, _visible  # noqa: E402
+from .mc import _Light, _pdf_brdf, _spec_weight, _visible, sample_batches  # noqa: E402
 from .shading import ShadingPoints, brdf_cos  # noqa: E402
 
 __all__ = ["COMPONENTS", "RatioImages", "estimate_pair", "filtered_ratio", "render_ratio",
@@ -194,21 +194,10 @@ def stochastic_pair(frame, lights: list, scene=None, spp: int = 1,
     f0 = _check_f0(frame, f0)
     scene = _scene_of(scene)
     h, w = frame.height, frame.width
-    n_pix = w * h
-    sp_full = ShadingPoints.of(frame, f0)
     lts = [_Light(lt) for lt in lights]
-    kk = max(1, min(spp, MAX_LANES // max(n_pix, 1)))
-    acc = [dr.zeros(mi.Color3f, n_pix) for _ in range(4)]
+    acc = [dr.zeros(mi.Color3f, w * h) for _ in range(4)]
     done = 0
-    while done < spp:
-        k = min(kk, spp - done)
-        lane = dr.arange(mi.UInt32, n_pix * k)
-        pix = lane // k
-        sp = ShadingPoints(*(dr.gather(type(v), v, pix) for v in (
-            sp_full.p, sp_full.n, sp_full.wo, sp_full.alpha, sp_full.albedo, sp_full.f0,
-            sp_full.hit)))
-        rng = mi.PCG32(n_pix * k, mi.UInt64(lane % k + done) * n_pix + mi.UInt64(pix),
-                       dr.opaque(mi.UInt64, seed))
+    for sp, rng, k in sample_batches(ShadingPoints.of(frame, f0), spp, seed):
         pair = estimate_pair(sp, lts, rng, scene)
         ests = []
         for s, u in ((pair.s_d, pair.u_d), (pair.s_s, pair.u_s)):

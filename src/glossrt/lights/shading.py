@@ -85,6 +85,10 @@ class ShadingPoints:
         return ShadingPoints.of_channels({k: frame[k] for k in NEEDS}, wo,
                                          f0_tensor(frame, f0))
 
+    def take(self, index: mi.UInt32) -> ShadingPoints:
+        """The lanes ``index`` (a gather of every field): subsets and repeated pixels."""
+        return _take(self, index)
+
     @staticmethod
     def of_channels(ch: dict, wo: mi.Vector3f, f0: mi.TensorXf) -> ShadingPoints:
         """From G-buffer tensors ``ch`` (the :data:`NEEDS` channels), view directions and an
@@ -95,6 +99,11 @@ class ShadingPoints:
         alpha = dr.maximum(split(ch["roughness"])[0], ALPHA_MIN)
         return ShadingPoints(p, n, wo, alpha, mi.Color3f(*split(ch["albedo_diffuse"])),
                              mi.Color3f(*split(f0)), hit & (dr.dot(n, wo) > 0))
+
+
+def _take(sp: ShadingPoints, index: mi.UInt32) -> ShadingPoints:
+    return ShadingPoints(*(dr.gather(type(v), v, index) for v in (
+        sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)))
 
 
 def f0_tensor(frame, f0: np.ndarray | None) -> mi.TensorXf:

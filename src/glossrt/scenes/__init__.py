@@ -342,19 +342,7 @@ def load(
     from . import library  # noqa: F401  (registers the built-in scenes)
 
     if name_or_path in BUILTIN:
-        spec = BUILTIN[name_or_path][0]()
-        try:
-            scene = mi.load_dict(spec.scene_dict)
-        except Exception as e:  # pragma: no cover - a bug in a built-in scene
-            raise SceneError(f"built-in scene {name_or_path!r} failed to load: {e}") from e
-        setup = SceneSetup(
-            name_or_path,
-            scene,
-            size=size,
-            camera_path=spec.camera_path,
-            object_paths=spec.object_paths,
-            max_depth=spec.max_depth,
-        )
+        setup = from_spec(name_or_path, BUILTIN[name_or_path][0](), size=size)
     else:
         path = name_or_path
         if not path.endswith(".xml") and not os.path.exists(path):
@@ -380,6 +368,18 @@ def load(
     if orbit:
         setup.set_orbit(float(orbit), frames)
     return setup
+
+
+def from_spec(name: str, spec: SceneSpec, *, size: tuple[int, int] | None = None) -> SceneSetup:
+    """A :class:`SceneSetup` from a scene description (what a built-in's function returns,
+    e.g. :func:`glossrt.scenes.library.polygon_light_scene` with non-default options), with
+    its animation and path depth."""
+    try:
+        scene = mi.load_dict(spec.scene_dict)
+    except Exception as e:  # pragma: no cover - a bug in a built-in scene
+        raise SceneError(f"scene {name!r} failed to load: {e}") from e
+    return SceneSetup(name, scene, size=size, camera_path=spec.camera_path,
+                      object_paths=spec.object_paths, max_depth=spec.max_depth)
 
 
 def parse_size(text: str) -> tuple[int, int]:
