@@ -230,6 +230,17 @@ def ltc(ctx: BenchContext) -> dict:
             "gpu_target_s_at_1920x1080": 0.5e-3}
 
 
+@benchmark("specaa")
+def specaa(ctx: BenchContext) -> dict:
+    """Deferred direct shading of ``normal-mapped``'s G-buffer (its point, directional and
+    polygon lights; frozen kernels) with each specular antialiasing method, interleaved in
+    one run; ratios to unfiltered shading. Target (issue 8): filtering adds at most 10%."""
+    from . import specaa_experiments as se
+
+    t = se.timing(size=ctx.size, repeats=max(3, ctx.repeats))
+    return {"scene": se.SCENE, **t, "target_ratio": 1.10}
+
+
 @benchmark("bspvt")
 def bspvt(ctx: BenchContext) -> dict:
     """Okuno & Iwasaki's BSPVT shadows on ``polygon-light`` (4965 vertices): precomputation

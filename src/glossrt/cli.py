@@ -55,11 +55,18 @@ def cmd_render(args) -> int:
     if args.spp < 1:
         raise GlossrtError(f"--spp must be >= 1, got {args.spp}")
     size = scenes.parse_size(args.size) if args.size else None
+    reference = args.reference or args.mitsuba or args.spp > 1
+    if args.specaa is not None:
+        from .specaa import parse_method
+
+        parse_method(args.specaa)  # a bad name fails before any rendering
+        if reference:
+            raise GlossrtError("--specaa shades 1 spp frames; its supersampled reference is "
+                               "`glossrt experiment --which specaa`")
     setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
     r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
     out = _writable_dir(args.out)
     todo = list(range(args.start, args.start + args.frames, args.every))
-    reference = args.reference or args.mitsuba or args.spp > 1
     spp = args.spp if (args.spp > 1 or not reference) else 256
     bad = 0
     desc = f"{'reference ' if reference else ''}{setup.name} {setup.size[0]}x{setup.size[1]}"
@@ -79,6 +86,8 @@ def cmd_render(args) -> int:
                 f = r.render_reference(i, spp, progress=lambda d, n, k=k: p.update(k * spp + d))
             else:
                 f = r.render(i)
+                if args.specaa is not None:
+                    _add_specaa(setup, f, i, args.specaa)
                 p.update(k + 1)
             bad += int(f.meta.get("nonfinite_samples", 0))
             f.save(out / frame_filename(i))
@@ -87,6 +96,24 @@ def cmd_render(args) -> int:
         print(f"warning: {bad} non-finite radiance value(s) were replaced by 0 "
               "(counts per frame in the EXR header, meta.nonfinite_samples)", file=sys.stderr)
     return 0
+
+
+def _add_specaa(setup, frame, index: int, method: str) -> None:
+    """Channel ``specaa``: the frame's direct light from the scene's point, directional and
+    (untextured) polygon lights with specular antialiasing ``method`` (glossrt.specaa)."""
+    from . import specaa
+    from .lights.analytic import analytic_lights
+    from .lights.scene import polygon_lights
+    from .lights.shading import f0_image
+
+    polys = [lt for lt in polygon_lights(setup, index) if lt.texture is None]
+    lights = analytic_lights(setup, index)
+    if not lights and not polys:
+        raise GlossrtError(f"--specaa: scene {setup.name!r} has no point, directional or "
+                           "untextured polygon lights to shade")
+    img = specaa.shade_tensor(frame, lights, polys, method, f0_image(setup, frame), frozen=True)
+    frame["specaa"] = img
+    frame.meta["specaa"] = method
 
 
 def cmd_denoise(args) -> int:
@@ -139,6 +166,8 @@ def cmd_experiment(args) -> int:
         return _experiment_bspvt(out, size, args.spp, args.resolution)
     if args.which == "highlights":
         return _experiment_highlights(out, size, args.spp)
+    if args.which == "specaa":
+        return _experiment_specaa(out, size, args.spp, args.frames)
     res = experiments.denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
                                 ref_spp=args.spp, static_frames=args.static_frames)
     md = res.markdown()
@@ -225,6 +254,29 @@ def _experiment_highlights(out, size, spp: int) -> int:
           f"{he.timing_markdown(t)}")
     return _finish_experiment(out, "highlights", md, "highlights.png",
                               {"rows": conv.rows, "timing": t})
+
+
+def _experiment_specaa(out, size, spp: int, frames: int) -> int:
+    """Tokuyoshi / Kaplanyan et al. measurements (RESULTS.md): every specular antialiasing
+    method against the supersampled reference on normal-mapped (RMSE, FLIP, flat-region bias,
+    temporal error under the slow camera motion) and the shading-time ratios."""
+    from . import specaa_experiments as se
+
+    tspp = int(round(max(16, min(64, spp // 4)) ** 0.5)) ** 2
+    res = se.evaluate(size=size, spp=spp, frames=min(frames, 16), temporal_spp=tspp,
+                      progress=lambda m: print(m, flush=True))
+    res.montage(out / "specaa.png")
+    w, h = size
+    res.montage(out / "specaa_crop.png", crop=(slice(h // 3, h), slice(0, w // 2)))
+    t = se.timing(size=size)
+    rows = ["| method | ms / frame | x none |", "|---|---|---|"]
+    rows += [f"| {k} | {1000 * v:.2f} | {t['ratio_to_none'][k]:.3f} |"
+             for k, v in t["seconds"].items()]
+    md = (f"## against the supersampled reference ({w}x{h}, {spp} spp; temporal: "
+          f"{res.frames} frames, reference {tspp} spp)\n\n{res.markdown()}\n\n"
+          f"## shading time (frozen, {w}x{h})\n\n" + "\n".join(rows))
+    return _finish_experiment(out, "specaa", md, "specaa.png",
+                              {**res.as_dict(), "timing": t})
 
 
 def _experiment_lobes(out, size, spp: int) -> int:
@@ -445,6 +497,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reference", action="store_true",
                    help="converged frames (pixel-centre primary hits), --spp defaults to 256")
+    p.add_argument("--specaa", default=None, metavar="METHOD",
+                   help="also write channel 'specaa': direct light from the scene's point, "
+                        "directional and polygon lights with specular antialiasing METHOD "
+                        "(none, halfvector, halfvector-bbox, avgnormal, avgnormal-max, "
+                        "avgnormal-eig, projected)")
     p.add_argument("--mitsuba", action="store_true",
                    help="anti-aliased reference from Mitsuba's own path integrator "
                         "(color only)")
@@ -518,7 +575,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ref-every", type=int, default=10)
     p.add_argument("--spp", type=int, default=1024)
     p.add_argument("--static-frames", type=int, default=60)
-    p.add_argument("--which", choices=["denoisers", "lobes", "ltc", "bspvt", "highlights"],
+    p.add_argument("--which", choices=["denoisers", "lobes", "ltc", "bspvt", "highlights",
+                                       "specaa"],
                    default="denoisers",
                    help="denoisers: Schied 2017 comparison; lobes: Tokuyoshi 2015 figs. 4-6 "
                         "and upsampling (uses --size and --spp); ltc: Heitz et al. 2016 "

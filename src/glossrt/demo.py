@@ -300,6 +300,36 @@ def section_highlights(ctx: DemoContext, report: Report) -> None:
     ctx.timings["highlights section"] = time.perf_counter() - t0
 
 
+@register_section("specaa", order=80)
+def section_specaa(ctx: DemoContext, report: Report) -> None:
+    from . import specaa_experiments as se
+
+    t0 = time.perf_counter()
+    scale = min(1.0, ctx.frames[0].width / 160)
+    size = (max(32, int(160 * scale) // 2 * 2), max(18, int(90 * scale) // 2 * 2))
+    spp = 256 if scale >= 1 else 16
+    frames = 6 if scale >= 1 else 2
+    res = se.evaluate(size=size, spp=spp, frames=frames, temporal_spp=min(spp, 64))
+    s = report.section(
+        "Specular antialiasing",
+        "NDF filtering (Kaplanyan et al. 2016, as evaluated by Tokuyoshi) on normal-mapped: "
+        "the half-vector filter and its bounding box, the deferred average-normal filter and "
+        "its isotropic reductions, and projected-space filtering (Tokuyoshi & Kaplanyan 2021), "
+        f"against the unfiltered shading averaged over {spp} sub-pixel positions; temporal "
+        f"error over {frames} frames of the slow camera motion (the reference's own change "
+        "is the floor). See docs/RESULTS.md.")
+    _markdown_table(s, res.markdown(), "error against the supersampled reference")
+    keys = list(res.images)
+    for i in range(0, len(keys), 4):
+        s.images_row([(k, res.images[k]) for k in keys[i:i + 4]], name=f"specaa_{i}")
+    ref = res.images[keys[-1]]
+    for k in ("none", "avgnormal-eig"):
+        if k in res.images:
+            s.error_map(f"specaa_err_{k}", res.images[k], ref,
+                        caption=f"relative error of {k} against the supersampled reference")
+    ctx.timings["specaa section"] = time.perf_counter() - t0
+
+
 @register_section("timings", order=90)
 def section_timings(ctx: DemoContext, report: Report) -> None:
     info = backend.info()

@@ -151,12 +151,13 @@ def _ratio_dr(alpha: mi.Float) -> mi.Float:
 
 
 def _fast_kernel(ch: dict, cam: list, data, base, has, tables, n_ids: int, n_levels: int,
-                 frame_index, samples: int, distribution: str, level0: int) -> mi.TensorXf:
+                 frame_index, samples: int, distribution: str, level0: int,
+                 size: tuple[int, int]) -> mi.TensorXf:
     """The frozen path's body (:class:`HighlightRenderer` with ``frozen=True``): every pixel
     at once, per-lane roughness (ratio by its closed form), hash samples, no culling."""
     from .envmap import _lookup_dr
 
-    h, w = ch["position"].shape[:2]
+    h, w = size  # explicit: part of dr.freeze's key (see ltc._shade_kernel)
     p = mi.Point3f(*split(ch["position"]))
     wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
     sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
@@ -268,7 +269,8 @@ class HighlightRenderer:
                 out = _fast_frozen(ch, opaque(frame.camera.position), maps.data, maps._base,
                                    maps._has, maps._tables, maps._n_ids, maps.n_levels,
                                    dr.opaque(mi.UInt32, int(frame_index)), self.samples,
-                                   self.distribution, int(maps.resolutions[0]))
+                                   self.distribution, int(maps.resolutions[0]),
+                                   (frame.height, frame.width))
             self.last_stats = {"pixels": int(np.count_nonzero(
                 frame.numpy("mesh_id") > 0)), "shaded": None}
             return np.array(out, dtype=np.float32).reshape(h, w, 3)

@@ -301,8 +301,11 @@ def _device_lights(lights: list) -> tuple[list, tuple[bool, ...]]:
     return dev, tuple(bool(getattr(lt, "two_sided", False)) for lt in lights)
 
 
-def _shade_kernel(ch: dict, cam: list, lights: list, two_sided: tuple, table) -> mi.TensorXf:
-    h, w = ch["position"].shape[:2]
+def _shade_kernel(ch: dict, cam: list, lights: list, two_sided: tuple, table,
+                  size: tuple[int, int]) -> mi.TensorXf:
+    # ``size`` (H, W) is an explicit argument, part of dr.freeze's key: a recording made for
+    # another image size can otherwise be replayed with that size baked in
+    h, w = size
     p = mi.Point3f(*split(ch["position"]))
     wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
     sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
@@ -331,7 +334,8 @@ def shade_tensor(frame, lights: list, f0: np.ndarray | None = None,
         ch = {k: frame[k] for k in NEEDS}
         ch["f0"] = f0_t
         with no_gc():
-            return _shade_frozen(ch, opaque(frame.camera.position), dev, two, _table())
+            return _shade_frozen(ch, opaque(frame.camera.position), dev, two, _table(),
+                                 (frame.height, frame.width))
     sp = ShadingPoints.of(frame, f0)
     cache = {} if textures is None else textures
     total = _shade(sp, _table(), dev, two, [prefiltered(lt, cache) for lt in lights])

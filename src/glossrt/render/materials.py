@@ -1,4 +1,8 @@
-"""What the G-buffer needs to know about a Mitsuba BSDF: lobes, roughness and specular F0."""
+"""What the G-buffer needs to know about a Mitsuba BSDF: lobes, roughness, specular F0 and
+whether a ``normalmap`` wrapper perturbs its shading normal.
+
+Wrappers are looked through by their parameter prefixes (``mi.traverse`` keys): ``twosided``
+(``brdf_0.``), ``normalmap`` (``nested_bsdf.``) and their combinations."""
 
 from __future__ import annotations
 
@@ -17,6 +21,24 @@ class Material:
     alpha: float  # constant GGX alpha (1 for purely diffuse, 0 for smooth)
     alpha_attr: bool  # evaluate bsdf.eval_attribute_1("alpha") per hit instead
     f0: tuple[float, float, float]
+    #: :data:`NORMAL_MAP_NONE`, :data:`NORMAL_MAP` (the BSDF is a ``normalmap``) or
+    #: :data:`NORMAL_MAP_TWOSIDED` (a ``twosided`` around one ``normalmap``)
+    normal_map: int = 0
+
+
+#: ``Material.normal_map``: no normal map (the shading normal is the shape's)
+NORMAL_MAP_NONE = 0
+#: a ``normalmap`` BSDF: shading normal ``sh_frame.to_world(normalize(2 tex - 1))``, its
+#: tangential part negated where ``wi`` lies below it (see
+#: :func:`glossrt.render.pathtracer.shading_normal`)
+NORMAL_MAP = 1
+#: ``twosided`` with one ``normalmap`` for both sides: seen from the back, Mitsuba evaluates
+#: it with ``wi``'s and the normal's local z mirrored
+NORMAL_MAP_TWOSIDED = 2
+
+#: parameter prefixes of the BSDF that carries the lobes, through supported wrappers
+_PREFIXES = ("", "brdf_0.", "nested_brdf_0.", "nested_bsdf.", "nested_bsdf.brdf_0.",
+             "brdf_0.nested_bsdf.")
 
 
 def _rgb(value) -> np.ndarray:
@@ -26,15 +48,34 @@ def _rgb(value) -> np.ndarray:
 
 def _param(params: mi.SceneParameters, *names: str):
     keys = set(params.keys())
-    for prefix in ("", "brdf_0.", "nested_brdf_0."):
+    for prefix in _PREFIXES:
         for n in names:
             if prefix + n in keys:
                 return params[prefix + n], prefix + n
     return None, None
 
 
+def _normal_map_kind(bsdf: mi.BSDF, keys: set[str]) -> int:
+    """:data:`NORMAL_MAP_NONE` / :data:`NORMAL_MAP` / :data:`NORMAL_MAP_TWOSIDED` for ``bsdf``."""
+    kind = bsdf.class_name()
+    if kind == "NormalMap":
+        return NORMAL_MAP
+    if kind == "TwoSidedBRDF" and any(k.startswith("brdf_0.normalmap.") for k in keys):
+        if any(k.startswith("brdf_1.") for k in keys):
+            warnings.warn(
+                "twosided BSDF with two different sides and a normal map: the G-buffer normal "
+                "ignores the normal map",
+                stacklevel=3,
+            )
+            return NORMAL_MAP_NONE
+        return NORMAL_MAP_TWOSIDED
+    return NORMAL_MAP_NONE
+
+
 def describe_bsdf(bsdf: mi.BSDF) -> Material:
-    """Lobes, roughness and Fresnel F0 (normal incidence) of a supported Mitsuba BSDF."""
+    """Lobes, roughness and Fresnel F0 (normal incidence) of a supported Mitsuba BSDF, looking
+    through ``twosided`` and ``normalmap`` wrappers (the nested BSDF's roughness and F0), and
+    whether a normal map perturbs its shading normal (``Material.normal_map``)."""
     flags = int(bsdf.flags())
     has_d = bool(flags & int(mi.BSDFFlags.Diffuse))
     has_s = bool(flags & (int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta)))
@@ -78,4 +119,5 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
         spec, _ = _param(params, "specular_reflectance.value")
         if spec is not None:
             f0 = f0 * _rgb(spec)
-    return Material(kind, has_d, has_s, alpha, alpha_attr, tuple(float(v) for v in f0))
+    return Material(kind, has_d, has_s, alpha, alpha_attr, tuple(float(v) for v in f0),
+                    _normal_map_kind(bsdf, set(params.keys())))

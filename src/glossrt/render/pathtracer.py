@@ -31,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..scenes import stable_emitters, stable_shapes
+from .materials import NORMAL_MAP_TWOSIDED
 
 #: Lobe masks: diffuse, and everything that is not diffuse (glossy + delta).
 DIFFUSE_MASK = int(mi.BSDFFlags.Diffuse)
@@ -281,7 +282,9 @@ class ShapeTable:
 
     mesh index (1-based position in ``scene.shapes()``), whether the BSDF has a diffuse /
     non-diffuse lobe, its specular F0 (RGB) and roughness: a constant, or the BSDF's
-    ``alpha`` attribute evaluated per hit when it is textured."""
+    ``alpha`` attribute evaluated per hit when it is textured; ``normal_map``: whether a
+    Mitsuba ``normalmap`` BSDF perturbs the shading normal
+    (:data:`glossrt.render.materials.NORMAL_MAP` and friends; 0: no)."""
 
     DRJIT_STRUCT = {
         "index": mi.UInt32,
@@ -290,6 +293,7 @@ class ShapeTable:
         "alpha_attr": mi.Bool,
         "alpha": mi.Float,
         "f0": mi.Color3f,
+        "normal_map": mi.UInt32,
     }
 
     def __init__(self, scene: mi.Scene):
@@ -300,6 +304,7 @@ class ShapeTable:
         n = max(ids, default=0) + 1
         index, has_d, has_s, attr, alpha = [0] * n, [False] * n, [False] * n, [False] * n, [0.0] * n
         f0 = [[0.0] * n for _ in range(3)]
+        normal_map = [0] * n
         self.materials = {}
         for i, (s, rid) in enumerate(zip(shapes, ids, strict=True)):
             m = describe_bsdf(s.bsdf())
@@ -307,6 +312,7 @@ class ShapeTable:
             index[rid] = i + 1
             has_d[rid], has_s[rid], attr[rid], alpha[rid] = (
                 m.has_diffuse, m.has_specular, m.alpha_attr, m.alpha)
+            normal_map[rid] = m.normal_map
             for c in range(3):
                 f0[c][rid] = m.f0[c]
         self.index = mi.UInt32(index)
@@ -315,6 +321,7 @@ class ShapeTable:
         self.alpha_attr = mi.Bool(attr)
         self.alpha = mi.Float(alpha)
         self.f0 = mi.Color3f(*f0)
+        self.normal_map = mi.UInt32(normal_map)
 
 
 def camera_axes(sensor: mi.Sensor) -> tuple[mi.Point3f, mi.Vector3f]:
@@ -323,9 +330,47 @@ def camera_axes(sensor: mi.Sensor) -> tuple[mi.Point3f, mi.Vector3f]:
     return to_world.translation(), dr.normalize(to_world @ mi.Vector3f(0, 0, 1))
 
 
+def shading_normal(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f,
+                   normal_map: mi.UInt32, active: mi.Bool) -> tuple[mi.Vector3f, mi.Bool]:
+    """World-space unit shading normal of the hit ``si`` (seen along ``ray``) that the
+    BSDF's reflection is centred on, turned to the camera's side of the surface, and whether
+    it is a normal-mapped one.
+
+    Without a normal map (``normal_map`` 0): ``si.sh_frame.n``, negated when it faces away
+    from the camera. With one (``normal_map`` :data:`~glossrt.render.materials.NORMAL_MAP`):
+    what Mitsuba 3.9's ``normalmap`` BSDF uses (its ``BSDF::sh_frame``, the ``sh_normal`` AOV):
+    ``n = 2 tex - 1`` with ``tex`` the normal map at the hit
+    (``bsdf.eval_attribute_3("normalmap")``), its tangential part negated when ``wi`` lies
+    below it (the plugin's default ``flip_invalid_normals``; a plugin built with that option
+    off is not recognised), normalised and taken to world space by ``si.sh_frame``; negated
+    like the unperturbed normal on the back side. For ``twosided`` around a normal map
+    (:data:`~glossrt.render.materials.NORMAL_MAP_TWOSIDED`) the back side is evaluated as
+    Mitsuba's ``twosided`` does: with ``wi`` and the normal's local z mirrored."""
+    n = mi.Vector3f(si.sh_frame.n)
+    back = dr.dot(n, -ray.d) < 0
+    mapped = active & (normal_map != 0)
+    mirror = back & (normal_map == NORMAL_MAP_TWOSIDED)
+    tex = mi.Vector3f(bsdf.eval_attribute_3("normalmap", si, mapped))
+    local = dr.fma(tex, 2.0, -1.0)
+    wi = mi.Vector3f(si.wi)
+    wi.z = dr.select(mirror, -wi.z, wi.z)
+    # normalmap's flip_invalid_normals: keep wi above the perturbed normal
+    flip = mi.Frame3f.cos_theta(wi) * dr.dot(wi, local) <= 0.0
+    local.x = dr.select(flip, -local.x, local.x)
+    local.y = dr.select(flip, -local.y, local.y)
+    local = dr.normalize(local)
+    local.z = dr.select(mirror, -local.z, local.z)
+    n = dr.select(mapped, si.sh_frame.to_world(local), n)
+    n = dr.select(back & ~mirror, -n, n)  # face the camera
+    return n, mapped
+
+
 def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor: mi.Sensor,
             shapes: ShapeTable, table) -> dict:
-    """Noise-free G-buffer values of the primary hit."""
+    """Noise-free G-buffer values of the primary hit. ``normal`` is :func:`shading_normal`
+    (normal-mapped where the BSDF is a ``normalmap``); on normal-mapped surfaces the specular
+    albedo is looked up at the cosine to that normal (0 should it face away from the camera;
+    the plugin's shadow-terminator factor is not included)."""
     valid = si.is_valid()
     rid = dr.reinterpret_array(mi.UInt32, si.shape)
     rid = dr.select(valid, rid, 0)
@@ -336,11 +381,14 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     alpha = dr.gather(mi.Float, shapes.alpha, rid, valid)
     f0 = dr.gather(mi.Color3f, shapes.f0, rid, valid)
     alpha = dr.select(attr, bsdf.eval_attribute_1("alpha", si, valid & attr), alpha)
-    n = mi.Vector3f(si.sh_frame.n)
-    n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)  # face the camera
+    normal_map = dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
+    n, mapped = shading_normal(si, bsdf, ray, normal_map, valid)
     cos_o = dr.abs(mi.Frame3f.cos_theta(si.wi))
+    cos_m = dr.dot(n, -ray.d)
+    cos_o = dr.select(mapped, dr.maximum(cos_m, 1e-4), cos_o)
     albedo_d = dr.select(valid & has_d, bsdf.eval_diffuse_reflectance(si, valid & has_d), 0.0)
     albedo_s = dr.select(valid & has_s, table.lookup(cos_o, alpha, f0), 0.0)
+    albedo_s = dr.select(mapped & (cos_m <= 0), 0.0, albedo_s)
     origin, forward = camera_axes(sensor)
     # camera-space z (not si.t: Mitsuba's rays start on the near-clip plane)
     depth = dr.select(valid, dr.dot(si.p - origin, forward), dr.inf)

@@ -31,8 +31,9 @@ import mitsuba as mi  # noqa: E402
 
 Matrix = np.ndarray
 #: Mitsuba plugins glossrt's renderer supports (BSDF and emitter types).
-SUPPORTED_BSDFS = {"diffuse", "conductor", "roughconductor", "plastic", "roughplastic", "twosided"}
-SUPPORTED_EMITTERS = {"area", "point", "constant", "envmap"}
+SUPPORTED_BSDFS = {"diffuse", "conductor", "roughconductor", "plastic", "roughplastic", "twosided",
+                   "normalmap"}
+SUPPORTED_EMITTERS = {"area", "point", "constant", "envmap", "directional"}
 SUPPORTED_SENSORS = {"perspective"}
 
 

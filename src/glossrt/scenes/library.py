@@ -474,3 +474,113 @@ def light_shapes() -> SceneSpec:
         lights_to @ T().translate([0.45, -0.42, 0.0]).scale([0.36, 0.26, 1.0]),
         _diffuse((0, 0, 0)), {"type": "area", "radiance": tex})
     return SceneSpec(scene, max_depth=3)
+
+
+# -- normal-mapped: specular aliasing of a glossy, normal-mapped floor and sphere ----------------
+
+#: GGX alpha of the ``normal-mapped`` floor and sphere (``roughconductor``, aluminium)
+NORMAL_MAPPED_ALPHA_FLOOR = 0.05
+NORMAL_MAPPED_ALPHA_SPHERE = 0.08
+#: the normal map's resolution and seed (:func:`glossrt.scenes.normalmap.procedural_normal_map`)
+NORMAL_MAPPED_MAP_SIZE = 1024
+NORMAL_MAPPED_MAP_SEED = 3
+#: metres per tile of the normal map on the floor (texel: 4 mm)
+NORMAL_MAPPED_TILE = 4.0
+#: the floor: normal-mapped for x >= NORMAL_MAPPED_SPLIT_X, flat (``floor_flat``) to its left
+NORMAL_MAPPED_FLOOR_X = (-8.0, 8.0)
+NORMAL_MAPPED_FLOOR_Z = (-30.0, 4.0)
+NORMAL_MAPPED_SPLIT_X = -0.4
+NORMAL_MAPPED_SPHERE = ((0.35, 0.5, -2.4), 0.5)  # centre, radius (resting on the floor)
+NORMAL_MAPPED_EYE = (0.0, 0.42, 3.2)
+NORMAL_MAPPED_TARGET = (0.15, -0.2, -1.6)
+
+
+def normal_mapped_path(frame: int) -> np.ndarray:
+    """Camera of ``normal-mapped`` at ``frame``: a slow dolly forward (3 mm per frame, level)
+    while turning 0.06 degrees per frame to the left about the vertical through the eye
+    (0.34 pixels per frame at 320 x 180): over 16 frames the view shifts by a few pixels."""
+    rest = look_at(NORMAL_MAPPED_EYE, NORMAL_MAPPED_TARGET, (0, 1, 0))
+    forward = rest[:3, 2] * np.array([1.0, 0.0, 1.0])
+    forward /= np.linalg.norm(forward)
+    turn = rotation_about(NORMAL_MAPPED_EYE, (0, 1, 0), 0.06 * frame)
+    return translation(0.003 * frame * forward) @ turn @ rest
+
+
+def _normal_mapped_bsdf(normal_map: np.ndarray, to_uv, alpha: float) -> dict:
+    """Mitsuba ``normalmap`` (bilinear, repeating, raw bitmap) over a GGX aluminium
+    ``roughconductor``."""
+    return {
+        "type": "normalmap",
+        "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(normal_map), "raw": True,
+                      "filter_type": "bilinear", "wrap_mode": "repeat", "to_uv": to_uv},
+        "bsdf": {"type": "roughconductor", "distribution": "ggx", "material": "Al",
+                 "alpha": alpha},
+    }
+
+
+@builtin(
+    "normal-mapped",
+    "glossy GGX aluminium floor and sphere with a high-frequency procedural normal map (bumps "
+    "and scratches) seen at grazing angles, lit by a point, a directional and a small area "
+    "light; slow camera motion; a flat floor strip (floor_flat) on the left (specular "
+    "aliasing, Tokuyoshi & Kaplanyan 2016, figs. 1-3)",
+)
+def normal_mapped() -> SceneSpec:
+    """Shape ids ``floor`` (normal-mapped, GGX alpha :data:`NORMAL_MAPPED_ALPHA_FLOOR`),
+    ``floor_flat`` (the same conductor without normal map, the left strip
+    x < :data:`NORMAL_MAPPED_SPLIT_X`), ``sphere`` (normal-mapped, alpha
+    :data:`NORMAL_MAPPED_ALPHA_SPHERE`) and ``light`` (a small quad light high on the left,
+    outside the view); emitters ``sun`` (directional) and ``lamp`` (point). The map
+    (:func:`~glossrt.scenes.normalmap.procedural_normal_map`, 1 mm texels on the floor and
+    the sphere; bumps of 5-35 mm) is partly resolved at the bottom of the image (pixels of
+    ~3 x 8 mm on the floor) and far below a pixel in the distance, where its highlights
+    sparkle; the camera is 0.42 m above the floor. The sphere's map has its
+    green channel mirrored: Mitsuba's sphere parametrisation is left-handed (shading frame
+    ``t`` runs along ``-dp/dv``), so the mirrored map is the normal field of a height field
+    there too."""
+    from .normalmap import procedural_normal_map
+
+    nmap = procedural_normal_map(NORMAL_MAPPED_MAP_SIZE, NORMAL_MAPPED_MAP_SEED)
+    nmap_sphere = nmap.copy()
+    nmap_sphere[..., 1] = 1.0 - nmap_sphere[..., 1]
+    (x0, x1), (z0, z1), xs = NORMAL_MAPPED_FLOOR_X, NORMAL_MAPPED_FLOOR_Z, NORMAL_MAPPED_SPLIT_X
+    centre, radius = NORMAL_MAPPED_SPHERE
+
+    def floor_rect(xa: float, xb: float) -> mi.ScalarTransform4f:
+        # rectangle [-1, 1]^2 (normal +z) -> floor x in [xa, xb], z in [z0, z1]; u along +x,
+        # v along -z
+        return (T().translate([(xa + xb) / 2, 0.0, (z0 + z1) / 2]).rotate([1, 0, 0], -90)
+                .scale([(xb - xa) / 2, (z1 - z0) / 2, 1.0]))
+
+    tiles_u, tiles_v = (x1 - xs) / NORMAL_MAPPED_TILE, (z1 - z0) / NORMAL_MAPPED_TILE
+    # a whole number of tiles around the equator (no seam), as close as that allows to the
+    # floor's texel size; half as many from pole to pole (square texels at the equator)
+    sphere_tiles = max(1, round(2.0 * math.pi * radius / NORMAL_MAPPED_TILE))
+    scene = {
+        "type": "scene",
+        "sensor": _sensor(list(NORMAL_MAPPED_EYE), list(NORMAL_MAPPED_TARGET), 50.0, 320, 180),
+        "floor": _rect(floor_rect(xs, x1), _normal_mapped_bsdf(
+            nmap, T().scale([tiles_u, tiles_v, 1.0]), NORMAL_MAPPED_ALPHA_FLOOR)),
+        "floor_flat": _rect(floor_rect(x0, xs), {
+            "type": "roughconductor", "distribution": "ggx", "material": "Al",
+            "alpha": NORMAL_MAPPED_ALPHA_FLOOR}),
+        "sphere": {"type": "sphere", "center": list(centre), "radius": radius,
+                   "bsdf": _normal_mapped_bsdf(
+                       nmap_sphere, T().scale([sphere_tiles, sphere_tiles / 2.0, 1.0]),
+                       NORMAL_MAPPED_ALPHA_SPHERE)},
+        # low sun ahead on the right (11 degrees up): sparkly glare on the right half
+        "sun": {"type": "directional", "direction": [-0.3, -0.2, 1.0],
+                "irradiance": {"type": "rgb", "value": [0.6, 0.57, 0.5]}},
+        # right, beyond the sphere: glints on the near floor and on the sphere's rim
+        "lamp": {"type": "point", "position": [2.2, 1.2, -5.0],
+                 "intensity": {"type": "rgb", "value": [6.0, 6.0, 6.6]}},
+        # small quad light high on the left, beyond the view: its glossy reflection on the
+        # flat strip, glints on the normal-mapped floor
+        "light": _rect(
+            T().look_at(origin=[-1.5, 2.4, -6.0], target=[0.0, 0.0, -1.0], up=[0, 1, 0])
+            .scale([0.35, 0.2, 1.0]),
+            _diffuse((0, 0, 0)),
+            {"type": "area", "radiance": {"type": "rgb", "value": [30.0, 28.0, 25.0]}},
+        ),
+    }
+    return SceneSpec(scene, camera_path=normal_mapped_path, max_depth=3)

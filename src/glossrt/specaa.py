@@ -1,0 +1,497 @@
+"""Specular antialiasing by NDF filtering (Kaplanyan, Hill, Patney, Lefohn 2016, as evaluated by
+Tokuyoshi), with the covariance-matrix GGX of :mod:`glossrt.brdf.covariance_ggx`.
+
+A glossy surface whose normals vary faster than the pixel grid (a normal map, a curved mirror)
+shows highlights that alias: one shading sample per pixel catches a narrow lobe or misses it,
+and under motion the pixels flicker. NDF filtering widens the roughness by the spread of the
+half vector over the pixel footprint, so the lobe one sample sees is the footprint's average.
+
+Methods (``method=`` everywhere; :data:`METHODS` lists the evaluated ones):
+
+* ``"none"``: the unfiltered roughness ``A = alpha^2 I``.
+* ``"halfvector"`` (Tokuyoshi sec. 1.1, eqs. 1-2): the slope-space half vector's screen-space
+  differences ``dh_u, dh_v`` (fine ``ddx/ddy`` emulated on 2x2 pixel quads), the footprint's
+  slope covariance ``Sigma = sigma^2 [dh_u; dh_v]^T [dh_u; dh_v]`` with ``sigma^2 = 0.25``
+  (a Gaussian pixel filter), and the filtered roughness matrix ``A = alpha^2 I + 2 Sigma``
+  (the Beckmann convolution, applied to GGX). Per light.
+* ``"halfvector-bbox"`` (sec. 1.2): the biased, over-filtering variant: the bounding box of the
+  parallelogram spanned by ``dh_u, dh_v`` gives axis-aligned (anisotropic) roughness,
+  ``A = alpha^2 I + 2 sigma^2 diag(w_x^2, w_y^2)``, ``w = |dh_u| + |dh_v|`` per axis.
+* ``"avgnormal"`` (sec. 2): the deferred approximation, from the G-buffer normals alone: the
+  3-tap quad average ``n_bar = normalize(n + n_x + n_y)`` (the pixel and its horizontal and
+  vertical quad partners, sec. 2.1.1's shortened ``SumNeighborPixels``) replaces the half
+  vector: the differences of the normals' slopes measured about ``n_bar`` give ``Sigma``.
+* ``"avgnormal-max"``, ``"avgnormal-eig"`` (sec. 3): isotropic approximations of the
+  average-normal filter: the larger side of the bounding box (Kaplanyan et al.'s proposal),
+  or the largest eigenvalue of ``2 Sigma`` (Tokuyoshi's addition), added to ``alpha^2``.
+* ``"projected"`` (beyond the paper: Tokuyoshi & Kaplanyan, "Improved Geometric Specular
+  Antialiasing", I3D 2019, and "Stable Geometric Specular Antialiasing with Projected-Space NDF
+  Filtering", JCGT 10(2), 2021, eq. 14): isotropic, from the screen-space differences of the
+  world-space normal (the projected-space derivative, which does not blow up at grazing
+  angles like slopes do): ``alpha'^2 = min(1, alpha^2 + min(sigma_p^2 (|dn_u|^2 + |dn_v|^2),
+  kappa))`` with ``sigma_p^2 = 1 / (2 pi)`` and the clamp ``kappa = 0.18``.
+
+Every ``SOURCE-FORM`` pair also works (``halfvector-eig``, ``avgnormal-bbox``...): sources
+``halfvector`` / ``avgnormal``, forms ``cov`` (default, anisotropic), ``bbox``, ``max``,
+``eig``. All methods clamp the filtered matrix's eigenvalues to at most 1 (GGX ``alpha <= 1``);
+``kappa`` (default: none for the paper's methods, 0.18 for ``projected``) also clamps the
+added kernel's eigenvalues.
+
+Conventions:
+
+* Quads: pixel ``(x, y)``'s horizontal partner is ``(x ^ 1, y)``, its vertical one ``(x, y ^ 1)``
+  (a GPU's 2x2 quads; fine derivatives are the difference across the pair, the same for both
+  pixels of a pair). A partner outside the image, on the background or on another mesh
+  (``mesh_id``) counts as the pixel itself (zero difference): a G-buffer has no helper lanes.
+* Slopes: each pixel shades in its own frame ``(t, b, n)`` (``mi.Frame3f(n)``); a partner's
+  half vector (or normal) is carried into it by the smallest rotation taking the partner's
+  normal to the pixel's (:func:`transport`), so differences do not depend on how tangent
+  frames are chosen and the normal map's variation is seen through it. ``A`` is in that frame.
+* Lights: point and directional lights (:mod:`glossrt.lights.analytic`) shade with the
+  covariance GGX (:func:`glossrt.brdf.covariance_ggx.brdf_dr`; height-correlated ``G2`` and
+  Schlick Fresnel, like :mod:`glossrt.lights.shading`); polygon lights with LTC
+  (:mod:`glossrt.lights.ltc`), whose table is isotropic: anisotropic methods pass
+  ``alpha = sqrt(lambda_max(A))`` (their ``-eig`` reduction), and the half vector of a polygon
+  light points to its centroid. No shadows (direct light only, as LTC).
+
+The reference (:func:`reference`) averages the unfiltered shading over ``spp`` stratified
+sub-pixel positions (a box pixel filter): what filtering tries to approximate with one sample.
+
+References:
+    A. Kaplanyan, S. Hill, A. Patney, A. Lefohn, "Filtering Distributions of Normals for
+    Shading Antialiasing", HPG 2016.
+    Y. Tokuyoshi, evaluation of Kaplanyan et al. 2016 (Japanese), secs. 1-3, appendix A.1.
+    Y. Tokuyoshi, A. Kaplanyan, "Stable Geometric Specular Antialiasing with Projected-Space
+    NDF Filtering", JCGT 10(2), 2021.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from . import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+from .brdf import covariance_ggx as cggx  # noqa: E402
+from .denoise.common import check_frame, merge, split  # noqa: E402
+from .errors import FrameError, GlossrtError  # noqa: E402
+from .jit import no_gc, opaque  # noqa: E402
+from .lights import analytic  # noqa: E402
+from .lights import ltc as _ltc  # noqa: E402
+from .lights.shading import NEEDS, ShadingPoints, f0_tensor  # noqa: E402
+
+#: the methods glossrt evaluates (any ``halfvector|avgnormal`` + ``-cov|-bbox|-max|-eig`` works)
+METHODS = ("none", "halfvector", "halfvector-bbox", "avgnormal", "avgnormal-max",
+           "avgnormal-eig", "projected")
+#: variance of the Gaussian pixel filter in pixels^2 (Tokuyoshi, eq. 1)
+SIGMA2 = 0.25
+#: pixel-filter variance and kernel clamp of projected-space filtering (Tokuyoshi & Kaplanyan
+#: 2021, eq. 14)
+SIGMA2_PROJECTED = 1.0 / (2.0 * math.pi)
+KAPPA_PROJECTED = 0.18
+_SOURCES = ("halfvector", "avgnormal")
+_FORMS = ("cov", "bbox", "max", "eig")
+_EPS = 1e-6
+
+
+@dataclass(frozen=True)
+class Method:
+    """A parsed method name: ``source`` (none, halfvector, avgnormal, projected), ``form``
+    (cov, bbox, max, eig) and the kernel clamp ``kappa`` (None: no clamp)."""
+
+    source: str
+    form: str = "cov"
+    kappa: float | None = None
+
+    @property
+    def isotropic(self) -> bool:
+        return self.source in ("none", "projected") or self.form in ("max", "eig")
+
+    @property
+    def per_light(self) -> bool:
+        return self.source == "halfvector"
+
+
+def parse_method(name: str, kappa: float | None = None) -> Method:
+    """The :class:`Method` of ``name`` (see the module docstring); a clear error otherwise.
+    ``kappa`` overrides the default clamp of the kernel (``projected``: 0.18, others none)."""
+    key = str(name).strip().lower()
+    if key in ("none", "projected"):
+        k = KAPPA_PROJECTED if key == "projected" and kappa is None else kappa
+        return Method(key, "cov", k)
+    source, _, form = key.partition("-")
+    form = form or "cov"
+    if source not in _SOURCES or form not in _FORMS:
+        raise GlossrtError(
+            f"unknown specular antialiasing method {name!r}: use none, projected, or "
+            f"SOURCE[-FORM] with SOURCE in {_SOURCES} and FORM in {_FORMS} "
+            f"(evaluated: {', '.join(METHODS)})")
+    if kappa is not None and not kappa > 0:
+        raise GlossrtError(f"kappa must be positive, got {kappa}")
+    return Method(source, form, kappa)
+
+
+# -- geometry ---------------------------------------------------------------------------------
+def transport(v: mi.Vector3f, n_from: mi.Vector3f, n_to: mi.Vector3f) -> mi.Vector3f:
+    """``v`` rotated by the smallest rotation taking unit ``n_from`` to unit ``n_to`` (about
+    their common perpendicular ``k = n_from x n_to``; Rodrigues' formula written without the
+    angle: ``R v = c v + k x v + k (k . v) / (1 + c)``, ``c = n_from . n_to``)."""
+    k = dr.cross(n_from, n_to)
+    c = dr.dot(n_from, n_to)
+    return c * v + dr.cross(k, v) + k * (dr.dot(k, v) / dr.maximum(1.0 + c, _EPS))
+
+
+def _slope(v: mi.Vector3f, t: mi.Vector3f, b: mi.Vector3f, n: mi.Vector3f) -> tuple:
+    """Slope-space coordinates ``(v.t / v.n, v.b / v.n)`` (``v.n`` kept positive)."""
+    z = dr.maximum(dr.dot(v, n), _EPS)
+    return dr.dot(v, t) / z, dr.dot(v, b) / z
+
+
+def quad_partners(width: int, height: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """Flat indices of every pixel's horizontal ``(x ^ 1, y)`` and vertical ``(x, y ^ 1)``
+    quad partner (the pixel itself where the partner would fall outside the image)."""
+    idx = dr.arange(mi.UInt32, width * height)
+    x, y = idx % width, idx // width
+    xp, yp = x ^ 1, y ^ 1
+    xp = dr.select(xp < width, xp, x)
+    yp = dr.select(yp < height, yp, y)
+    return y * width + xp, yp * width + x
+
+
+# -- eqs. 1-2 and the reductions --------------------------------------------------------------
+def kernel(du: tuple, dv: tuple, form: str, sigma2: float = SIGMA2) -> tuple:
+    """The roughness added by the footprint, ``(k11, k12, k22, det)`` (a symmetric 2x2 matrix
+    and its determinant, computed without cancellation), from the slope differences
+    ``du = (du_x, du_y)``, ``dv`` across the pixel's quad (Dr.Jit or NumPy values):
+
+    * ``cov``: ``2 Sigma``, ``Sigma = sigma^2 [du; dv]^T [du; dv]`` (Tokuyoshi, eqs. 1-2);
+    * ``bbox``: ``2 sigma^2 diag(w_x^2, w_y^2)``, ``w = |du| + |dv|`` per axis (sec. 1.2);
+    * ``max``: ``2 sigma^2 max(w_x^2, w_y^2) I`` (sec. 3, Kaplanyan et al.'s isotropic box);
+    * ``eig``: ``lambda_max(2 Sigma) I`` (sec. 3, Tokuyoshi's largest eigenvalue).
+    """
+    s2 = 2.0 * sigma2
+    if form in ("cov", "eig"):
+        # Tokuyoshi, eq. 1 (times 2, eq. 2): Sigma = sigma^2 (du du^T + dv dv^T)
+        k11 = s2 * (du[0] * du[0] + dv[0] * dv[0])
+        k12 = s2 * (du[0] * du[1] + dv[0] * dv[1])
+        k22 = s2 * (du[1] * du[1] + dv[1] * dv[1])
+        cross = du[0] * dv[1] - du[1] * dv[0]
+        det = s2 * s2 * cross * cross  # det(du du^T + dv dv^T) = (du x dv)^2
+        if form == "cov":
+            return k11, k12, k22, det
+        lam = _eigen(k11, k12, k22, det)[0]
+        return lam, 0.0 * lam, lam, lam * lam
+    wx = abs(du[0]) + abs(dv[0])
+    wy = abs(du[1]) + abs(dv[1])
+    if form == "bbox":  # Tokuyoshi, sec. 1.2
+        kx, ky = s2 * wx * wx, s2 * wy * wy
+        return kx, 0.0 * wx, ky, kx * ky
+    if form == "max":  # Tokuyoshi, sec. 3
+        m = _maximum(wx * wx, wy * wy) * s2
+        return m, 0.0 * m, m, m * m
+    raise GlossrtError(f"unknown kernel form {form!r} (use one of {_FORMS})")
+
+
+def _is_np(a) -> bool:
+    return isinstance(a, (np.ndarray, np.floating, float, int))
+
+
+def _maximum(a, b):
+    return np.maximum(a, b) if _is_np(a) else dr.maximum(a, b)
+
+
+def _minimum(a, b):
+    return np.minimum(a, b) if _is_np(a) else dr.minimum(a, b)
+
+
+def _sqrt(a):
+    return np.sqrt(a) if _is_np(a) else dr.sqrt(a)
+
+
+def _eigen(a11, a12, a22, det=None) -> tuple:
+    """Eigenvalues ``(lambda_max, lambda_min)`` of the symmetric 2x2 ``[[a11, a12], [a12,
+    a22]]``; with its determinant ``det`` given, ``lambda_min = det / lambda_max`` (exact
+    where ``m - r`` would cancel: huge, nearly singular kernels at grazing angles)."""
+    m = 0.5 * (a11 + a22)
+    r = _sqrt(_maximum(0.25 * (a11 - a22) * (a11 - a22) + a12 * a12, 0.0))
+    l1 = m + r
+    if det is None:
+        return l1, m - r
+    return l1, _maximum(det, 0.0) / _maximum(l1, 1e-30)
+
+
+def _with_eigenvalues(a11, a12, a22, l1, l2, c1, c2) -> tuple:
+    """The matrix with ``[[a11, a12], [a12, a22]]``'s eigenvectors (eigenvalues ``l1 >= l2``)
+    and eigenvalues ``c1, c2``: ``c2 I + (c1 - c2) P1``, ``P1 = (A - l2 I) / (l1 - l2)``."""
+    gap = l1 - l2
+    if _is_np(gap):
+        s = np.where(gap > 1e-12, (c1 - c2) / np.where(gap > 1e-12, gap, 1.0), 0.0)
+    else:
+        s = dr.select(gap > 1e-12, (c1 - c2) / dr.maximum(gap, 1e-12), 0.0)
+    return c2 + s * (a11 - l2), s * a12, c2 + s * (a22 - l2)
+
+
+def clamp_eigen(a11, a12, a22, hi, det=None) -> tuple:
+    """The symmetric 2x2 matrix with the same eigenvectors and eigenvalues ``min(lambda,
+    hi)`` (Dr.Jit or NumPy values, ``hi`` > 0; ``det``: see :func:`_eigen`)."""
+    l1, l2 = _eigen(a11, a12, a22, det)
+    return _with_eigenvalues(a11, a12, a22, l1, l2, _minimum(l1, hi), _minimum(l2, hi))
+
+
+def roughness_matrix(alpha2, k: tuple, kappa: float | None = None) -> tuple:
+    """``A = alpha^2 I + k`` (Tokuyoshi, eq. 2) with the kernel's eigenvalues clamped to
+    ``kappa`` (None: not clamped) and ``A``'s to 1 (GGX's range): ``(a11, a12, a22)``.
+    ``k``: ``(k11, k12, k22[, det])`` as :func:`kernel` returns it."""
+    k11, k12, k22 = k[:3]
+    l1, l2 = _eigen(k11, k12, k22, k[3] if len(k) > 3 else None)
+    if kappa is not None:
+        l1c, l2c = _minimum(l1, kappa), _minimum(l2, kappa)
+    else:
+        l1c, l2c = l1, l2
+    # Tokuyoshi, eq. 2, with A's eigenvalues alpha^2 + lambda(k) clamped to 1
+    c1, c2 = _minimum(alpha2 + l1c, 1.0), _minimum(alpha2 + l2c, 1.0)
+    return _with_eigenvalues(k11, k12, k22, l1, l2, c1, c2)
+
+
+def isotropic_alpha(a11, a12, a22):
+    """``sqrt(lambda_max(A))``: the isotropic GGX alpha an anisotropic ``A`` is shaded with
+    where only isotropic roughness is possible (LTC tables, a one-channel G-buffer)."""
+    return _minimum(_sqrt(_eigen(a11, a12, a22)[0]), 1.0)
+
+
+# -- per-pixel filtering ----------------------------------------------------------------------
+@dataclass
+class _Quad:
+    """A pixel's shading point, its tangent frame and its two quad partners' normals and
+    positions (``x``: horizontal, ``y``: vertical; a missing partner is the pixel itself)."""
+
+    sp: ShadingPoints
+    t: mi.Vector3f
+    b: mi.Vector3f
+    nx: mi.Vector3f
+    ny: mi.Vector3f
+    px: mi.Point3f
+    py: mi.Point3f
+    cam: mi.Point3f
+
+
+def _gather3(t: mi.TensorXf, index: mi.UInt32, cls=mi.Vector3f):
+    base = index * 3
+    return cls(*(dr.gather(mi.Float, t.array, base + k) for k in range(3)))
+
+
+def _quad(ch: dict, sp: ShadingPoints, cam: mi.Point3f) -> _Quad:
+    """Partners straight from the G-buffer tensors (one gather per value, no copies)."""
+    h, w = ch["position"].shape[:2]
+    ix, iy = quad_partners(w, h)
+    me = dr.arange(mi.UInt32, w * h)
+    mesh = ch["mesh_id"].array  # (H, W, 1): one value per pixel
+
+    def partner(ip):
+        return dr.select(sp.hit & (dr.gather(mi.Float, mesh, ip) == mesh), ip, me)
+
+    jx, jy = partner(ix), partner(iy)
+    frame = mi.Frame3f(sp.n)
+    return _Quad(sp, frame.s, frame.t, _gather3(ch["normal"], jx), _gather3(ch["normal"], jy),
+                 _gather3(ch["position"], jx, mi.Point3f),
+                 _gather3(ch["position"], jy, mi.Point3f), cam)
+
+
+def _half(p: mi.Point3f, cam: mi.Point3f, light, kind: str) -> mi.Vector3f:
+    wo = dr.normalize(cam - p)
+    wi = dr.normalize(light - p) if kind == "polygon" else analytic.incident(light, p)[0]
+    return dr.normalize(wo + wi)
+
+
+def _differences(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
+    """Slope differences ``(du, dv)`` across the quad for the method's source."""
+    n = q.sp.n
+    if method.source == "halfvector":
+        s0 = _slope(_half(q.sp.p, q.cam, light, kind), q.t, q.b, n)
+        sx = _slope(transport(_half(q.px, q.cam, light, kind), q.nx, n), q.t, q.b, n)
+        sy = _slope(transport(_half(q.py, q.cam, light, kind), q.ny, n), q.t, q.b, n)
+    else:  # avgnormal: Tokuyoshi sec. 2, the normals' slopes about the 3-tap quad average
+        nb = dr.normalize(n + q.nx + q.ny)
+        if method.isotropic:  # any tangent basis about n_bar will do
+            fb = mi.Frame3f(nb)
+            t, b = fb.s, fb.t
+        else:  # A must be in the pixel's frame: carry (t, b) from n to n_bar
+            t, b = transport(q.t, n, nb), transport(q.b, n, nb)
+        s0, sx, sy = (_slope(v, t, b, nb) for v in (n, q.nx, q.ny))
+    return (sx[0] - s0[0], sx[1] - s0[1]), (sy[0] - s0[0], sy[1] - s0[1])
+
+
+def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
+    """``(a11, a12, a22)`` per lane in the pixel's frame for ``method`` (``light``: the
+    light's device value for per-light methods). Isotropic results have a literal-zero
+    ``a12`` (the shading kernel then simplifies as for unfiltered roughness)."""
+    a2 = dr.square(q.sp.alpha)
+    zero = dr.zeros(mi.Float, dr.width(a2))
+    if method.source == "none":
+        return a2, zero, a2
+    if method.source == "projected":
+        # Tokuyoshi & Kaplanyan 2021, eq. 14 (world-space normal differences)
+        du, dv = q.nx - q.sp.n, q.ny - q.sp.n
+        k = SIGMA2_PROJECTED * (dr.squared_norm(du) + dr.squared_norm(dv))
+    else:
+        du, dv = _differences(q, method, light, kind)
+        k = kernel(du, dv, method.form)
+        if not method.isotropic:
+            return roughness_matrix(a2, k, method.kappa)
+        k = k[0]
+    if method.kappa is not None:
+        k = dr.minimum(k, method.kappa)
+    a = dr.minimum(a2 + k, 1.0)  # Tokuyoshi, eq. 2 (isotropic kernel), clamped to alpha <= 1
+    return a, zero, a
+
+
+def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sided: tuple,
+                 table) -> mi.Color3f:
+    sp = q.sp
+    total = dr.zeros(mi.Color3f, dr.width(sp.p))
+    frame = mi.Frame3f(q.t, q.b, sp.n)
+    wo_l = frame.to_local(sp.wo)
+    shared = None if method.per_light else filtered_roughness(q, method)
+    for light in lights:
+        wi, e = analytic.incident(light, sp.p)
+        a = shared if shared is not None else filtered_roughness(q, method, light, "analytic")
+        wi_l = frame.to_local(wi)
+        cos_i = wi_l.z
+        ok = sp.hit & (cos_i > 0) & (wo_l.z > 0)
+        spec = cggx.brdf_dr(wo_l, wi_l, a[0], a[1], a[2], sp.f0) * cos_i
+        diff = sp.albedo * (cos_i / dr.pi)
+        total += dr.select(ok, e * (spec + diff), 0.0)
+    if polygons:
+        if shared is not None:
+            sp_f = replace(sp, alpha=isotropic_alpha(*shared))
+            total += _ltc._shade(sp_f, table, polygons, two_sided)
+        else:
+            for k, (world, le) in enumerate(polygons):
+                centroid = sum(world[1:], world[0]) / len(world)
+                a = filtered_roughness(q, method, centroid, "polygon")
+                sp_f = replace(sp, alpha=isotropic_alpha(*a))
+                total += _ltc._shade(sp_f, table, [(world, le)], two_sided[k:k + 1])
+    return dr.select(sp.hit, total, 0.0)
+
+
+def _kernel(ch: dict, cam: list, method: Method, lights: list, polygons: list,
+            two_sided: tuple, table, size: tuple[int, int]) -> mi.TensorXf:
+    # the image size is an explicit (key) argument: dr.freeze may replay a recording made
+    # for another size, and sizes read off the input tensors are baked into the recording
+    h, w = size
+    p = mi.Point3f(*split(ch["position"]))
+    wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
+    sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
+    q = _quad(ch, sp, mi.Point3f(*cam))
+    c = _shade_lanes(q, method, lights, polygons, two_sided, table)
+    return merge([c[0], c[1], c[2]], h, w)
+
+
+_kernel_frozen = dr.freeze(_kernel, warn_after=32)
+
+
+def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
+                 f0: np.ndarray | None = None, kappa: float | None = None,
+                 frozen: bool = False) -> mi.TensorXf:
+    """:func:`shade` as an (H, W, 3) ``mi.TensorXf`` left on the device. ``frozen=True``
+    records the kernels once with ``dr.freeze`` and replays them for later frames of the same
+    size, method and light set (the real-time path)."""
+    check_frame(frame, NEEDS)
+    if frame.camera is None:
+        raise FrameError(f"{frame.where}: specular antialiasing needs the camera")
+    m = parse_method(method, kappa)
+    for lt in polygons:
+        if getattr(lt, "texture", None) is not None:
+            raise GlossrtError("specaa shading takes untextured polygon lights only "
+                               f"(light with mesh_id {getattr(lt, 'mesh_id', '?')} is textured)")
+    dev = analytic.device_lights(list(lights))
+    polys, two = _ltc._device_lights(list(polygons))
+    ch = {k: frame[k] for k in NEEDS}
+    ch["f0"] = f0_tensor(frame, f0)
+    fn = _kernel_frozen if frozen else _kernel
+    with no_gc():
+        out = fn(ch, opaque(frame.camera.position), m, dev, polys, two, _ltc._table(),
+                 (frame.height, frame.width))
+        dr.eval(out)
+    return out
+
+
+def shade(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
+          f0: np.ndarray | None = None, kappa: float | None = None,
+          frozen: bool = False) -> np.ndarray:
+    """Direct light (H, W, 3) of ``frame``'s G-buffer with specular antialiasing ``method``.
+
+    ``lights``: point / directional lights (:func:`glossrt.lights.analytic.analytic_lights`);
+    ``polygons``: untextured polygon lights (:func:`glossrt.lights.scene.polygon_lights`),
+    shaded by LTC with the filtered roughness; ``f0`` (H, W, 3) per-pixel Fresnel F0
+    (:func:`glossrt.lights.shading.f0_image`, default 0); ``kappa``: clamp of the added
+    roughness (module docstring). Diffuse (Lambert, ``albedo_diffuse``) plus GGX specular,
+    unshadowed. The frame needs position, normal, roughness, albedo_diffuse, mesh_id and
+    its camera."""
+    out = shade_tensor(frame, lights, polygons, method, f0, kappa, frozen)
+    return np.array(out, dtype=np.float32).reshape(frame.height, frame.width, 3)
+
+
+def roughness_image(frame, method: str, light=None, kappa: float | None = None) -> np.ndarray:
+    """The filtered roughness matrix per pixel, (H, W, 3) = ``(a11, a12, a22)`` in each
+    pixel's frame ``mi.Frame3f(n)``; per-light methods need ``light`` (a point or directional
+    light). For inspection and tests; 0 on the background."""
+    check_frame(frame, NEEDS)
+    m = parse_method(method, kappa)
+    if m.per_light and light is None:
+        raise GlossrtError(f"method {method!r} filters per light: pass light=")
+    h, w = frame.height, frame.width
+    sp = ShadingPoints.of(frame)
+    ch = {k: frame[k] for k in NEEDS}
+    q = _quad(ch, sp, mi.Point3f(*opaque(frame.camera.position)))
+    dev = analytic.device_lights([light])[0] if light is not None else None
+    a = filtered_roughness(q, m, dev, "analytic")
+    out = merge([dr.select(sp.hit, mi.Float(v), 0.0) for v in a], h, w)
+    return np.array(out, dtype=np.float32).reshape(h, w, 3)
+
+
+# -- reference --------------------------------------------------------------------------------
+def subpixel_offsets(spp: int) -> np.ndarray:
+    """``spp`` stratified sub-pixel offsets in [-0.5, 0.5)^2 (a ``sqrt(spp)`` square grid of
+    cell centres, so ``spp`` must be a square), row-major."""
+    n = int(round(math.sqrt(spp)))
+    if n < 1 or n * n != spp:
+        raise GlossrtError(f"reference spp must be a square number (16, 64, 256...), got {spp}")
+    c = (np.arange(n) + 0.5) / n - 0.5
+    gx, gy = np.meshgrid(c, c)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def reference(renderer, frame_index: int, lights: Sequence = (), polygons: Sequence = (),
+              f0_of: Callable | None = None, spp: int = 256,
+              progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    """Supersampled reference (H, W, 3): the unfiltered shading of :func:`shade` averaged
+    over ``spp`` stratified sub-pixel primary hits (box pixel filter) of ``renderer``'s frame
+    ``frame_index`` (a :class:`glossrt.render.Renderer`). ``f0_of(frame)`` gives each
+    sub-sample's F0 image (default: :func:`glossrt.lights.shading.f0_image` of the renderer's
+    scene)."""
+    from .lights.shading import f0_image
+
+    if f0_of is None:
+        def f0_of(fr):
+            return f0_image(renderer.setup, fr)
+
+    acc = None
+    offsets = subpixel_offsets(spp)
+    for i, (jx, jy) in enumerate(offsets):
+        fr = renderer.render(frame_index, jitter=(float(jx), float(jy)))
+        img = shade_tensor(fr, lights, polygons, "none", f0_of(fr), frozen=True)
+        acc = img if acc is None else acc + img
+        dr.eval(acc)
+        if progress is not None:
+            progress(i + 1, len(offsets))
+    h, w = renderer.height, renderer.width
+    return np.array(acc / len(offsets), dtype=np.float32).reshape(h, w, 3)

@@ -1,0 +1,215 @@
+"""Measurements behind docs/RESULTS.md for specular antialiasing (Tokuyoshi's evaluation of
+Kaplanyan et al. 2016; issue 8), on the ``normal-mapped`` scene.
+
+For each method of :data:`glossrt.specaa.METHODS`:
+
+* error against a supersampled reference (:func:`glossrt.specaa.reference`: the unfiltered
+  shading averaged over ``spp`` stratified sub-pixel positions) in RMSE and HDR-FLIP, on frame
+  0 and over the whole image;
+* the bias on a flat region (the ``floor_flat`` strip, no normal map, eroded by one pixel so
+  its quads see no other mesh): the mean of ``image - reference`` relative to the reference's
+  mean there (0 = unbiased; filtering that blurs highlights on a flat mirror shows here);
+* temporal error under the scene's slow camera motion: :func:`glossrt.metrics.temporal_error`
+  (mean absolute luminance change between consecutive frames) of each method's sequence and
+  of a supersampled reference sequence (``temporal_spp``), which changes only because the
+  view does; and the *flicker*, the part of a method's frame-to-frame change the reference
+  does not have: ``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (luminance ``L``
+  of the method, ``R`` of the reference).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+SCENE = "normal-mapped"
+FLAT_SHAPE = "floor_flat"
+
+
+@dataclass
+class SpecAAResults:
+    size: tuple[int, int]
+    spp: int
+    temporal_spp: int
+    frames: int
+    rows: list[dict] = field(default_factory=list)
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    reference_temporal: float = 0.0
+    seconds: float = 0.0
+
+    def markdown(self) -> str:
+        lines = [
+            f"| method | RMSE | FLIP | mean bias | flat-region bias | temporal error "
+            f"(reference {self.reference_temporal:.4f}) | flicker |",
+            "|---|---|---|---|---|---|---|"]
+        for r in self.rows:
+            lines.append(
+                f"| {r['method']} | {r['rmse']:.4f} | {r['flip']:.4f} | "
+                f"{100 * r['bias']:+.1f}% | {100 * r['flat_bias']:+.1f}% | "
+                f"{r['temporal']:.4f} | {r['flicker']:.4f} |")
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict:
+        return {"size": list(self.size), "spp": self.spp, "temporal_spp": self.temporal_spp,
+                "frames": self.frames, "reference_temporal": self.reference_temporal,
+                "rows": self.rows, "seconds": self.seconds}
+
+    def montage(self, path: str | Path, crop: tuple[slice, slice] | None = None) -> Path:
+        """The paper's figs. 1-3 side by side: every method and the reference (tone-mapped),
+        with ``|image - reference|`` under each; ``crop`` (rows, cols) zooms in."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from .report.page import tonemap
+
+        keys = list(self.images)
+        ref = self.images[keys[-1]]
+        cols = 4
+        rows = 2 * ((len(keys) + cols - 1) // cols)
+        crop = crop or (slice(None), slice(None))
+        h, w = ref[crop].shape[:2]
+        fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, rows * 3.2 * h / w + 0.4),
+                                 squeeze=False)
+        for ax in axes.ravel():
+            ax.axis("off")
+        scale = max(float(np.percentile(np.abs(ref[crop]), 99.5)), 1e-6)
+        for i, k in enumerate(keys):
+            r, c = 2 * (i // cols), i % cols
+            axes[r, c].imshow(tonemap(self.images[k][crop]), interpolation="nearest")
+            axes[r, c].set_title(k, fontsize=8)
+            err = np.abs(self.images[k][crop] - ref[crop]).mean(axis=-1)
+            axes[r + 1, c].imshow(err, cmap="magma", vmin=0, vmax=0.5 * scale,
+                                  interpolation="nearest")
+            axes[r + 1, c].set_title(f"|{k} - reference|", fontsize=7)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        return Path(path)
+
+
+def _flat_mask(setup, frame) -> np.ndarray:
+    """Pixels of the flat strip whose 3x3 neighbourhood is the strip too."""
+    idx = setup.shape_index.get(FLAT_SHAPE)
+    mid = frame.numpy("mesh_id")[..., 0]
+    if idx is None:
+        return np.zeros(mid.shape, bool)
+    m = mid == idx
+    e = m.copy()
+    e[1:] &= m[:-1]
+    e[:-1] &= m[1:]
+    e[:, 1:] &= e[:, :-1].copy()
+    e[:, :-1] &= e[:, 1:].copy()
+    return e
+
+
+def flicker(frames, refs) -> float:
+    """``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (module docstring)."""
+    from .metrics import luminance
+
+    if len(frames) != len(refs) or len(frames) < 2:
+        raise ValueError("flicker needs two or more frames and one reference per frame")
+    d = [luminance(np.asarray(f)) - luminance(np.asarray(r)) for f, r in zip(frames, refs,
+                                                                           strict=True)]
+    return float(np.mean([np.mean(np.abs(d[t] - d[t - 1])) for t in range(1, len(d))]))
+
+
+def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int = 64,
+             methods=None, scene: str = SCENE,
+             progress: Callable[[str], None] | None = None) -> SpecAAResults:
+    """Every method against the supersampled reference (module docstring)."""
+    from . import metrics, render, scenes, specaa
+    from .lights.analytic import analytic_lights
+    from .lights.scene import polygon_lights
+    from .lights.shading import f0_image
+
+    say = progress or (lambda _m: None)
+    methods = tuple(methods or specaa.METHODS)
+    t_start = time.perf_counter()
+    setup = scenes.load(scene, size=size)
+    rend = render.Renderer(setup)
+
+    def lights_of(i):
+        return analytic_lights(setup, i), polygon_lights(setup, i)
+
+    res = SpecAAResults(tuple(size), spp, temporal_spp, frames)
+    say(f"reference, frame 0 ({spp} sub-pixel samples)")
+    lights, polys = lights_of(0)
+    ref = specaa.reference(rend, 0, lights, polys, spp=spp)
+    gb = rend.render(0)
+    f0 = f0_image(setup, gb)
+    flat = _flat_mask(setup, gb)
+    hit = gb.numpy("mesh_id")[..., 0] > 0
+    seqs: dict[str, list] = {m: [] for m in methods}
+    seqs["reference"] = []
+    for t in range(frames):
+        say(f"frame {t + 1}/{frames}")
+        lt, pl = lights_of(t)
+        g = gb if t == 0 else rend.render(t)
+        f0_t = f0 if t == 0 else f0_image(setup, g)
+        for m in methods:
+            seqs[m].append(specaa.shade(g, lt, pl, m, f0_t, frozen=True))
+        seqs["reference"].append(
+            ref if t == 0 and temporal_spp == spp
+            else specaa.reference(rend, t, lt, pl, spp=temporal_spp))
+    res.reference_temporal = metrics.temporal_error(seqs["reference"])
+    for m in methods:
+        img = seqs[m][0]
+        d = (img - ref).mean(axis=-1)
+        ref_flat = float(ref[flat].mean()) if flat.any() else float("nan")
+        res.rows.append({
+            "method": m,
+            "rmse": metrics.rmse(img, ref),
+            "rmse_surfaces": float(np.sqrt(np.mean((img - ref)[hit] ** 2))),
+            "flip": metrics.flip(img, ref),
+            "flat_bias": float(d[flat].mean() / max(ref_flat, 1e-9)) if flat.any()
+            else float("nan"),
+            "flat_pixels": int(flat.sum()),
+            "temporal": metrics.temporal_error(seqs[m]),
+            "flicker": flicker(seqs[m], seqs["reference"]),
+            "bias": float((img - ref)[hit].mean() / max(float(ref[hit].mean()), 1e-9)),
+        })
+        res.images[m] = img
+    res.images[f"reference ({spp} spp)"] = ref
+    res.seconds = time.perf_counter() - t_start
+    return res
+
+
+def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE) -> dict:
+    """Shading time per method and its ratio to unfiltered shading, measured interleaved in
+    one run (frozen kernels, the real-time path)."""
+    import statistics
+
+    import drjit as dr
+
+    from . import render, scenes, specaa
+    from .lights.analytic import analytic_lights
+    from .lights.scene import polygon_lights
+    from .lights.shading import f0_image
+
+    methods = tuple(methods or specaa.METHODS)
+    setup = scenes.load(scene, size=size)
+    gb = render.Renderer(setup).render(0)
+    lights, polys = analytic_lights(setup, 0), polygon_lights(setup, 0)
+    f0 = f0_image(setup, gb)
+    cases = {m: (lambda m=m: specaa.shade_tensor(gb, lights, polys, m, f0, frozen=True))
+             for m in methods}
+    for fn in cases.values():  # record + compile
+        fn()
+        fn()
+    res = {k: [] for k in cases}
+    for _ in range(repeats):
+        for k, fn in cases.items():
+            dr.sync_thread()
+            t0 = time.perf_counter()
+            fn()
+            dr.sync_thread()
+            res[k].append(time.perf_counter() - t0)
+    med = {k: statistics.median(v) for k, v in res.items()}
+    return {"size": list(size), "seconds": med,
+            "ratio_to_none": {k: v / med["none"] for k, v in med.items()}}
