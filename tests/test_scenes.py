@@ -336,7 +336,7 @@ def test_xml_emitter_renders(tmp_path, plugin):
 
 
 @pytest.mark.parametrize("plugin, kind", [("dielectric", "bsdf"), ("principled", "bsdf"),
-                                          ("spot", "emitter"), ("directional", "emitter")])
+                                          ("spot", "emitter"), ("projector", "emitter")])
 def test_unsupported_plugins_raise_scene_error(tmp_path, plugin, kind):
     if kind == "bsdf":
         body = FLOOR + sphere(f'<bsdf type="{plugin}"/>') + CONSTANT

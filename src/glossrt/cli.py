@@ -262,7 +262,7 @@ def _experiment_specaa(out, size, spp: int, frames: int) -> int:
     temporal error under the slow camera motion) and the shading-time ratios."""
     from . import specaa_experiments as se
 
-    tspp = int(round(max(16, min(64, spp // 4)) ** 0.5)) ** 2
+    tspp = spp  # one converged reference per frame: flicker is measured against them
     res = se.evaluate(size=size, spp=spp, frames=min(frames, 16), temporal_spp=tspp,
                       progress=lambda m: print(m, flush=True))
     res.montage(out / "specaa.png")

@@ -67,9 +67,9 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
 
 
 def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
-           max_depth, jitter):
+           max_depth, jitter, normal_maps):
     out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
-                       height, max_depth, jitter)
+                       height, max_depth, jitter, normal_maps)
     return {k: _flat(v) for k, v in out.items()}
 
 
@@ -142,7 +142,7 @@ class Renderer:
         with no_gc():
             out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
                      self._motion_inputs(frame), pixel, seed, self.width, self.height,
-                     self.max_depth, offset)
+                     self.max_depth, offset, self.shapes.any_normal_map)
             dr.eval(out)
         return out
 

@@ -322,6 +322,9 @@ class ShapeTable:
         self.alpha = mi.Float(alpha)
         self.f0 = mi.Color3f(*f0)
         self.normal_map = mi.UInt32(normal_map)
+        #: whether any shape is normal-mapped (a Python bool: pass it to gbuffer(), so scenes
+        #: without normal maps keep the texture lookup's virtual call out of their kernels)
+        self.any_normal_map = any(v != 0 for v in normal_map)
 
 
 def camera_axes(sensor: mi.Sensor) -> tuple[mi.Point3f, mi.Vector3f]:
@@ -366,11 +369,12 @@ def shading_normal(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f,
 
 
 def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor: mi.Sensor,
-            shapes: ShapeTable, table) -> dict:
+            shapes: ShapeTable, table, normal_maps: bool = True) -> dict:
     """Noise-free G-buffer values of the primary hit. ``normal`` is :func:`shading_normal`
     (normal-mapped where the BSDF is a ``normalmap``); on normal-mapped surfaces the specular
     albedo is looked up at the cosine to that normal (0 should it face away from the camera;
-    the plugin's shadow-terminator factor is not included)."""
+    the plugin's shadow-terminator factor is not included). ``normal_maps=False`` (no shape
+    of the scene has one: ``ShapeTable.any_normal_map``) skips the normal-map lookup."""
     valid = si.is_valid()
     rid = dr.reinterpret_array(mi.UInt32, si.shape)
     rid = dr.select(valid, rid, 0)
@@ -381,8 +385,13 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     alpha = dr.gather(mi.Float, shapes.alpha, rid, valid)
     f0 = dr.gather(mi.Color3f, shapes.f0, rid, valid)
     alpha = dr.select(attr, bsdf.eval_attribute_1("alpha", si, valid & attr), alpha)
-    normal_map = dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
-    n, mapped = shading_normal(si, bsdf, ray, normal_map, valid)
+    if normal_maps:
+        normal_map = dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
+        n, mapped = shading_normal(si, bsdf, ray, normal_map, valid)
+    else:  # as shading_normal without a map, without tracing the texture's virtual call
+        n = mi.Vector3f(si.sh_frame.n)
+        n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
+        mapped = mi.Bool(False)
     cos_o = dr.abs(mi.Frame3f.cos_theta(si.wi))
     cos_m = dr.dot(n, -ray.d)
     cos_o = dr.select(mapped, dr.maximum(cos_m, 1e-4), cos_o)
@@ -406,7 +415,7 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
 def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  emitters: EmitterTable, table, motion_inputs, pixel: mi.UInt32,
                  seed: mi.UInt32, width: int, height: int, max_depth: int,
-                 jitter: mi.Point2f | None = None) -> dict:
+                 jitter: mi.Point2f | None = None, normal_maps: bool = True) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
     ``jitter`` (pixels, in [-0.5, 0.5)) moves every primary ray off the pixel centre."""
@@ -420,7 +429,7 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)
     r = shade(scene, sampler, ray, max_depth, emitters)
-    out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
+    out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table, normal_maps)
     bad = mi.UInt32(0)  # per lane: radiance values that were not finite
     color = dr.zeros(mi.Color3f)
     for name in RADIANCE_OUT:
