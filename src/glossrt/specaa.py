@@ -281,6 +281,8 @@ class _Quad:
     px: mi.Point3f
     py: mi.Point3f
     cam: mi.Point3f
+    okx: mi.Bool  # whether the partner is another pixel (else its difference is 0)
+    oky: mi.Bool
 
 
 def _gather3(t: mi.TensorXf, index: mi.UInt32, cls=mi.Vector3f):
@@ -302,7 +304,7 @@ def _quad(ch: dict, sp: ShadingPoints, cam: mi.Point3f) -> _Quad:
     frame = mi.Frame3f(sp.n)
     return _Quad(sp, frame.s, frame.t, _gather3(ch["normal"], jx), _gather3(ch["normal"], jy),
                  _gather3(ch["position"], jx, mi.Point3f),
-                 _gather3(ch["position"], jy, mi.Point3f), cam)
+                 _gather3(ch["position"], jy, mi.Point3f), cam, jx != me, jy != me)
 
 
 def _half(p: mi.Point3f, cam: mi.Point3f, light, kind: str) -> mi.Vector3f:
@@ -326,7 +328,39 @@ def _differences(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
         else:  # A must be in the pixel's frame: carry (t, b) from n to n_bar
             t, b = transport(q.t, n, nb), transport(q.b, n, nb)
         s0, sx, sy = (_slope(v, t, b, nb) for v in (n, q.nx, q.ny))
-    return (sx[0] - s0[0], sx[1] - s0[1]), (sy[0] - s0[0], sy[1] - s0[1])
+    # a missing partner differs by exactly 0 (not by the rounding of two huge grazing slopes)
+    du = tuple(dr.select(q.okx, sx[i] - s0[i], 0.0) for i in range(2))
+    dv = tuple(dr.select(q.oky, sy[i] - s0[i], 0.0) for i in range(2))
+    return du, dv
+
+
+def _largest_eigenvalue(q: _Quad, method: Method, light=None, kind: str = ""):
+    """``lambda_max(2 Sigma)`` (Tokuyoshi sec. 3) without a tangent basis: the slope of ``v``
+    about ``N`` is the tangent vector ``(v - (v.N) N) / (v.N)``, so the differences ``du,
+    dv`` are 3D vectors in ``N``'s tangent plane and ``Sigma``'s eigenvalues are those of their
+    Gram matrix ``sigma^2 [[du.du, du.dv], [du.dv, dv.dv]]`` (the same as :func:`kernel`'s
+    ``eig`` form in any basis, with less work)."""
+    n = q.sp.n
+    if method.source == "halfvector":
+        big_n = n
+        v0 = _half(q.sp.p, q.cam, light, kind)
+        vx = transport(_half(q.px, q.cam, light, kind), q.nx, n)
+        vy = transport(_half(q.py, q.cam, light, kind), q.ny, n)
+    else:
+        big_n = dr.normalize(n + q.nx + q.ny)
+        v0, vx, vy = n, q.nx, q.ny
+
+    def lift(v):  # the tangential part over the normal one (clamped like _slope)
+        z = dr.dot(v, big_n)
+        return (v - z * big_n) / dr.maximum(z, _EPS)
+
+    q0 = lift(v0)
+    du = dr.select(q.okx, lift(vx) - q0, 0.0)
+    dv = dr.select(q.oky, lift(vy) - q0, 0.0)
+    a, b, c = dr.squared_norm(du), dr.dot(du, dv), dr.squared_norm(dv)
+    # eigenvalues of the Gram matrix [[a, b], [b, c]], times 2 sigma^2 (eq. 2)
+    lam = 0.5 * (a + c) + dr.sqrt(dr.maximum(0.25 * dr.square(a - c) + dr.square(b), 0.0))
+    return 2.0 * SIGMA2 * lam
 
 
 def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
@@ -341,6 +375,8 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
         # Tokuyoshi & Kaplanyan 2021, eq. 14 (world-space normal differences)
         du, dv = q.nx - q.sp.n, q.ny - q.sp.n
         k = SIGMA2_PROJECTED * (dr.squared_norm(du) + dr.squared_norm(dv))
+    elif method.form == "eig":
+        k = _largest_eigenvalue(q, method, light, kind)
     else:
         du, dv = _differences(q, method, light, kind)
         k = kernel(du, dv, method.form)
