@@ -404,9 +404,12 @@ def test_cli_render_writes_the_specaa_channel(tmp_path, capsys):
                  "--out", str(tmp_path / "x")]) == 2
     assert main(["render", "normal-mapped", "--size", "8x8", "--specaa", "none", "--reference",
                  "--out", str(tmp_path / "y")]) == 2
+    assert main(["render", "polygon-light-textured", "--size", "8x6", "--specaa", "none",
+                 "--out", str(tmp_path / "z")]) == 2
     err = capsys.readouterr().err
     assert "unknown specular antialiasing method 'bogus'" in err
     assert "experiment --which specaa" in err
+    assert "leaves out 1 textured polygon light" in err and "has no point" in err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
@@ -426,3 +429,17 @@ def test_frame_free_eigenvalue_matches_the_basis_form():
         lam = specaa._eigen(aniso[..., 0], aniso[..., 1], aniso[..., 2])[0]
         ok = (fr.numpy("mesh_id")[..., 0] > 0) & (lam < 0.9)
         np.testing.assert_allclose(fast[ok], lam[ok], rtol=2e-3, atol=2e-6, err_msg=src)
+
+
+def test_flicker_measures_change_the_reference_does_not_have():
+    from glossrt.specaa_experiments import flicker
+
+    rng = np.random.default_rng(2)
+    refs = [rng.uniform(0, 1, (6, 8, 3)).astype(np.float32) for _ in range(4)]
+    assert flicker(refs, refs) == 0.0
+    assert flicker([r + 0.3 for r in refs], refs) == pytest.approx(0.0, abs=1e-6)  # a bias
+    # +-0.1 grey flicker on top of the moving reference: |0.2| between every pair of frames
+    alt = [r + (0.1 if t % 2 else -0.1) for t, r in enumerate(refs)]
+    assert flicker(alt, refs) == pytest.approx(0.2, rel=1e-5)
+    with pytest.raises(ValueError):
+        flicker(refs[:1], refs[:1])

@@ -87,7 +87,7 @@ def cmd_render(args) -> int:
             else:
                 f = r.render(i)
                 if args.specaa is not None:
-                    _add_specaa(setup, f, i, args.specaa)
+                    _add_specaa(setup, f, i, args.specaa, warn=k == 0)
                 p.update(k + 1)
             bad += int(f.meta.get("nonfinite_samples", 0))
             f.save(out / frame_filename(i))
@@ -98,7 +98,7 @@ def cmd_render(args) -> int:
     return 0
 
 
-def _add_specaa(setup, frame, index: int, method: str) -> None:
+def _add_specaa(setup, frame, index: int, method: str, warn: bool = True) -> None:
     """Channel ``specaa``: the frame's direct light from the scene's point, directional and
     (untextured) polygon lights with specular antialiasing ``method`` (glossrt.specaa)."""
     from . import specaa
@@ -106,7 +106,11 @@ def _add_specaa(setup, frame, index: int, method: str) -> None:
     from .lights.scene import polygon_lights
     from .lights.shading import f0_image
 
-    polys = [lt for lt in polygon_lights(setup, index) if lt.texture is None]
+    all_polys = polygon_lights(setup, index)
+    polys = [lt for lt in all_polys if lt.texture is None]
+    if len(polys) < len(all_polys) and warn:
+        print(f"warning: --specaa leaves out {len(all_polys) - len(polys)} textured polygon "
+              "light(s): the specaa layer shades untextured lights only", file=sys.stderr)
     lights = analytic_lights(setup, index)
     if not lights and not polys:
         raise GlossrtError(f"--specaa: scene {setup.name!r} has no point, directional or "
