@@ -69,6 +69,7 @@ def cmd_render(args) -> int:
     todo = list(range(args.start, args.start + args.frames, args.every))
     spp = args.spp if (args.spp > 1 or not reference) else 256
     bad = 0
+    tex_cache: dict = {}
     desc = f"{'reference ' if reference else ''}{setup.name} {setup.size[0]}x{setup.size[1]}"
     with Progress(len(todo) * (spp if reference else 1), desc) as p:
         for k, i in enumerate(todo):
@@ -87,7 +88,7 @@ def cmd_render(args) -> int:
             else:
                 f = r.render(i)
                 if args.specaa is not None:
-                    _add_specaa(setup, f, i, args.specaa, warn=k == 0)
+                    _add_specaa(setup, f, i, args.specaa, tex_cache)
                 p.update(k + 1)
             bad += int(f.meta.get("nonfinite_samples", 0))
             f.save(out / frame_filename(i))
@@ -98,24 +99,22 @@ def cmd_render(args) -> int:
     return 0
 
 
-def _add_specaa(setup, frame, index: int, method: str, warn: bool = True) -> None:
+def _add_specaa(setup, frame, index: int, method: str, textures: dict) -> None:
     """Channel ``specaa``: the frame's direct light from the scene's point, directional and
-    (untextured) polygon lights with specular antialiasing ``method`` (glossrt.specaa)."""
+    polygon lights with specular antialiasing ``method`` (glossrt.specaa); ``textures``: the
+    prefiltered light textures, kept across frames."""
     from . import specaa
     from .lights.analytic import analytic_lights
     from .lights.scene import polygon_lights
     from .lights.shading import f0_image
 
-    all_polys = polygon_lights(setup, index)
-    polys = [lt for lt in all_polys if lt.texture is None]
-    if len(polys) < len(all_polys) and warn:
-        print(f"warning: --specaa leaves out {len(all_polys) - len(polys)} textured polygon "
-              "light(s): the specaa layer shades untextured lights only", file=sys.stderr)
+    polys = polygon_lights(setup, index)
     lights = analytic_lights(setup, index)
     if not lights and not polys:
         raise GlossrtError(f"--specaa: scene {setup.name!r} has no point, directional or "
-                           "untextured polygon lights to shade")
-    img = specaa.shade_tensor(frame, lights, polys, method, f0_image(setup, frame), frozen=True)
+                           "polygon lights to shade")
+    img = specaa.shade_tensor(frame, lights, polys, method, f0_image(setup, frame), frozen=True,
+                              textures=textures)
     frame["specaa"] = img
     frame.meta["specaa"] = method
 

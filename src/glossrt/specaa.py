@@ -390,7 +390,7 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
 
 
 def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sided: tuple,
-                 table) -> mi.Color3f:
+                 table, textures: Sequence = ()) -> mi.Color3f:
     sp = q.sp
     total = dr.zeros(mi.Color3f, dr.width(sp.p))
     frame = mi.Frame3f(q.t, q.b, sp.n)
@@ -408,18 +408,20 @@ def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sid
     if polygons:
         if shared is not None:
             sp_f = replace(sp, alpha=isotropic_alpha(*shared))
-            total += _ltc._shade(sp_f, table, polygons, two_sided)
+            total += _ltc._shade(sp_f, table, polygons, two_sided, textures)
         else:
             for k, (world, le) in enumerate(polygons):
                 centroid = sum(world[1:], world[0]) / len(world)
                 a = filtered_roughness(q, method, centroid, "polygon")
                 sp_f = replace(sp, alpha=isotropic_alpha(*a))
-                total += _ltc._shade(sp_f, table, [(world, le)], two_sided[k:k + 1])
+                total += _ltc._shade(sp_f, table, [(world, le)], two_sided[k:k + 1],
+                                     textures[k:k + 1])
     return dr.select(sp.hit, total, 0.0)
 
 
 def _kernel(ch: dict, cam: list, method: Method, lights: list, polygons: list,
-            two_sided: tuple, table, size: tuple[int, int]) -> mi.TensorXf:
+            two_sided: tuple, table, size: tuple[int, int], textures: Sequence = ()
+            ) -> mi.TensorXf:
     # the image size is an explicit (key) argument: dr.freeze may replay a recording made
     # for another size, and sizes read off the input tensors are baked into the recording
     h, w = size
@@ -427,7 +429,7 @@ def _kernel(ch: dict, cam: list, method: Method, lights: list, polygons: list,
     wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
     sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
     q = _quad(ch, sp, mi.Point3f(*cam))
-    c = _shade_lanes(q, method, lights, polygons, two_sided, table)
+    c = _shade_lanes(q, method, lights, polygons, two_sided, table, textures)
     return merge([c[0], c[1], c[2]], h, w)
 
 
@@ -436,43 +438,48 @@ _kernel_frozen = dr.freeze(_kernel, warn_after=32)
 
 def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
                  f0: np.ndarray | None = None, kappa: float | None = None,
-                 frozen: bool = False) -> mi.TensorXf:
+                 frozen: bool = False, textures: dict | None = None) -> mi.TensorXf:
     """:func:`shade` as an (H, W, 3) ``mi.TensorXf`` left on the device. ``frozen=True``
     records the kernels once with ``dr.freeze`` and replays them for later frames of the same
-    size, method and light set (the real-time path)."""
+    size, method and light set (the real-time path); with a textured polygon light the
+    kernels are traced anew (as :func:`glossrt.lights.ltc.shade_tensor`). ``textures``: a
+    cache {id(texture): prefiltered} reused across frames."""
     check_frame(frame, NEEDS)
     if frame.camera is None:
         raise FrameError(f"{frame.where}: specular antialiasing needs the camera")
     m = parse_method(method, kappa)
-    for lt in polygons:
-        if getattr(lt, "texture", None) is not None:
-            raise GlossrtError("specaa shading takes untextured polygon lights only "
-                               f"(light with mesh_id {getattr(lt, 'mesh_id', '?')} is textured)")
     dev = analytic.device_lights(list(lights))
     polys, two = _ltc._device_lights(list(polygons))
     ch = {k: frame[k] for k in NEEDS}
     ch["f0"] = f0_tensor(frame, f0)
-    fn = _kernel_frozen if frozen else _kernel
+    size = (frame.height, frame.width)
+    cam = opaque(frame.camera.position)
     with no_gc():
-        out = fn(ch, opaque(frame.camera.position), m, dev, polys, two, _ltc._table(),
-                 (frame.height, frame.width))
+        if any(getattr(lt, "texture", None) is not None for lt in polygons):
+            cache = {} if textures is None else textures
+            tex = [_ltc.prefiltered(lt, cache) for lt in polygons]
+            out = _kernel(ch, cam, m, dev, polys, two, _ltc._table(), size, tex)
+        else:
+            fn = _kernel_frozen if frozen else _kernel
+            out = fn(ch, cam, m, dev, polys, two, _ltc._table(), size)
         dr.eval(out)
     return out
 
 
 def shade(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
           f0: np.ndarray | None = None, kappa: float | None = None,
-          frozen: bool = False) -> np.ndarray:
+          frozen: bool = False, textures: dict | None = None) -> np.ndarray:
     """Direct light (H, W, 3) of ``frame``'s G-buffer with specular antialiasing ``method``.
 
     ``lights``: point / directional lights (:func:`glossrt.lights.analytic.analytic_lights`);
-    ``polygons``: untextured polygon lights (:func:`glossrt.lights.scene.polygon_lights`),
-    shaded by LTC with the filtered roughness; ``f0`` (H, W, 3) per-pixel Fresnel F0
-    (:func:`glossrt.lights.shading.f0_image`, default 0); ``kappa``: clamp of the added
+    ``polygons``: polygon lights (:func:`glossrt.lights.scene.polygon_lights`; textured ones
+    prefiltered as in :mod:`glossrt.lights.ltc`), shaded by LTC with the filtered roughness;
+    ``f0`` (H, W, 3) per-pixel Fresnel F0 (:func:`glossrt.lights.shading.f0_image`, default
+    0); ``kappa``: clamp of the added
     roughness (module docstring). Diffuse (Lambert, ``albedo_diffuse``) plus GGX specular,
     unshadowed. The frame needs position, normal, roughness, albedo_diffuse, mesh_id and
-    its camera."""
-    out = shade_tensor(frame, lights, polygons, method, f0, kappa, frozen)
+    its camera. ``textures``: see :func:`shade_tensor`."""
+    out = shade_tensor(frame, lights, polygons, method, f0, kappa, frozen, textures)
     return np.array(out, dtype=np.float32).reshape(frame.height, frame.width, 3)
 
 
@@ -522,9 +529,11 @@ def reference(renderer, frame_index: int, lights: Sequence = (), polygons: Seque
 
     acc = None
     offsets = subpixel_offsets(spp)
+    cache: dict = {}
     for i, (jx, jy) in enumerate(offsets):
         fr = renderer.render(frame_index, jitter=(float(jx), float(jy)))
-        img = shade_tensor(fr, lights, polygons, "none", f0_of(fr), frozen=True)
+        img = shade_tensor(fr, lights, polygons, "none", f0_of(fr), frozen=True,
+                           textures=cache)
         acc = img if acc is None else acc + img
         dr.eval(acc)
         if progress is not None:
