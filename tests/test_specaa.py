@@ -460,3 +460,44 @@ def test_textured_polygon_lights_shade_like_ltc():
     for m in ("avgnormal-eig", "halfvector"):
         img = specaa.shade(fr, (), polys, m, f0)
         assert np.isfinite(img).all() and img.max() > 0
+
+
+def test_material_masking_swaps_only_the_shadowing_term():
+    # masking="material": D of the filtered A, G2 of the material's alpha. The specular ratio
+    # material / filtered must be G2(alpha^2 I) / G2(A) from the NumPy covariance GGX.
+    from glossrt import render
+    from glossrt.brdf import covariance_ggx as cg
+    from glossrt.lights.analytic import DirectionalLight
+
+    setup = _setup(sphere=True, size=(64, 48))
+    fr = render.Renderer(setup).render(0)
+    sun = DirectionalLight([0.3, -0.4, -1.0], [1.0, 1.0, 1.0])
+    f0 = np.ones((48, 64, 3), np.float32)
+    fr2 = type(fr)(channels=dict(fr.channels), camera=fr.camera)
+    fr2["albedo_diffuse"] = mi.TensorXf(np.zeros((48, 64, 3), np.float32))  # specular only
+    for m in ("none", "avgnormal-eig"):
+        a = specaa.shade(fr2, [sun], (), m, f0)
+        b = specaa.shade(fr2, [sun], (), m, f0, masking="material")
+        if m == "none":
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+            continue
+        A = specaa.roughness_image(fr2, m).astype(float)
+        n = fr2.numpy("normal").reshape(-1, 3)
+        p = fr2.numpy("position").reshape(-1, 3).astype(float)
+        frame = mi.Frame3f(_vec(n))
+        wo = _unit(np.asarray(fr2.camera.position) - p)
+        wi = np.broadcast_to(-sun.direction, wo.shape)
+        wo_l, wi_l = _np(frame.to_local(_vec(wo))), _np(frame.to_local(_vec(wi)))
+        alpha2 = fr2.numpy("roughness").reshape(-1).astype(float) ** 2
+        sel = (a.reshape(-1, 3)[:, 0] > 1e-3) & (wo_l[:, 2] > 0.05) & (wi_l[:, 2] > 0.05)
+        assert sel.sum() > 50
+        Am = np.stack([np.stack([A.reshape(-1, 3)[:, 0], A.reshape(-1, 3)[:, 1]], -1),
+                       np.stack([A.reshape(-1, 3)[:, 1], A.reshape(-1, 3)[:, 2]], -1)], -2)
+        Ai = alpha2[:, None, None] * np.eye(2)
+        wo_u, wi_u = _unit(wo_l[sel]), _unit(wi_l[sel])
+        want = cg.G2(wo_u, wi_u, Ai[sel]) / cg.G2(wo_u, wi_u, Am[sel])
+        got = b.reshape(-1, 3)[sel, 0] / a.reshape(-1, 3)[sel, 0]
+        np.testing.assert_allclose(got, want, rtol=2e-3)
+        assert np.all(want >= 1.0 - 1e-9) and want.max() > 1.01
+    with pytest.raises(GlossrtError, match="masking"):
+        specaa.shade(fr2, [sun], (), "none", f0, masking="bumps")

@@ -52,7 +52,9 @@ Conventions:
   Schlick Fresnel, like :mod:`glossrt.lights.shading`); polygon lights with LTC
   (:mod:`glossrt.lights.ltc`), whose table is isotropic: anisotropic methods pass
   ``alpha = sqrt(lambda_max(A))`` (their ``-eig`` reduction), and the half vector of a polygon
-  light points to its centroid. No shadows (direct light only, as LTC).
+  light points to its centroid. No shadows (direct light only, as LTC). ``masking=
+  "material"`` (beyond the paper, :data:`MASKING`) keeps the material's own alpha in the
+  Smith term of point and directional lights.
 
 The reference (:func:`reference`) averages the unfiltered shading over ``spp`` stratified
 sub-pixel positions (a box pixel filter): what filtering tries to approximate with one sample.
@@ -81,6 +83,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from .brdf import covariance_ggx as cggx  # noqa: E402
+from .brdf.ggx import fresnel_schlick  # noqa: E402
 from .denoise.common import check_frame, merge, split  # noqa: E402
 from .errors import FrameError, GlossrtError  # noqa: E402
 from .jit import no_gc, opaque  # noqa: E402
@@ -97,6 +100,12 @@ SIGMA2 = 0.25
 #: 2021, eq. 14)
 SIGMA2_PROJECTED = 1.0 / (2.0 * math.pi)
 KAPPA_PROJECTED = 0.18
+#: Smith masking-shadowing of point / directional lights: ``"filtered"`` (the paper: the
+#: filtered roughness matrix ``A`` for ``D`` and ``G2``) or ``"material"`` (beyond the paper:
+#: ``D`` of ``A``, ``G2`` of the material's own ``alpha``: the normal variation ``A`` stands
+#: for is macro-geometry, which the supersampled reference does not shadow). Polygon lights
+#: (LTC, whose fit bakes masking into one isotropic alpha) always use the filtered alpha.
+MASKING = ("filtered", "material")
 _SOURCES = ("halfvector", "avgnormal")
 _FORMS = ("cov", "bbox", "max", "eig")
 _EPS = 1e-6
@@ -110,6 +119,7 @@ class Method:
     source: str
     form: str = "cov"
     kappa: float | None = None
+    masking: str = "filtered"
 
     @property
     def isotropic(self) -> bool:
@@ -120,13 +130,16 @@ class Method:
         return self.source == "halfvector"
 
 
-def parse_method(name: str, kappa: float | None = None) -> Method:
+def parse_method(name: str, kappa: float | None = None, masking: str = "filtered") -> Method:
     """The :class:`Method` of ``name`` (see the module docstring); a clear error otherwise.
-    ``kappa`` overrides the default clamp of the kernel (``projected``: 0.18, others none)."""
+    ``kappa`` overrides the default clamp of the kernel (``projected``: 0.18, others none);
+    ``masking``: :data:`MASKING`."""
     key = str(name).strip().lower()
+    if masking not in MASKING:
+        raise GlossrtError(f"masking must be one of {MASKING}, got {masking!r}")
     if key in ("none", "projected"):
         k = KAPPA_PROJECTED if key == "projected" and kappa is None else kappa
-        return Method(key, "cov", k)
+        return Method(key, "cov", k, masking)
     source, _, form = key.partition("-")
     form = form or "cov"
     if source not in _SOURCES or form not in _FORMS:
@@ -136,7 +149,7 @@ def parse_method(name: str, kappa: float | None = None) -> Method:
             f"(evaluated: {', '.join(METHODS)})")
     if kappa is not None and not kappa > 0:
         raise GlossrtError(f"kappa must be positive, got {kappa}")
-    return Method(source, form, kappa)
+    return Method(source, form, kappa, masking)
 
 
 # -- geometry ---------------------------------------------------------------------------------
@@ -389,6 +402,21 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
     return a, zero, a
 
 
+def _specular(wo: mi.Vector3f, wi: mi.Vector3f, a: tuple, sp: ShadingPoints,
+              masking: str) -> mi.Color3f:
+    """The covariance GGX (local directions) with roughness ``a``; ``masking="material"``:
+    ``G2`` of the material's isotropic alpha instead (:data:`MASKING`)."""
+    if masking == "filtered":
+        return cggx.brdf_dr(wo, wi, a[0], a[1], a[2], sp.f0)
+    h = dr.normalize(wo + wi)
+    a2 = dr.square(sp.alpha)
+    # Tokuyoshi, appendix A.1, eq. A.1-1 with D(m; A) (eq. A.1-3) and G2 of alpha^2 I
+    val = cggx.D_dr(h, a[0], a[1], a[2]) * cggx.G2_dr(wo, wi, a2, 0.0, a2) / (
+        4.0 * wo.z * wi.z)
+    ok = (wo.z > 0.0) & (wi.z > 0.0)
+    return fresnel_schlick(dr.dot(wo, h), sp.f0) * dr.select(ok, val, 0.0)
+
+
 def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sided: tuple,
                  table, textures: Sequence = ()) -> mi.Color3f:
     sp = q.sp
@@ -402,7 +430,7 @@ def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sid
         wi_l = frame.to_local(wi)
         cos_i = wi_l.z
         ok = sp.hit & (cos_i > 0) & (wo_l.z > 0)
-        spec = cggx.brdf_dr(wo_l, wi_l, a[0], a[1], a[2], sp.f0) * cos_i
+        spec = _specular(wo_l, wi_l, a, sp, method.masking) * cos_i
         diff = sp.albedo * (cos_i / dr.pi)
         total += dr.select(ok, e * (spec + diff), 0.0)
     if polygons:
@@ -438,7 +466,8 @@ _kernel_frozen = dr.freeze(_kernel, warn_after=32)
 
 def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
                  f0: np.ndarray | None = None, kappa: float | None = None,
-                 frozen: bool = False, textures: dict | None = None) -> mi.TensorXf:
+                 frozen: bool = False, textures: dict | None = None,
+                 masking: str = "filtered") -> mi.TensorXf:
     """:func:`shade` as an (H, W, 3) ``mi.TensorXf`` left on the device. ``frozen=True``
     records the kernels once with ``dr.freeze`` and replays them for later frames of the same
     size, method and light set (the real-time path); with a textured polygon light the
@@ -447,7 +476,7 @@ def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: 
     check_frame(frame, NEEDS)
     if frame.camera is None:
         raise FrameError(f"{frame.where}: specular antialiasing needs the camera")
-    m = parse_method(method, kappa)
+    m = parse_method(method, kappa, masking)
     dev = analytic.device_lights(list(lights))
     polys, two = _ltc._device_lights(list(polygons))
     ch = {k: frame[k] for k in NEEDS}
@@ -468,7 +497,8 @@ def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: 
 
 def shade(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
           f0: np.ndarray | None = None, kappa: float | None = None,
-          frozen: bool = False, textures: dict | None = None) -> np.ndarray:
+          frozen: bool = False, textures: dict | None = None,
+          masking: str = "filtered") -> np.ndarray:
     """Direct light (H, W, 3) of ``frame``'s G-buffer with specular antialiasing ``method``.
 
     ``lights``: point / directional lights (:func:`glossrt.lights.analytic.analytic_lights`);
@@ -478,8 +508,8 @@ def shade(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "
     0); ``kappa``: clamp of the added
     roughness (module docstring). Diffuse (Lambert, ``albedo_diffuse``) plus GGX specular,
     unshadowed. The frame needs position, normal, roughness, albedo_diffuse, mesh_id and
-    its camera. ``textures``: see :func:`shade_tensor`."""
-    out = shade_tensor(frame, lights, polygons, method, f0, kappa, frozen, textures)
+    its camera. ``textures``: see :func:`shade_tensor`; ``masking``: :data:`MASKING`."""
+    out = shade_tensor(frame, lights, polygons, method, f0, kappa, frozen, textures, masking)
     return np.array(out, dtype=np.float32).reshape(frame.height, frame.width, 3)
 
 

@@ -1,7 +1,7 @@
 """Measurements behind docs/RESULTS.md for specular antialiasing (Tokuyoshi's evaluation of
 Kaplanyan et al. 2016; issue 8), on the ``normal-mapped`` scene.
 
-For each method of :data:`glossrt.specaa.METHODS`:
+For each method of :data:`glossrt.specaa.METHODS` (and the rows of :data:`EXTRA`):
 
 * error against a supersampled reference (:func:`glossrt.specaa.reference`: the unfiltered
   shading averaged over ``spp`` stratified sub-pixel positions) in RMSE and HDR-FLIP, on frame
@@ -28,6 +28,15 @@ import numpy as np
 
 SCENE = "normal-mapped"
 FLAT_SHAPE = "floor_flat"
+#: rows beyond the paper's methods: ``METHOD+material`` shades point / directional lights with
+#: the Smith masking of the material's own alpha (:data:`glossrt.specaa.MASKING`)
+EXTRA = ("avgnormal-eig+material", "projected+material")
+
+
+def _variant(label: str) -> tuple[str, str]:
+    """``(method, masking)`` of a row label ``METHOD[+material]``."""
+    method, _, masking = label.partition("+")
+    return method, masking or "filtered"
 
 
 @dataclass
@@ -129,7 +138,7 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
     from .lights.shading import f0_image
 
     say = progress or (lambda _m: None)
-    methods = tuple(methods or specaa.METHODS)
+    methods = tuple(methods or (specaa.METHODS + EXTRA))
     t_start = time.perf_counter()
     setup = scenes.load(scene, size=size)
     rend = render.Renderer(setup)
@@ -153,7 +162,8 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
         g = gb if t == 0 else rend.render(t)
         f0_t = f0 if t == 0 else f0_image(setup, g)
         for m in methods:
-            seqs[m].append(specaa.shade(g, lt, pl, m, f0_t, frozen=True))
+            meth, masking = _variant(m)
+            seqs[m].append(specaa.shade(g, lt, pl, meth, f0_t, frozen=True, masking=masking))
         seqs["reference"].append(
             ref if t == 0 and temporal_spp == spp
             else specaa.reference(rend, t, lt, pl, spp=temporal_spp))
