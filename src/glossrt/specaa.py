@@ -298,26 +298,31 @@ class _Quad:
     oky: mi.Bool
 
 
-def _gather3(t: mi.TensorXf, index: mi.UInt32, cls=mi.Vector3f):
-    base = index * 3
-    return cls(*(dr.gather(mi.Float, t.array, base + k) for k in range(3)))
-
-
-def _quad(ch: dict, sp: ShadingPoints, cam: mi.Point3f) -> _Quad:
-    """Partners straight from the G-buffer tensors (one gather per value, no copies)."""
-    h, w = ch["position"].shape[:2]
+def _quad(ch: dict, sp: ShadingPoints, cam: mi.Point3f, size: tuple[int, int],
+          positions: bool) -> _Quad:
+    """The quad partners' normals (and, for ``positions``, positions), each fetched with one
+    4-wide packet gather from an interleaved copy (normal, mesh id) / (position, 0): on the
+    CPU this is several times cheaper than a gather per component."""
+    h, w = size
     ix, iy = quad_partners(w, h)
-    me = dr.arange(mi.UInt32, w * h)
     mesh = ch["mesh_id"].array  # (H, W, 1): one value per pixel
+    geo = dr.ravel(mi.Vector4f(sp.n.x, sp.n.y, sp.n.z, mesh))
+    pos = dr.ravel(mi.Vector4f(sp.p.x, sp.p.y, sp.p.z, 0.0)) if positions else None
 
     def partner(ip):
-        return dr.select(sp.hit & (dr.gather(mi.Float, mesh, ip) == mesh), ip, me)
+        g = dr.gather(mi.Vector4f, geo, ip)
+        ok = sp.hit & (g.w == mesh) & (ip != dr.arange(mi.UInt32, w * h))
+        n = mi.Vector3f(dr.select(ok, g.x, sp.n.x), dr.select(ok, g.y, sp.n.y),
+                        dr.select(ok, g.z, sp.n.z))
+        if pos is None:
+            return n, sp.p, ok
+        q = dr.gather(mi.Vector4f, pos, ip)
+        return n, mi.Point3f(dr.select(ok, q.x, sp.p.x), dr.select(ok, q.y, sp.p.y),
+                             dr.select(ok, q.z, sp.p.z)), ok
 
-    jx, jy = partner(ix), partner(iy)
+    (nx, px, okx), (ny, py, oky) = partner(ix), partner(iy)
     frame = mi.Frame3f(sp.n)
-    return _Quad(sp, frame.s, frame.t, _gather3(ch["normal"], jx), _gather3(ch["normal"], jy),
-                 _gather3(ch["position"], jx, mi.Point3f),
-                 _gather3(ch["position"], jy, mi.Point3f), cam, jx != me, jy != me)
+    return _Quad(sp, frame.s, frame.t, nx, ny, px, py, cam, okx, oky)
 
 
 def _half(p: mi.Point3f, cam: mi.Point3f, light, kind: str) -> mi.Vector3f:
@@ -456,7 +461,7 @@ def _kernel(ch: dict, cam: list, method: Method, lights: list, polygons: list,
     p = mi.Point3f(*split(ch["position"]))
     wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
     sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
-    q = _quad(ch, sp, mi.Point3f(*cam))
+    q = _quad(ch, sp, mi.Point3f(*cam), size, method.per_light)
     c = _shade_lanes(q, method, lights, polygons, two_sided, table, textures)
     return merge([c[0], c[1], c[2]], h, w)
 
@@ -524,7 +529,7 @@ def roughness_image(frame, method: str, light=None, kappa: float | None = None) 
     h, w = frame.height, frame.width
     sp = ShadingPoints.of(frame)
     ch = {k: frame[k] for k in NEEDS}
-    q = _quad(ch, sp, mi.Point3f(*opaque(frame.camera.position)))
+    q = _quad(ch, sp, mi.Point3f(*opaque(frame.camera.position)), (h, w), m.per_light)
     dev = analytic.device_lights([light])[0] if light is not None else None
     a = filtered_roughness(q, m, dev, "analytic")
     out = merge([dr.select(sp.hit, mi.Float(v), 0.0) for v in a], h, w)
