@@ -145,6 +145,20 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
     return out.reshape(batch)
 
 
+def strided_gaussian(n: int, sigma: float, step: int, truncate: float = 4.0) -> np.ndarray:
+    """The 1D Gaussian filter of ``scipy.ndimage.gaussian_filter`` (same truncation radius
+    ``int(truncate sigma + 0.5)``, weights normalised over it, zeros outside the signal:
+    ``mode="constant"``) as a matrix evaluated at every ``step``-th sample: shape
+    ``(ceil(n / step), n)``, float64."""
+    r = int(truncate * float(sigma) + 0.5)
+    out = np.arange(0, n, step)
+    d = np.arange(n)[None, :] - out[:, None]
+    w = np.exp(-0.5 * (d / float(sigma)) ** 2)
+    w[np.abs(d) > r] = 0.0
+    x = np.arange(-r, r + 1)
+    return w / np.exp(-0.5 * (x / float(sigma)) ** 2).sum()
+
+
 class PrefilteredTexture:
     """A light texture filtered for LTC lookups (module docstring): level ``k`` is the
     normalised Gaussian convolution (sigma ``2^k`` texels of the base level) of the texture
@@ -153,8 +167,6 @@ class PrefilteredTexture:
     light's texture spans [0, 1]^2) and returns RGB."""
 
     def __init__(self, image: np.ndarray, pad: float = 0.5, levels: int | None = None):
-        from scipy.ndimage import gaussian_filter
-
         img = np.asarray(image, np.float32)
         if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
             raise GlossrtError(f"light texture must be (H, W, 3), got {img.shape}")
@@ -175,16 +187,18 @@ class PrefilteredTexture:
         self.sigmas, self.textures = [], []
         for k in range(n_levels):
             sigma = 0.0 if k == 0 else 2.0 ** k
+            step = 2 ** k
             if sigma > 0:
-                num = np.stack([gaussian_filter(data[..., c] * mask, sigma, mode="constant")
-                                for c in range(3)], -1)
-                den = gaussian_filter(mask, sigma, mode="constant")[..., None]
+                # the Gaussian at every step-th texel only (what the level keeps): separable
+                # strided matrices, not a full-resolution filter of radius 4 sigma
+                gy = strided_gaussian(data.shape[0], sigma, step)
+                gx = strided_gaussian(data.shape[1], sigma, step)
+                num = np.stack([gy @ (data[..., c] * mask) @ gx.T for c in range(3)], -1)
+                den = (gy @ mask @ gx.T)[..., None]
                 lvl = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
             else:
                 # level 0: the texture, with edge colours continued into the padding
                 lvl = np.pad(img, ((ph, ph), (pw, pw), (0, 0)), mode="edge")
-            step = 2 ** k
-            lvl = lvl[::step, ::step] if step > 1 else lvl
             self.sigmas.append(sigma / max(h, w))  # filter width in uv units
             self.textures.append(mi.Texture2f(mi.TensorXf(np.ascontiguousarray(
                 lvl, np.float32)), filter_mode=dr.FilterMode.Linear,
