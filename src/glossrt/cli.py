@@ -265,19 +265,16 @@ def _experiment_specaa(out, size, spp: int, frames: int) -> int:
     temporal error under the slow camera motion) and the shading-time ratios."""
     from . import specaa_experiments as se
 
-    tspp = spp  # one converged reference per frame: flicker is measured against them
-    res = se.evaluate(size=size, spp=spp, frames=min(frames, 16), temporal_spp=tspp,
+    # one converged reference per frame: flicker is measured against them
+    res = se.evaluate(size=size, spp=spp, frames=min(frames, 16), temporal_spp=spp,
                       progress=lambda m: print(m, flush=True))
     res.montage(out / "specaa.png")
     w, h = size
     res.montage(out / "specaa_crop.png", crop=(slice(h // 3, h), slice(0, w // 2)))
     t = se.timing(size=size)
-    rows = ["| method | ms / frame | x none |", "|---|---|---|"]
-    rows += [f"| {k} | {1000 * v:.2f} | {t['ratio_to_none'][k]:.3f} |"
-             for k, v in t["seconds"].items()]
     md = (f"## against the supersampled reference ({w}x{h}, {spp} spp; temporal: "
-          f"{res.frames} frames, reference {tspp} spp)\n\n{res.markdown()}\n\n"
-          f"## shading time (frozen, {w}x{h})\n\n" + "\n".join(rows))
+          f"{res.frames} frames, reference {spp} spp)\n\n{res.markdown()}\n\n"
+          f"## shading time (frozen, {w}x{h})\n\n{se.timing_markdown(t)}")
     return _finish_experiment(out, "specaa", md, "specaa.png",
                               {**res.as_dict(), "timing": t})
 

@@ -84,7 +84,7 @@ import mitsuba as mi  # noqa: E402
 
 from .brdf import covariance_ggx as cggx  # noqa: E402
 from .brdf.ggx import fresnel_schlick  # noqa: E402
-from .denoise.common import check_frame, merge, split  # noqa: E402
+from .denoise.common import check_frame, merge  # noqa: E402
 from .errors import FrameError, GlossrtError  # noqa: E402
 from .jit import no_gc, opaque  # noqa: E402
 from .lights import analytic  # noqa: E402
@@ -331,21 +331,32 @@ def _half(p: mi.Point3f, cam: mi.Point3f, light, kind: str) -> mi.Vector3f:
     return dr.normalize(wo + wi)
 
 
-def _differences(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
-    """Slope differences ``(du, dv)`` across the quad for the method's source."""
+def _quad_vectors(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
+    """``(N, v0, vx, vy)``: the vectors whose slopes about the unit normal ``N`` the method
+    differentiates across the quad. Half vector (Tokuyoshi sec. 1.1): the pixel's and its
+    partners' half vectors, the partners' carried into the pixel's frame, about the pixel's
+    normal. Average normal (sec. 2): the three normals about their 3-tap average."""
     n = q.sp.n
     if method.source == "halfvector":
-        s0 = _slope(_half(q.sp.p, q.cam, light, kind), q.t, q.b, n)
-        sx = _slope(transport(_half(q.px, q.cam, light, kind), q.nx, n), q.t, q.b, n)
-        sy = _slope(transport(_half(q.py, q.cam, light, kind), q.ny, n), q.t, q.b, n)
-    else:  # avgnormal: Tokuyoshi sec. 2, the normals' slopes about the 3-tap quad average
-        nb = dr.normalize(n + q.nx + q.ny)
-        if method.isotropic:  # any tangent basis about n_bar will do
-            fb = mi.Frame3f(nb)
-            t, b = fb.s, fb.t
-        else:  # A must be in the pixel's frame: carry (t, b) from n to n_bar
-            t, b = transport(q.t, n, nb), transport(q.b, n, nb)
-        s0, sx, sy = (_slope(v, t, b, nb) for v in (n, q.nx, q.ny))
+        return (n, _half(q.sp.p, q.cam, light, kind),
+                transport(_half(q.px, q.cam, light, kind), q.nx, n),
+                transport(_half(q.py, q.cam, light, kind), q.ny, n))
+    return dr.normalize(n + q.nx + q.ny), n, q.nx, q.ny
+
+
+def _differences(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
+    """Slope differences ``(du, dv)`` across the quad for the method's source, in the
+    pixel's tangent basis (carried to the average normal for ``avgnormal``; any basis about
+    it for the isotropic forms)."""
+    big_n, v0, vx, vy = _quad_vectors(q, method, light, kind)
+    if method.source == "halfvector":
+        t, b = q.t, q.b
+    elif method.isotropic:  # any tangent basis about n_bar will do
+        fb = mi.Frame3f(big_n)
+        t, b = fb.s, fb.t
+    else:  # A must be in the pixel's frame: carry (t, b) from n to n_bar
+        t, b = transport(q.t, q.sp.n, big_n), transport(q.b, q.sp.n, big_n)
+    s0, sx, sy = (_slope(v, t, b, big_n) for v in (v0, vx, vy))
     # a missing partner differs by exactly 0 (not by the rounding of two huge grazing slopes)
     du = tuple(dr.select(q.okx, sx[i] - s0[i], 0.0) for i in range(2))
     dv = tuple(dr.select(q.oky, sy[i] - s0[i], 0.0) for i in range(2))
@@ -358,15 +369,7 @@ def _largest_eigenvalue(q: _Quad, method: Method, light=None, kind: str = ""):
     dv`` are 3D vectors in ``N``'s tangent plane and ``Sigma``'s eigenvalues are those of their
     Gram matrix ``sigma^2 [[du.du, du.dv], [du.dv, dv.dv]]`` (the same as :func:`kernel`'s
     ``eig`` form in any basis, with less work)."""
-    n = q.sp.n
-    if method.source == "halfvector":
-        big_n = n
-        v0 = _half(q.sp.p, q.cam, light, kind)
-        vx = transport(_half(q.px, q.cam, light, kind), q.nx, n)
-        vy = transport(_half(q.py, q.cam, light, kind), q.ny, n)
-    else:
-        big_n = dr.normalize(n + q.nx + q.ny)
-        v0, vx, vy = n, q.nx, q.ny
+    big_n, v0, vx, vy = _quad_vectors(q, method, light, kind)
 
     def lift(v):  # the tangential part over the normal one (clamped like _slope)
         z = dr.dot(v, big_n)
@@ -375,10 +378,9 @@ def _largest_eigenvalue(q: _Quad, method: Method, light=None, kind: str = ""):
     q0 = lift(v0)
     du = dr.select(q.okx, lift(vx) - q0, 0.0)
     dv = dr.select(q.oky, lift(vy) - q0, 0.0)
-    a, b, c = dr.squared_norm(du), dr.dot(du, dv), dr.squared_norm(dv)
-    # eigenvalues of the Gram matrix [[a, b], [b, c]], times 2 sigma^2 (eq. 2)
-    lam = 0.5 * (a + c) + dr.sqrt(dr.maximum(0.25 * dr.square(a - c) + dr.square(b), 0.0))
-    return 2.0 * SIGMA2 * lam
+    gram = (dr.squared_norm(du), dr.dot(du, dv), dr.squared_norm(dv))
+    # Tokuyoshi, eqs. 1-2: 2 sigma^2 times the Gram matrix's largest eigenvalue
+    return 2.0 * SIGMA2 * _eigen(*gram)[0]
 
 
 def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
@@ -458,9 +460,7 @@ def _kernel(ch: dict, cam: list, method: Method, lights: list, polygons: list,
     # the image size is an explicit (key) argument: dr.freeze may replay a recording made
     # for another size, and sizes read off the input tensors are baked into the recording
     h, w = size
-    p = mi.Point3f(*split(ch["position"]))
-    wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
-    sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
+    sp = ShadingPoints.at_camera(ch, cam)
     q = _quad(ch, sp, mi.Point3f(*cam), size, method.per_light)
     c = _shade_lanes(q, method, lights, polygons, two_sided, table, textures)
     return merge([c[0], c[1], c[2]], h, w)

@@ -148,19 +148,17 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
 
     res = SpecAAResults(tuple(size), spp, temporal_spp, frames)
     say(f"reference, frame 0 ({spp} sub-pixel samples)")
-    lights, polys = lights_of(0)
-    ref = specaa.reference(rend, 0, lights, polys, spp=spp)
-    gb = rend.render(0)
-    f0 = f0_image(setup, gb)
-    flat = _flat_mask(setup, gb)
-    hit = gb.numpy("mesh_id")[..., 0] > 0
+    ref = specaa.reference(rend, 0, *lights_of(0), spp=spp)
     seqs: dict[str, list] = {m: [] for m in methods}
     seqs["reference"] = []
     for t in range(frames):
         say(f"frame {t + 1}/{frames}")
         lt, pl = lights_of(t)
-        g = gb if t == 0 else rend.render(t)
-        f0_t = f0 if t == 0 else f0_image(setup, g)
+        g = rend.render(t)
+        f0_t = f0_image(setup, g)
+        if t == 0:
+            flat = _flat_mask(setup, g)
+            hit = g.numpy("mesh_id")[..., 0] > 0
         for m in methods:
             meth, masking = _variant(m)
             seqs[m].append(specaa.shade(g, lt, pl, meth, f0_t, frozen=True, masking=masking))
@@ -168,10 +166,10 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
             ref if t == 0 and temporal_spp == spp
             else specaa.reference(rend, t, lt, pl, spp=temporal_spp))
     res.reference_temporal = metrics.temporal_error(seqs["reference"])
+    ref_flat = float(ref[flat].mean()) if flat.any() else float("nan")
     for m in methods:
         img = seqs[m][0]
         d = (img - ref).mean(axis=-1)
-        ref_flat = float(ref[flat].mean()) if flat.any() else float("nan")
         res.rows.append({
             "method": m,
             "rmse": metrics.rmse(img, ref),
@@ -188,6 +186,14 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
     res.images[f"reference ({spp} spp)"] = ref
     res.seconds = time.perf_counter() - t_start
     return res
+
+
+def timing_markdown(t: dict) -> str:
+    """:func:`timing`'s result as a markdown table."""
+    rows = ["| method | ms / frame | x none |", "|---|---|---|"]
+    rows += [f"| {k} | {1000 * v:.2f} | {t['ratio_to_none'][k]:.3f} |"
+             for k, v in t["seconds"].items()]
+    return "\n".join(rows)
 
 
 def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE) -> dict:

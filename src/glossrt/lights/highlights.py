@@ -158,9 +158,7 @@ def _fast_kernel(ch: dict, cam: list, data, base, has, tables, n_ids: int, n_lev
     from .envmap import _lookup_dr
 
     h, w = size  # explicit: part of dr.freeze's key (see ltc._shade_kernel)
-    p = mi.Point3f(*split(ch["position"]))
-    wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
-    sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
+    sp = ShadingPoints.at_camera(ch, cam)
     ids = mi.UInt32(split(ch["mesh_id"])[0])
     inside = ids < n_ids
     idx = dr.select(inside, ids, 0)

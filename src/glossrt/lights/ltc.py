@@ -38,7 +38,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..denoise.common import check_frame, merge, split  # noqa: E402
+from ..denoise.common import check_frame, merge  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
 from ..jit import no_gc, opaque  # noqa: E402
 from .polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
@@ -320,9 +320,7 @@ def _shade_kernel(ch: dict, cam: list, lights: list, two_sided: tuple, table,
     # ``size`` (H, W) is an explicit argument, part of dr.freeze's key: a recording made for
     # another image size can otherwise be replayed with that size baked in
     h, w = size
-    p = mi.Point3f(*split(ch["position"]))
-    wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
-    sp = ShadingPoints.of_channels(ch, wo, ch["f0"])
+    sp = ShadingPoints.at_camera(ch, cam)
     total = _shade(sp, table, lights, two_sided)
     return merge([total[0], total[1], total[2]], h, w)
 

@@ -20,6 +20,7 @@ scene (Mitsuba ``ray_test``, up to just before ``y``) gates every contribution.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from .. import backend
 
@@ -137,6 +138,49 @@ def _spec_weight(sp: ShadingPoints) -> mi.Float:
     return la / (la + ls)  # q: probability of the cosine strategy
 
 
+@dataclass
+class Strategy:
+    """One MIS strategy's sample towards a light: the light point ``y``, the BRDF terms
+    ``fd, fs`` (f cos, :func:`brdf_cos`), the emitted radiance ``le``, the balance-heuristic
+    denominator ``p_l + p_b`` and whether the sample counts (``ok``, no visibility)."""
+
+    y: mi.Point3f
+    fd: mi.Color3f
+    fs: mi.Color3f
+    le: mi.Color3f
+    denom: mi.Float
+    ok: mi.Bool
+
+
+def strategies(sp: ShadingPoints, lt, frame: mi.Frame3f, wo_l: mi.Vector3f, q: mi.Float,
+               rng: mi.PCG32) -> tuple[Strategy, Strategy]:
+    """The two MIS samples of :func:`estimate` for light ``lt`` (light sampling, then BRDF
+    sampling: cosine with probability ``q``, else GGX visible normals), drawing 3 + 3 random
+    numbers from ``rng`` in that order."""
+    # -- strategy 1: light sampling
+    y = lt.sample(rng.next_float32(), rng.next_float32(), rng.next_float32())
+    w = dr.normalize(y - sp.p)
+    fd, fs = brdf_cos(sp, w)
+    p_l = lt.pdf(sp.p, y, w)
+    p_b = _pdf_brdf(sp, frame, wo_l, q, w)
+    ok = sp.hit & (p_l > 0) & dr.isfinite(p_l)
+    s1 = Strategy(y, fd, fs, lt.emitted(y, w), dr.maximum(p_l + p_b, 1e-30), ok)
+    # -- strategy 2: BRDF sampling
+    u0, u1, u2 = rng.next_float32(), rng.next_float32(), rng.next_float32()
+    wd = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u1, u2))
+    hx, hy, hz = sample_vndf(wo_l.x, wo_l.y, wo_l.z, sp.alpha, u1, u2)
+    h = mi.Vector3f(hx, hy, hz)
+    wl = dr.select(u0 < q, wd, 2.0 * dr.dot(wo_l, h) * h - wo_l)
+    w2 = frame.to_world(wl)
+    t, y2 = lt.intersect(sp.p, w2)
+    fd2, fs2 = brdf_cos(sp, w2)
+    p_b2 = _pdf_brdf(sp, frame, wo_l, q, w2)
+    p_l2 = lt.pdf(sp.p, y2, w2)
+    ok2 = sp.hit & dr.isfinite(t) & (p_b2 > 0) & (wl.z > 0)
+    s2 = Strategy(y2, fd2, fs2, lt.emitted(y2, w2), dr.maximum(p_l2 + p_b2, 1e-30), ok2)
+    return s1, s2
+
+
 def estimate(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) -> mi.Color3f:
     """One two-strategy MIS sample per lane of the direct light from ``lights`` (diffuse +
     specular summed); ``scene`` given: with shadows."""
@@ -145,37 +189,12 @@ def estimate(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) -> mi.C
     q = _spec_weight(sp)
     total = dr.zeros(mi.Color3f, dr.width(sp.p))
     for lt in lights:
-        # -- strategy 1: light sampling
-        y = lt.sample(rng.next_float32(), rng.next_float32(), rng.next_float32())
-        d = y - sp.p
-        w = dr.normalize(d)
-        fd, fs = brdf_cos(sp, w)
-        p_l = lt.pdf(sp.p, y, w)
-        p_b = _pdf_brdf(sp, frame, wo_l, q, w)
-        le = lt.emitted(y, w)
-        ok = sp.hit & (p_l > 0) & dr.isfinite(p_l)
-        if scene is not None:
-            ok &= _visible(scene, sp.p, sp.n, y, ok)
-        # Veach 1997, balance heuristic: f L / p_l * p_l / (p_l + p_b)
-        total += dr.select(ok, (fd + fs) * le / dr.maximum(p_l + p_b, 1e-30), 0.0)
-        # -- strategy 2: BRDF sampling
-        u0, u1, u2 = rng.next_float32(), rng.next_float32(), rng.next_float32()
-        use_d = u0 < q
-        wd = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u1, u2))
-        hx, hy, hz = sample_vndf(wo_l.x, wo_l.y, wo_l.z, sp.alpha, u1, u2)
-        h = mi.Vector3f(hx, hy, hz)
-        ws = 2.0 * dr.dot(wo_l, h) * h - wo_l
-        wl = dr.select(use_d, wd, ws)
-        w2 = frame.to_world(wl)
-        t, y2 = lt.intersect(sp.p, w2)
-        fd2, fs2 = brdf_cos(sp, w2)
-        p_b2 = _pdf_brdf(sp, frame, wo_l, q, w2)
-        p_l2 = lt.pdf(sp.p, y2, w2)
-        ok2 = sp.hit & dr.isfinite(t) & (p_b2 > 0) & (wl.z > 0)
-        if scene is not None:
-            ok2 &= _visible(scene, sp.p, sp.n, y2, ok2)
-        le2 = lt.emitted(y2, w2)
-        total += dr.select(ok2, (fd2 + fs2) * le2 / dr.maximum(p_l2 + p_b2, 1e-30), 0.0)
+        for st in strategies(sp, lt, frame, wo_l, q, rng):
+            ok = st.ok
+            if scene is not None:
+                ok &= _visible(scene, sp.p, sp.n, st.y, ok)
+            # Veach 1997, balance heuristic: f L / p_l * p_l / (p_l + p_b), either strategy
+            total += dr.select(ok, (st.fd + st.fs) * st.le / st.denom, 0.0)
     return total
 
 

@@ -73,12 +73,11 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..brdf.ggx import sample_vndf  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..frame import RADIANCE, Frame  # noqa: E402
 from .ltc import shade_frame  # noqa: E402
-from .mc import _Light, _pdf_brdf, _spec_weight, _visible, sample_batches  # noqa: E402
-from .shading import ShadingPoints, brdf_cos  # noqa: E402
+from .mc import _Light, _spec_weight, _visible, sample_batches, strategies  # noqa: E402
+from .shading import ShadingPoints  # noqa: E402
 
 __all__ = ["COMPONENTS", "RatioImages", "estimate_pair", "filtered_ratio", "render_ratio",
            "stochastic_pair"]
@@ -101,8 +100,8 @@ class Pair:
 def estimate_pair(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) -> Pair:
     """One two-strategy MIS sample per lane of the direct light of ``lights`` (``_Light``
     objects of :mod:`glossrt.lights.mc`), with and without shadow rays through ``scene``,
-    from the same samples (random numbers drawn as :func:`glossrt.lights.mc.estimate` draws
-    them; ``scene=None``: ``s`` is ``u``)."""
+    from the same samples (:func:`glossrt.lights.mc.strategies`, the ones
+    :func:`glossrt.lights.mc.estimate` draws; ``scene=None``: ``s`` is ``u``)."""
     frame = mi.Frame3f(sp.n)
     wo_l = frame.to_local(sp.wo)
     q = _spec_weight(sp)
@@ -110,37 +109,19 @@ def estimate_pair(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) ->
     u_d, u_s = dr.zeros(mi.Color3f, n), dr.zeros(mi.Color3f, n)
     s_d, s_s = dr.zeros(mi.Color3f, n), dr.zeros(mi.Color3f, n)
     for lt in lights:
-        # -- strategy 1: light sampling
-        y = lt.sample(rng.next_float32(), rng.next_float32(), rng.next_float32())
-        w = dr.normalize(y - sp.p)
-        fd, fs = brdf_cos(sp, w)
-        p_l = lt.pdf(sp.p, y, w)
-        p_b = _pdf_brdf(sp, frame, wo_l, q, w)
-        ok = sp.hit & (p_l > 0) & dr.isfinite(p_l)
+        s1, s2 = strategies(sp, lt, frame, wo_l, q, rng)
         # Veach 1997, balance heuristic: f L / p_l * p_l / (p_l + p_b)
-        scale = dr.select(ok, lt.emitted(y, w) / dr.maximum(p_l + p_b, 1e-30), 0.0)
-        # -- strategy 2: BRDF sampling
-        u0, u1, u2 = rng.next_float32(), rng.next_float32(), rng.next_float32()
-        wd = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u1, u2))
-        hx, hy, hz = sample_vndf(wo_l.x, wo_l.y, wo_l.z, sp.alpha, u1, u2)
-        h = mi.Vector3f(hx, hy, hz)
-        wl = dr.select(u0 < q, wd, 2.0 * dr.dot(wo_l, h) * h - wo_l)
-        w2 = frame.to_world(wl)
-        t, y2 = lt.intersect(sp.p, w2)
-        fd2, fs2 = brdf_cos(sp, w2)
-        p_b2 = _pdf_brdf(sp, frame, wo_l, q, w2)
-        p_l2 = lt.pdf(sp.p, y2, w2)
-        ok2 = sp.hit & dr.isfinite(t) & (p_b2 > 0) & (wl.z > 0)
-        scale2 = dr.select(ok2, lt.emitted(y2, w2) / dr.maximum(p_l2 + p_b2, 1e-30), 0.0)
+        scale = dr.select(s1.ok, s1.le / s1.denom, 0.0)
+        scale2 = dr.select(s2.ok, s2.le / s2.denom, 0.0)
         # Heitz, Hill & McGuire 2018, ratio estimator: the same sample, with and without V
-        c_d, c_s = fd * scale, fs * scale
-        c_d2, c_s2 = fd2 * scale2, fs2 * scale2
+        c_d, c_s = s1.fd * scale, s1.fs * scale
+        c_d2, c_s2 = s2.fd * scale2, s2.fs * scale2
         u_d += c_d + c_d2
         u_s += c_s + c_s2
         if scene is None:
             continue
-        vis = _visible(scene, sp.p, sp.n, y, ok)
-        vis2 = _visible(scene, sp.p, sp.n, y2, ok2)
+        vis = _visible(scene, sp.p, sp.n, s1.y, s1.ok)
+        vis2 = _visible(scene, sp.p, sp.n, s2.y, s2.ok)
         s_d += dr.select(vis, c_d, 0.0) + dr.select(vis2, c_d2, 0.0)
         s_s += dr.select(vis, c_s, 0.0) + dr.select(vis2, c_s2, 0.0)
     if scene is None:

@@ -101,6 +101,16 @@ class ShadingPoints:
                              mi.Color3f(*split(f0)), hit & (dr.dot(n, wo) > 0))
 
 
+    @staticmethod
+    def at_camera(ch: dict, cam: list) -> ShadingPoints:
+        """:meth:`of_channels` with the view directions towards the camera position ``cam``
+        (three opaque scalars) and F0 from ``ch["f0"]``: the prelude of every frozen shading
+        kernel."""
+        p = mi.Point3f(*split(ch["position"]))
+        wo = dr.normalize(mi.Vector3f(cam[0] - p.x, cam[1] - p.y, cam[2] - p.z))
+        return ShadingPoints.of_channels(ch, wo, ch["f0"])
+
+
 def _take(sp: ShadingPoints, index: mi.UInt32) -> ShadingPoints:
     return ShadingPoints(*(dr.gather(type(v), v, index) for v in (
         sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)))

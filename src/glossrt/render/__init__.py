@@ -68,8 +68,10 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
 
 def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
            max_depth, jitter, normal_maps):
+    # ``normal_maps`` (= shapes.any_normal_map, which gbuffer() reads) is only a key of the
+    # frozen function: a Python attribute of the ShapeTable is not part of dr.freeze's key
     out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
-                       height, max_depth, jitter, normal_maps)
+                       height, max_depth, jitter)
     return {k: _flat(v) for k, v in out.items()}
 
 

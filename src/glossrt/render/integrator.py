@@ -66,8 +66,7 @@ class GlossrtIntegrator(mi.SamplingIntegrator):
         ray = mi.Ray3f(ray)
         r = shade(scene, sampler, ray, self.max_depth, self._emitter_table(scene))
         sensor = scene.sensors()[0]
-        shapes = self._shapes(scene)
-        gb = gbuffer(r.si, r.bsdf, ray, sensor, shapes, self.albedo, shapes.any_normal_map)
+        gb = gbuffer(r.si, r.bsdf, ray, sensor, self._shapes(scene), self.albedo)
         values = {name: getattr(r, name) for name in RADIANCE_OUT}
         values.update(gb)
         values["depth"] = dr.select(r.si.is_valid(), gb["depth"], 0.0)  # films can't average inf

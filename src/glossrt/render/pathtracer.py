@@ -334,7 +334,7 @@ def camera_axes(sensor: mi.Sensor) -> tuple[mi.Point3f, mi.Vector3f]:
 
 
 def shading_normal(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f,
-                   normal_map: mi.UInt32, active: mi.Bool) -> tuple[mi.Vector3f, mi.Bool]:
+                   normal_map: mi.UInt32 | None, active: mi.Bool) -> tuple[mi.Vector3f, mi.Bool]:
     """World-space unit shading normal of the hit ``si`` (seen along ``ray``) that the
     BSDF's reflection is centred on, turned to the camera's side of the surface, and whether
     it is a normal-mapped one.
@@ -348,9 +348,13 @@ def shading_normal(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f,
     off is not recognised), normalised and taken to world space by ``si.sh_frame``; negated
     like the unperturbed normal on the back side. For ``twosided`` around a normal map
     (:data:`~glossrt.render.materials.NORMAL_MAP_TWOSIDED`) the back side is evaluated as
-    Mitsuba's ``twosided`` does: with ``wi`` and the normal's local z mirrored."""
+    Mitsuba's ``twosided`` does: with ``wi`` and the normal's local z mirrored.
+    ``normal_map=None`` (no shape of the scene has one): the texture's virtual call is not
+    traced at all."""
     n = mi.Vector3f(si.sh_frame.n)
     back = dr.dot(n, -ray.d) < 0
+    if normal_map is None:
+        return dr.select(back, -n, n), mi.Bool(False)
     mapped = active & (normal_map != 0)
     mirror = back & (normal_map == NORMAL_MAP_TWOSIDED)
     tex = mi.Vector3f(bsdf.eval_attribute_3("normalmap", si, mapped))
@@ -369,12 +373,12 @@ def shading_normal(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f,
 
 
 def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor: mi.Sensor,
-            shapes: ShapeTable, table, normal_maps: bool = True) -> dict:
+            shapes: ShapeTable, table) -> dict:
     """Noise-free G-buffer values of the primary hit. ``normal`` is :func:`shading_normal`
     (normal-mapped where the BSDF is a ``normalmap``); on normal-mapped surfaces the specular
     albedo is looked up at the cosine to that normal (0 should it face away from the camera;
-    the plugin's shadow-terminator factor is not included). ``normal_maps=False`` (no shape
-    of the scene has one: ``ShapeTable.any_normal_map``) skips the normal-map lookup."""
+    the plugin's shadow-terminator factor is not included). Scenes without normal maps
+    (``ShapeTable.any_normal_map`` False) skip the lookup."""
     valid = si.is_valid()
     rid = dr.reinterpret_array(mi.UInt32, si.shape)
     rid = dr.select(valid, rid, 0)
@@ -385,13 +389,9 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     alpha = dr.gather(mi.Float, shapes.alpha, rid, valid)
     f0 = dr.gather(mi.Color3f, shapes.f0, rid, valid)
     alpha = dr.select(attr, bsdf.eval_attribute_1("alpha", si, valid & attr), alpha)
-    if normal_maps:
-        normal_map = dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
-        n, mapped = shading_normal(si, bsdf, ray, normal_map, valid)
-    else:  # as shading_normal without a map, without tracing the texture's virtual call
-        n = mi.Vector3f(si.sh_frame.n)
-        n = dr.select(dr.dot(n, -ray.d) < 0, -n, n)
-        mapped = mi.Bool(False)
+    normal_map = (dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
+                  if shapes.any_normal_map else None)
+    n, mapped = shading_normal(si, bsdf, ray, normal_map, valid)
     cos_o = dr.abs(mi.Frame3f.cos_theta(si.wi))
     cos_m = dr.dot(n, -ray.d)
     cos_o = dr.select(mapped, dr.maximum(cos_m, 1e-4), cos_o)
@@ -415,7 +415,7 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
 def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  emitters: EmitterTable, table, motion_inputs, pixel: mi.UInt32,
                  seed: mi.UInt32, width: int, height: int, max_depth: int,
-                 jitter: mi.Point2f | None = None, normal_maps: bool = True) -> dict:
+                 jitter: mi.Point2f | None = None) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
     ``jitter`` (pixels, in [-0.5, 0.5)) moves every primary ray off the pixel centre."""
@@ -429,7 +429,7 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)
     r = shade(scene, sampler, ray, max_depth, emitters)
-    out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table, normal_maps)
+    out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
     bad = mi.UInt32(0)  # per lane: radiance values that were not finite
     color = dr.zeros(mi.Color3f)
     for name in RADIANCE_OUT:
