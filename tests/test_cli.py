@@ -91,6 +91,20 @@ def test_bench_json(tmp_path, capsys):
     assert r["glossrt_frame_s"] > 0 and r["mitsuba_path_1spp_s"] > 0
     assert r["ratio_frame_vs_path"] == pytest.approx(
         r["glossrt_frame_s"] / r["mitsuba_path_1spp_s"])
+    d = res["results"]["denoisers"]
+    assert d["cost_vs_atrous"]["atrous"] == 1.0 and d["seconds"]["svgf"] > 0
+
+
+def test_round_robin_pairs_samples():
+    from glossrt.bench import paired_ratio, round_robin
+
+    calls = []
+    times = round_robin({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")},
+                        warmup=1, repeats=3)
+    assert calls == ["a", "b"] + ["a", "b"] * 3  # warm-up, then strictly in turn
+    assert len(times["a"]) == len(times["b"]) == 3
+    # the median of per-repeat ratios, not the ratio of medians (2 here, 1.5 otherwise)
+    assert paired_ratio([2.0, 4.0, 3.0], [1.0, 2.0, 3.0]) == 2.0
 
 
 def test_demo_writes_report(tmp_path):

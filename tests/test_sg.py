@@ -393,3 +393,7 @@ def test_lobe_weight_factors_match_the_closed_form(beta):
         _v(xp), sg.smoothed_sharpness(_f(lp), kappa), _v(xq) * lbq, beta)
     packed = _np(ratio) * np.exp(_np(log_g))
     np.testing.assert_allclose(packed, want, rtol=2e-3, atol=1e-6)
+    # ... and with lambda_bar loaded beside the vector (no norm per tap)
+    ratio, log_g = sg.lobe_weight_factors_packed(
+        _v(xp), sg.smoothed_sharpness(_f(lp), kappa), _v(xq) * lbq, beta, lbq)
+    np.testing.assert_allclose(_np(ratio) * np.exp(_np(log_g)), want, rtol=2e-3, atol=1e-6)

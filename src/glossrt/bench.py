@@ -54,6 +54,32 @@ def timeit(fn: Callable[[], object], warmup: int, repeats: int) -> dict:
             "repeats": repeats}
 
 
+def round_robin(cases: dict[str, Callable[[], object]], warmup: int,
+                repeats: int) -> dict[str, list[float]]:
+    """Wall times (s) of every case, called in turn: repeat i times each case once, so the
+    i-th samples of all cases are taken within moments of each other and a slow spell of the
+    machine hits them alike (ratios: :func:`paired_ratio`)."""
+    import drjit as dr
+
+    for fn in cases.values():
+        for _ in range(warmup):
+            fn()
+    dr.sync_thread()
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(repeats):
+        for name, fn in cases.items():
+            t0 = time.perf_counter()
+            fn()
+            dr.sync_thread()
+            times[name].append(time.perf_counter() - t0)
+    return times
+
+
+def paired_ratio(num: list[float], den: list[float]) -> float:
+    """Median over repeats of ``num[i] / den[i]`` (samples from :func:`round_robin`)."""
+    return statistics.median(a / b for a, b in zip(num, den, strict=True))
+
+
 @benchmark("render-vs-mitsuba-path")
 def render_vs_mitsuba(ctx: BenchContext) -> dict:
     """glossrt's G-buffer + separated 1 spp frame (frozen) vs Mitsuba's own 1 spp ``path``
@@ -107,15 +133,22 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
 
 @benchmark("denoisers")
 def denoisers(ctx: BenchContext) -> dict:
-    """Steady-state time per frame of each denoiser on the same glossy-cornell frames (the
-    stateful filters warm up on a short sequence first, so their history is full), measured
-    interleaved in one run; ratios against OIDN and against plain a-trous."""
+    """Steady-state time per frame of each denoiser on a static glossy-cornell sequence (4
+    frames cycling after 8 warm-up frames, so the temporal filters' history is full), the
+    methods called in turn (:func:`round_robin`); ratios against OIDN and against plain
+    a-trous as medians of per-repeat ratios."""
     import drjit as dr
 
     from . import denoise, render, scenes
     from .experiments import _available
 
+    # a static camera and scene: frames i and i + 1 differ only in their noise, so the
+    # reprojection succeeds everywhere and the history stays full while the 4 frames cycle
+    # (feeding one frame over and over with its motion vectors would disocclude most pixels
+    # and time the spatial-variance fallback instead of the steady state)
     setup = scenes.load("glossy-cornell", size=ctx.size)
+    setup.camera_path = None
+    setup.object_paths = {}
     r = render.Renderer(setup)
     frames = [r.render(i) for i in range(4)]
     configs = {
@@ -132,21 +165,23 @@ def denoisers(ctx: BenchContext) -> dict:
         if _available(method):
             continue
         d = denoise.make(method, **params)
-        for f in frames[:3]:
-            dr.eval(d(f))
-        runners[name] = d
-    res = {k: [] for k in runners}
-    for _ in range(3):
-        for name, d in runners.items():
-            res[name].append(timeit(lambda d=d: dr.eval(d(frames[3])), 1,
-                                    max(1, ctx.repeats // 3))["median_s"])
-    med = {k: statistics.median(v) for k, v in res.items()}
-    out = {"scene": "glossy-cornell", "size": list(ctx.size),
-           "seconds": med}
-    if "oidn" in med:
-        out["oidn_over"] = {k: med["oidn"] / v for k, v in med.items()}
-    if "atrous" in med:
-        out["cost_vs_atrous"] = {k: v / med["atrous"] for k, v in med.items()}
+        for i in range(8):
+            dr.eval(d(frames[i % 4]))
+        counter = {"i": 0}
+
+        def step(d=d, counter=counter):
+            counter["i"] += 1
+            dr.eval(d(frames[counter["i"] % 4]))
+
+        runners[name] = step
+    times = round_robin(runners, 1, max(3, ctx.repeats))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    out = {"scene": "glossy-cornell (static camera)", "size": list(ctx.size),
+           "seconds": med, "repeats": max(3, ctx.repeats)}
+    if "oidn" in times:
+        out["oidn_over"] = {k: paired_ratio(times["oidn"], v) for k, v in times.items()}
+    if "atrous" in times:
+        out["cost_vs_atrous"] = {k: paired_ratio(v, times["atrous"]) for k, v in times.items()}
     return out
 
 
@@ -177,15 +212,13 @@ def lobe_weights(ctx: BenchContext) -> dict:
                 cases[f"upsample-1/{f}-{cname}-{weight}"] = (
                     lambda wt=weight, lo=low, ch=ch: dr.eval(
                         upsample(full, lo, weight=wt, channels=ch)))
-    res = {k: [] for k in cases}
-    for _ in range(3):
-        for name, fn in cases.items():
-            res[name].append(timeit(fn, 1, max(1, ctx.repeats // 3))["median_s"])
-    med = {k: statistics.median(v) for k, v in res.items()}
-    ratios = {k.replace("-normal", ""): med[k.replace("-normal", "-lobe")] / v
-              for k, v in med.items() if k.endswith("-normal")}
+    times = round_robin(cases, 1, max(3, ctx.repeats))
+    med = {k: statistics.median(v) for k, v in times.items()}
+    ratios = {k.replace("-normal", ""): paired_ratio(times[k.replace("-normal", "-lobe")], v)
+              for k, v in times.items() if k.endswith("-normal")}
     return {"scene": "roughness-map", "size": [w, h], "seconds": med,
-            "ratio_lobe_vs_normal": ratios, "target_ratio": 1.15}
+            "ratio_lobe_vs_normal": ratios, "target_ratio": 1.15,
+            "repeats": max(3, ctx.repeats)}
 
 
 @benchmark("ltc")

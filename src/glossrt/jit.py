@@ -35,6 +35,33 @@ def opaque(values) -> list:
     return [dr.opaque(mi.Float, float(v)) for v in values]
 
 
+#: 2^f on [0, 1): degree-5 polynomial, c0 = 1 (so exp2(0) = 1 exactly), the other
+#: coefficients fitted to the relative error (max 1.6e-7 evaluated in float32)
+_EXP2_POLY = (1.0, 0.6931513547897339, 0.2401641458272934, 0.05580046772956848,
+              0.009016658179461956, 0.0018671966390684247)
+_LOG2E = 1.4426950408889634
+
+
+def exp_weight(x):
+    """``exp(x)`` for filter weights, in about a third of ``dr.exp``'s instructions (15 vs 40
+    on the LLVM backend, where ``dr.exp`` dominates a tap of an edge-avoiding filter).
+
+    ``2^t`` with ``t = x log2(e)`` split as ``2^floor(t)`` (built in the exponent bits) times
+    a polynomial for ``2^frac(t)``; relative error <= 2e-7 (a float32 ulp or two) for
+    ``|x| <= 87``. Outside that range the result saturates at ``2^-126`` (about 1e-38,
+    not 0) and ``2^127``, and it is meant for finite inputs (a filter's arguments are):
+    use ``dr.exp`` where the tails or NaN propagation matter."""
+    t = dr.clip(x * _LOG2E, -126.0, 127.0)
+    i = dr.floor(t)
+    f = t - i
+    c = _EXP2_POLY
+    p = dr.fma(dr.fma(dr.fma(dr.fma(dr.fma(c[5], f, c[4]), f, c[3]), f, c[2]), f, c[1]), f,
+               c[0])
+    itype = dr.int32_array_t(type(t))
+    scale = dr.reinterpret_array(type(t), (itype(i) + 127) << 23)
+    return p * scale
+
+
 def pow_int(x, n: float):
     """``x**n`` by repeated squaring when ``n`` is a small positive integer (128 is 7
     squarings, far cheaper than ``exp(n log x)``); ``dr.power`` otherwise."""

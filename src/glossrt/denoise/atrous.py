@@ -11,8 +11,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..jit import pow_int
-from .common import H5, GBuffer, Grid, Img, luminance
+from ..jit import exp_weight, pow_int
+from .common import H5, GBuffer, Grid, Img, Packed, luminance
 
 __all__ = ["atrous_taps", "dammertz_level", "dammertz_level_multi", "gaussian3x3", "pow_int",
            "svgf_level", "svgf_level_multi"]
@@ -57,17 +57,28 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
                      sigma_z: float = 1.0, sigma_n: float = 128.0, sigma_l: float = 4.0,
                      lum_weights: bool = True, lobes=None) -> tuple[list, list]:
     """:func:`svgf_level` for several signals at once: the geometric weights w_z * w_n are
-    computed once per tap and shared; colour + variance of a signal are gathered from one
-    interleaved array (one cache line per tap).
+    computed once per tap and shared; the geometry and every signal's colour + variance are
+    interleaved per pixel and read with one packet gather per 8 floats (:class:`Packed`).
 
     ``lobes = (axis (3 Floats), sharpness, use_lobe (list of bool per signal), beta, kappa)``
     replaces w_n by Tokuyoshi 2015's lobe weight for the signals marked True."""
     n_sig = len(colors)
-    # interleaved (r, g, b, var) per signal and (nx, ny, nz, 1/z) for the geometry, read
-    # with one packet gather per tap (Dr.Jit's PacketOps: 4 contiguous floats at once)
-    packed = [dr.ravel(mi.Vector4f(c[0], c[1], c[2], v)) for c, v in
-              zip(colors, variances, strict=True)]
-    geo = dr.ravel(mi.Vector4f(gb.normal[0], gb.normal[1], gb.normal[2], gb.inv_z))
+    # (nx, ny, nz, 1/z) for the geometry, [(lambda_bar xi, lambda_bar) for the lobe weight]
+    # and (r, g, b, var) per signal interleaved, read with one packet gather per 8 channels
+    # and tap (Dr.Jit's PacketOps)
+    chans = [gb.normal[0], gb.normal[1], gb.normal[2], gb.inv_z]
+    if lobes is not None:
+        from ..brdf.sg import lobe_weight_factors_packed, smoothed_sharpness
+
+        axis_p, lam_p, use_lobe, beta, kappa = lobes
+        xi_p = mi.Vector3f(axis_p[0], axis_p[1], axis_p[2])
+        # Tokuyoshi 2015, sec. 4.2: lambda_bar once per pixel, not per tap
+        lb_p = smoothed_sharpness(lam_p, kappa)
+        chans += [lb_p * xi_p[0], lb_p * xi_p[1], lb_p * xi_p[2], lb_p]
+    i_sig = len(chans)
+    for c, v in zip(colors, variances, strict=True):
+        chans += [c[0], c[1], c[2], v]
+    packed = Packed(chans)
     hit_p = gb.inv_z > 0
     lum_p = [luminance(c) for c in colors]
     inv_den_l = [dr.rcp(sigma_l * dr.sqrt(dr.maximum(gaussian3x3(grid, v), 0.0)) + EPS_L)
@@ -77,16 +88,9 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
     acc = [[h0 * ch for ch in c] for c in colors]
     acc_var = [mi.Float(h0 * h0) * v for v in variances]
     eps_z = EPS_Z * gb.inv_z + 1e-12
-    if lobes is not None:
-        from ..brdf.sg import lobe_weight_factors, smoothed_sharpness
-
-        axis_p, lam_p, use_lobe, beta, kappa = lobes
-        xi_p = mi.Vector3f(axis_p[0], axis_p[1], axis_p[2])
-        # Tokuyoshi 2015, sec. 4.2: lambda_bar once per pixel, not per tap
-        lb_p = smoothed_sharpness(lam_p, kappa)
-        lobe_packed = dr.ravel(mi.Vector4f(axis_p[0], axis_p[1], axis_p[2], lb_p))
     for dx, dy, q, inside in atrous_taps(grid, step, hit_p):
-        nq = dr.gather(mi.Vector4f, geo, q)  # packet gather; q is clamped: valid
+        allq = packed.fetch(q)  # packet gathers; q is clamped: valid
+        nq = allq[:4]
         z_q = nq[3]
         # Schied 2017, eq. 3 (on 1/z, an affine function of clip-space depth)
         plane = dr.abs(gb.dzdx * (dx * step) + gb.dzdy * (dy * step))
@@ -98,23 +102,22 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
         valid_q = inside & (z_q > 0)  # never across into background
         w_n = dr.select(valid_q, h * w_n, 0.0)
         if lobes is not None:
-            lq = dr.gather(mi.Vector4f, lobe_packed, q)
-            xi_q = mi.Vector3f(lq[0], lq[1], lq[2])
+            v_q = mi.Vector3f(allq[4], allq[5], allq[6])
             # Tokuyoshi 2015, sec. 4.2 (closed form): the lobe weight in place of w_n, as
             # ratio * exp(log_g) with log_g folded into the exponent of w_z * w_l below
-            ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, lq[3], beta)
+            ratio, log_g = lobe_weight_factors_packed(xi_p, lb_p, v_q, beta, allq[7])
             w_lobe = dr.select(valid_q, h * ratio, 0.0)
         for k in range(n_sig):
-            cq = dr.gather(mi.Vector4f, packed[k], q)
+            cq = allq[i_sig + 4 * k:i_sig + 4 + 4 * k]
             lobe_k = lobes is not None and use_lobe[k]
             w_g = w_lobe if lobe_k else w_n
             a_g = a_z - log_g if lobe_k else a_z
             if lum_weights:
                 # Schied 2017, eq. 3 * eq. 5: exp(-a_z) exp(-a_l) = exp(-(a_z + a_l))
                 l_q = luminance([cq[0], cq[1], cq[2]])
-                hw = w_g * dr.exp(-(a_g + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
+                hw = w_g * exp_weight(-(a_g + dr.abs(lum_p[k] - l_q) * inv_den_l[k]))
             else:
-                hw = w_g * dr.exp(-a_g)
+                hw = w_g * exp_weight(-a_g)
             sum_w[k] += hw
             acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
             acc_var[k] += dr.square(hw) * cq[3]
@@ -137,30 +140,34 @@ def dammertz_level(grid: Grid, color: Img, gb: GBuffer, step: int, sigma_rt: flo
 def dammertz_level_multi(grid: Grid, colors: list, gb: GBuffer, step: int, sigma_rt: float,
                          sigma_n: float, sigma_x: float) -> list:
     """:func:`dammertz_level` for several signals: the normal and position weights are
-    computed once per tap and shared, data are read with 4-wide packet gathers (as in
-    :func:`svgf_level_multi`, so that the two are compared on equal terms)."""
+    computed once per tap and shared, data are read with packet gathers of interleaved
+    channels (as in :func:`svgf_level_multi`, so that the two are compared on equal
+    terms)."""
     hit_p = gb.hit
     h0 = H5[2] * H5[2]
     sum_w = [mi.Float(h0) for _ in colors]
     acc = [[h0 * ch for ch in c] for c in colors]
     inv_rt, inv_n, inv_x = 1 / sigma_rt**2, 1 / sigma_n**2, 1 / sigma_x**2
     n, x = gb.normal, gb.position
-    geo_a = dr.ravel(mi.Vector4f(n[0], n[1], n[2], x[0]))
-    geo_b = dr.ravel(mi.Vector4f(x[1], x[2], gb.mesh, 0.0))
-    packed = [dr.ravel(mi.Vector4f(c[0], c[1], c[2], 0.0)) for c in colors]
+    # normal, position, mesh id and every signal's colour interleaved: one packet gather
+    # per 8 channels and tap
+    chans = [n[0], n[1], n[2], x[0], x[1], x[2], gb.mesh]
+    for c in colors:
+        chans += [c[0], c[1], c[2]]
+    packed = Packed(chans)
     for dx, dy, q, inside in atrous_taps(grid, step, hit_p):
-        ga = dr.gather(mi.Vector4f, geo_a, q)  # q is clamped: always valid
-        gb_ = dr.gather(mi.Vector4f, geo_b, q)
+        vals = packed.fetch(q)  # q is clamped: always valid
         # Dammertz: the normal distance is divided by the squared step width
-        d_n = (dr.square(n[0] - ga[0]) + dr.square(n[1] - ga[1]) + dr.square(n[2] - ga[2])) / (
-            step * step)
-        d_x = dr.square(x[0] - ga[3]) + dr.square(x[1] - gb_[0]) + dr.square(x[2] - gb_[1])
+        d_n = (dr.square(n[0] - vals[0]) + dr.square(n[1] - vals[1]) +
+               dr.square(n[2] - vals[2])) / (step * step)
+        d_x = dr.square(x[0] - vals[3]) + dr.square(x[1] - vals[4]) + dr.square(x[2] - vals[5])
         h = H5[dx + 2] * H5[dy + 2]
-        w_g = dr.select(inside & (gb_[2] > 0), h * dr.exp(-(d_n * inv_n + d_x * inv_x)), 0.0)
+        w_g = dr.select(inside & (vals[6] > 0), h * exp_weight(-(d_n * inv_n + d_x * inv_x)),
+                        0.0)
         for k, c in enumerate(colors):
-            cq = dr.gather(mi.Vector4f, packed[k], q)
+            cq = vals[7 + 3 * k:10 + 3 * k]
             d_c = dr.square(c[0] - cq[0]) + dr.square(c[1] - cq[1]) + dr.square(c[2] - cq[2])
-            hw = w_g * dr.exp(-d_c * inv_rt)
+            hw = w_g * exp_weight(-d_c * inv_rt)
             sum_w[k] += hw
             acc[k] = [a + hw * cq[j] for j, a in enumerate(acc[k])]
     return [[dr.select(hit_p, a / sw, ch) for a, ch in zip(ak, c, strict=True)]

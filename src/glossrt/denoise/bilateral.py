@@ -84,8 +84,10 @@ from ..brdf.sg import (
 )
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
+from ..jit import exp_weight
 from .common import (
     Grid,
+    Packed,
     albedo_channel,
     check_frame,
     demodulate,
@@ -178,9 +180,8 @@ def bilateral(frame, weight: str = "normal",
     normal = split(frame["normal"])
     z = split(frame["depth"])[0]
     hit = (split(frame["mesh_id"])[0] > 0) & dr.isfinite(z) & (z > 0)
-    # packed guidance (n, z) with z = -1 marking background: one packet gather per tap
+    # z = -1 marks background
     zkey = dr.select(hit, z, -1.0)
-    geo = dr.ravel(mi.Vector4f(normal[0], normal[1], normal[2], zkey))
     n_p = mi.Vector3f(*normal)
     if use_lobe or use_screen:
         pos = split(frame["position"])
@@ -192,11 +193,9 @@ def bilateral(frame, weight: str = "normal",
         lam_p = dr.select(hit, lam_p, 1.0)
     if use_lobe:
         # sec. 4.2: the smoothed sharpness lambda_bar = lambda kappa / (lambda + kappa), once
-        # per pixel (not per tap); packed with the depth as (lambda_bar xi, z): one 4-wide
-        # gather per tap gives a neighbour's lobe and depth
+        # per pixel (not per tap), read by the taps as (lambda_bar xi, lambda_bar)
         lb_p = smoothed_sharpness(lam_p, kappa)
-        lobes = dr.ravel(mi.Vector4f(lb_p * xi_p[0], lb_p * xi_p[1], lb_p * xi_p[2], zkey))
-        dr.eval(lobes, xi_p, lb_p)
+        dr.eval(xi_p, lb_p)
     if use_screen:
         # glossrt's fig. 4(c) baseline: per-pixel sigma_s,i from the lobe sharpness
         sig_i = screen_sigma(lam_p, pixel_angle(frame), k_s, sigma_min, sigma_s)
@@ -211,11 +210,20 @@ def bilateral(frame, weight: str = "normal",
         signals.append(illum)
         albedos.append(alb)
         specular.append(c.endswith("specular"))
-    packed = [dr.ravel(mi.Vector4f(s[0], s[1], s[2], 0.0)) for s in signals]
-    # the centre pixel's guides once, not re-derived in every window-row kernel
-    dr.eval(geo, packed, hit, z, n_p)
     # the normal weight is needed unless the lobe weight serves every channel
     need_normal = not (use_lobe and all(specular))
+    # everything a tap reads, interleaved: one packet gather per 8 channels; layout
+    # [normal (3)] [lambda_bar xi (3), lambda_bar] z [illumination (3) per channel]
+    chans = list(normal) if need_normal else []
+    if use_lobe:
+        chans += [lb_p * xi_p[0], lb_p * xi_p[1], lb_p * xi_p[2], lb_p]
+    i_z = len(chans)
+    chans.append(zkey)
+    for sig in signals:
+        chans += sig
+    packed = Packed(chans)
+    # the centre pixel's guides once, not re-derived in every window-row kernel
+    dr.eval(packed.parts, hit, z, n_p)
 
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
@@ -227,11 +235,8 @@ def bilateral(frame, weight: str = "normal",
                 continue
             qx, qy = grid.x + dx, grid.y + dy
             q = grid.index(qx, qy)  # clamped, hence a valid gather
-            if need_normal:
-                g = dr.gather(mi.Vector4f, geo, q)
-            if use_lobe:
-                lq = dr.gather(mi.Vector4f, lobes, q)
-            z_q = lq[3] if use_lobe else g[3]
+            vals = packed.fetch(q)
+            z_q = vals[i_z]
             valid = hit & grid.inside(qx, qy) & (z_q > 0)  # never a background tap
             # sec. 2.2: f(s_i, s_j) = exp(-|s_i - s_j|^2 / (2 sigma_s^2))
             log_w = -float(dx * dx + dy * dy) * inv_2s2
@@ -248,30 +253,31 @@ def bilateral(frame, weight: str = "normal",
             # sec. 2.2: w_n = g(|n_i - n_j|, sigma_n^2) = exp(-|n_i - n_j|^2 / (2 sigma_n^2)),
             # folded into one exponential with f and w_z
             if need_normal:
-                dn2 = dr.squared_norm(n_p - mi.Vector3f(g[0], g[1], g[2]))
+                dn2 = dr.squared_norm(n_p - mi.Vector3f(vals[0], vals[1], vals[2]))
                 log_n = dn2 / (2.0 * sigma_n2)
-                w_nrm = dr.select(valid, dr.exp(log_w - log_n), 0.0)
+                w_nrm = dr.select(valid, exp_weight(log_w - log_n), 0.0)
                 if use_screen:
-                    w_scr = dr.select(valid, dr.exp(log_ws - log_n), 0.0)
+                    w_scr = dr.select(valid, exp_weight(log_ws - log_n), 0.0)
             if use_lobe:
-                v_q = mi.Vector3f(lq[0], lq[1], lq[2])
+                o = 3 if need_normal else 0
+                v_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
+                lb_q = vals[o + 3]
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
                 #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j))
                 if approx:
-                    ratio, log_g = lobe_weight_factors_packed(xi_p, lb_p, v_q, beta)
-                    w_lobe = dr.select(valid, ratio * dr.exp(log_w + log_g), 0.0)
+                    ratio, log_g = lobe_weight_factors_packed(xi_p, lb_p, v_q, beta, lb_q)
+                    w_lobe = dr.select(valid, ratio * exp_weight(log_w + log_g), 0.0)
                 else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
-                    lb_q = dr.norm(v_q)
-                    w_lobe = dr.select(valid, dr.exp(log_w), 0.0) * lobe_weight(
+                    w_lobe = dr.select(valid, exp_weight(log_w), 0.0) * lobe_weight(
                         xi_p, lb_p, v_q / dr.maximum(lb_q, 1e-30), lb_q, beta, None, False)
-            for k, s in enumerate(packed):
+            for k in range(len(signals)):
                 if specular[k] and use_lobe:
                     wk = w_lobe
                 elif specular[k] and use_screen:
                     wk = w_scr
                 else:
                     wk = w_nrm
-                v = dr.gather(mi.Vector4f, s, q)
+                v = vals[i_z + 1 + 3 * k:i_z + 4 + 3 * k]
                 # eq. 1: numerator and denominator
                 sums[k] += wk
                 accs[k] = [a + wk * v[j] for j, a in enumerate(accs[k])]

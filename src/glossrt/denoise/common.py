@@ -6,6 +6,7 @@ channel (``Img`` = list of channels). Neighbour access gathers with clamped coor
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import drjit as dr
@@ -169,3 +170,30 @@ def check_frame(frame, names) -> None:
 
 # the 5-tap B3 spline kernel of the a-trous transform (Schied 2017, eq. 1)
 H5 = (1.0 / 16.0, 1.0 / 4.0, 3.0 / 8.0, 1.0 / 4.0, 1.0 / 16.0)
+
+
+class Packed:
+    """Per-pixel channels interleaved for neighbour reads: ``Packed(chs).fetch(q)`` returns
+    the channels at pixels ``q`` with one packet gather per 8 channels (and one 4-wide for a
+    remainder of 4 or fewer), instead of one load per channel. ``q`` must be valid (clamped):
+    masked packet gathers abort inside ``dr.freeze`` (Dr.Jit 1.5)."""
+
+    def __init__(self, chs: Img):
+        self.n = len(chs)
+        self.size = dr.width(chs[0])
+        array_xf = sys.modules[type(chs[0]).__module__].ArrayXf
+        self.parts = []  # (width, interleaved array, number of real channels)
+        for k in range(0, self.n, 8):
+            part = [type(chs[0])(c) for c in chs[k:k + 8]]
+            width = 8 if len(part) > 4 else 4
+            real = len(part)
+            part += [dr.zeros(type(chs[0]), self.size)] * (width - real)
+            self.parts.append((width, dr.ravel(array_xf(part)), real))
+        self._xf = array_xf
+
+    def fetch(self, q: mi.UInt32) -> Img:
+        out = []
+        for width, arr, real in self.parts:
+            v = dr.gather(self._xf, arr, q, shape=(width, dr.width(q)))
+            out.extend(v[j] for j in range(real))
+        return out

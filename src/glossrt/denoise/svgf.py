@@ -25,12 +25,13 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import GlossrtError
-from ..jit import no_gc
+from ..jit import exp_weight, no_gc
 from .atrous import dammertz_level_multi, pow_int, svgf_level_multi
 from .common import (
     GBuffer,
     Grid,
     Img,
+    Packed,
     add,
     check_frame,
     demodulate,
@@ -88,13 +89,12 @@ def _signal(frame, radiance: tuple, albedo: tuple) -> tuple[Img, Img, mi.UInt32]
     return rad, alb, bad
 
 
-def _consistent(gb: GBuffer, prev: History, q: mi.UInt32, inside: mi.Bool) -> mi.Bool:
-    """Geometric consistency of previous-frame pixel q with the current pixel: same mesh,
-    normals within ~25 degrees, depth within the local depth gradient (Schied 2017, 4.1)."""
-    mesh_q = dr.gather(mi.Float, prev.mesh, q, inside)
-    z_q = dr.gather(mi.Float, prev.inv_z, q, inside)
-    n_q = fetch(prev.normal, q, inside)
-    cos = gb.normal[0] * n_q[0] + gb.normal[1] * n_q[1] + gb.normal[2] * n_q[2]
+def _consistent(gb: GBuffer, q_geo: Img, inside: mi.Bool) -> mi.Bool:
+    """Geometric consistency of a previous-frame pixel (its ``q_geo`` = mesh id, 1/z,
+    normal) with the current pixel: same mesh, normals within ~25 degrees, depth within the
+    local depth gradient (Schied 2017, 4.1)."""
+    mesh_q, z_q = q_geo[0], q_geo[1]
+    cos = gb.normal[0] * q_geo[2] + gb.normal[1] * q_geo[3] + gb.normal[2] * q_geo[4]
     # tolerance: 4 pixels' worth of the local 1/z gradient plus 1% of 1/z (camera motion
     # changes a point's depth a little between frames)
     tol = 4.0 * (dr.abs(gb.dzdx) + dr.abs(gb.dzdy)) + 0.01 * gb.inv_z
@@ -107,63 +107,48 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
     """Temporal accumulation (Schied 2017, sec. 4.1): bilinear 2x2 reprojection with
     per-tap consistency tests and renormalised weights, a 3x3 fallback, else disocclusion.
     Returns accumulated colours and moments per signal, and the new history length."""
+    # everything read from the previous frame, interleaved: one or a few packet gathers
+    # per tap (geometry for the tests, history length, then per signal r, g, b, mu1, mu2)
+    hist = [prev.mesh, prev.inv_z, prev.normal[0], prev.normal[1], prev.normal[2],
+            prev.length]
+    for hc, hm in zip(prev.color, prev.moments, strict=True):
+        hist += [hc[0], hc[1], hc[2], hm[0], hm[1]]
+    packed = Packed(hist)
     # previous-frame position in pixel-index space (pixel centres at integers)
     px = mi.Float(grid.x) + motion[0]
     py = mi.Float(grid.y) + motion[1]
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
-    taps = []
-    w_sum = mi.Float(0.0)
-    for dx, dy, wb in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
-                       (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        qx, qy = x0 + dx, y0 + dy
-        inside = grid.inside(qx, qy)
-        q = grid.index(qx, qy)
-        w = dr.select(_consistent(gb, prev, q, inside), wb, 0.0)
-        taps.append((q, w))
-        w_sum += w
-    bilinear_ok = w_sum > 1e-2
-    # 3x3 fallback around the reprojected pixel, uniform weights on consistent taps
     rx, ry = mi.Int32(dr.round(px)), mi.Int32(dr.round(py))
-    taps3 = []
-    w3_sum = mi.Float(0.0)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            qx, qy = rx + dx, ry + dy
-            inside = grid.inside(qx, qy) & ~bilinear_ok
-            q = grid.index(qx, qy)
-            w = dr.select(_consistent(gb, prev, q, inside), 1.0, 0.0)
-            taps3.append((q, w))
-            w3_sum += w
-    success = bilinear_ok | (w3_sum > 0)
-    norm = dr.select(bilinear_ok, dr.rcp(dr.maximum(w_sum, 1e-6)),
-                     dr.rcp(dr.maximum(w3_sum, 1e-6)))
-    all_taps = [(q, dr.select(bilinear_ok, w, 0.0)) for q, w in taps] + [
-        (q, dr.select(bilinear_ok, 0.0, w)) for q, w in taps3]
-
-    def resample(packed: mi.Float, width: int) -> list:
-        """Weighted sum of the taps of an interleaved array of ``width`` (1 or 4) channels."""
-        out = None
-        for q, w in all_taps:
-            # unmasked on purpose: masked packet gathers abort inside dr.freeze (Dr.Jit 1.5,
-            # seen on a cold kernel cache); q is clamped, so every load is valid
-            if width == 4:
-                v = dr.gather(mi.Vector4f, packed, q)  # packet gather
-                vals = [v[0], v[1], v[2], v[3]]
-            else:
-                vals = [dr.gather(mi.Float, packed, q)]
-            out = [w * x for x in vals] if out is None else [
-                o + w * x for o, x in zip(out, vals, strict=True)]
-        return [o * norm for o in out]
-
-    length = dr.select(success, resample(prev.length, 1)[0] + 1.0, 1.0)
+    bilinear = [(x0 + dx, y0 + dy, wb) for dx, dy, wb in (
+        (0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
+        (1, 1, fx * fy))]
+    fallback = [(rx + dx, ry + dy, None) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+    # weighted sums of the bilinear taps and, apart, of the 3x3 fallback around the
+    # reprojected pixel (uniform weights on consistent taps); the fallback counts only
+    # where every bilinear tap failed
+    sums, w_sums = [], []
+    for taps in (bilinear, fallback):
+        acc, w_sum = None, mi.Float(0.0)
+        for qx, qy, wb in taps:
+            vals = packed.fetch(grid.index(qx, qy))  # clamped: every load is valid
+            ok = _consistent(gb, vals[:5], grid.inside(qx, qy))
+            w = dr.select(ok, 1.0 if wb is None else wb, 0.0)
+            acc = [w * v for v in vals[5:]] if acc is None else [
+                a + w * v for a, v in zip(acc, vals[5:], strict=True)]
+            w_sum += w
+        sums.append(acc)
+        w_sums.append(w_sum)
+    bilinear_ok = w_sums[0] > 1e-2
+    success = bilinear_ok | (w_sums[1] > 0)
+    norm = dr.rcp(dr.maximum(dr.select(bilinear_ok, w_sums[0], w_sums[1]), 1e-6))
+    res = [dr.select(bilinear_ok, b, f) * norm for b, f in zip(*sums, strict=True)]
+    length = dr.select(success, res[0] + 1.0, 1.0)
     a_c = dr.select(success, dr.maximum(alpha, dr.rcp(length)), 1.0)
     a_m = dr.select(success, dr.maximum(moments_alpha, dr.rcp(length)), 1.0)
     out_c, out_m = [], []
-    for c, m, hc, hm in zip(colors, moments, prev.color, prev.moments, strict=True):
-        # (r, g, b, mu1) interleaved, mu2 on its own
-        r4 = resample(dr.ravel(mi.Vector4f(hc[0], hc[1], hc[2], hm[0])), 4)
-        pc, pm = r4[:3], [r4[3], resample(hm[1], 1)[0]]
+    for k, (c, m) in enumerate(zip(colors, moments, strict=True)):
+        pc, pm = res[1 + 5 * k:4 + 5 * k], res[4 + 5 * k:6 + 5 * k]
         # Schied 2017, eq. (temporal EMA): C'_i = alpha C_i + (1 - alpha) C'_{i-1}
         out_c.append([dr.lerp(p, x, a_c) for p, x in zip(pc, c, strict=True)])
         out_m.append([dr.lerp(p, x, a_m) for p, x in zip(pm, m, strict=True)])
@@ -201,7 +186,7 @@ def spatial_variance_multi(grid: Grid, gb: GBuffer, moments: list, sigma_z: floa
             z_q = dr.gather(mi.Float, gb.inv_z, q, inside)
             n_q = fetch(gb.normal, q, inside)
             plane = dr.abs(gx * dx + gy * dy)
-            w_z = dr.exp(-dr.abs(zp - z_q) / (sigma_z * plane + 1e-3 * zp + 1e-12))
+            w_z = exp_weight(-dr.abs(zp - z_q) / (sigma_z * plane + 1e-3 * zp + 1e-12))
             cos = np_[0] * n_q[0] + np_[1] * n_q[1] + np_[2] * n_q[2]
             w = dr.select(inside & (z_q > 0), w_z * pow_int(dr.maximum(cos, 0.0), sigma_n),
                           0.0)

@@ -61,9 +61,11 @@ import numpy as np
 from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors_packed, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
+from ..jit import exp_weight
 from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2
 from .common import (
     Grid,
+    Packed,
     albedo_channel,
     check_frame,
     demodulate,
@@ -177,21 +179,22 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     v = (mi.Float(grid.y) + 0.5) / f - 0.5 - jy
     x0, y0 = mi.Int32(dr.floor(u)), mi.Int32(dr.floor(v))
 
-    # packed low-resolution data: one packet gather per tap
-    geo = dr.ravel(mi.Vector4f(lo.normal[0], lo.normal[1], lo.normal[2], lo.z))
-    # (lambda_bar xi, z): a sample's lobe and depth in one 4-wide gather
-    lobes = dr.ravel(mi.Vector4f(lo.lam * lo.xi[0], lo.lam * lo.xi[1], lo.lam * lo.xi[2],
-                                 lo.z)) if use_lobe else None
-    packed, specular = [], []
-    for c in channels:
-        illum = demodulate(split(low[c]), split(low[albedo_of[c]]))
-        packed.append(dr.ravel(mi.Vector4f(illum[0], illum[1], illum[2], 0.0)))
-        specular.append(c.endswith("specular"))
-    # the full pixel's guides once, not re-derived in every window-row kernel
-    dr.eval(hi.hit, hi.z, hi.normal, hi.xi, hi.lam, u, v)
-    dr.eval(geo, lobes, packed)
+    specular = [c.endswith("specular") for c in channels]
     # the normal weight is needed unless the lobe weight serves every channel
     need_normal = not (use_lobe and all(specular))
+    # the low-resolution data a tap reads, interleaved (one packet gather per 8 channels):
+    # [normal (3)] [lambda_bar xi (3), lambda_bar] z [illumination (3) per channel]
+    chans = list(lo.normal) if need_normal else []
+    if use_lobe:
+        chans += [lo.lam * lo.xi[0], lo.lam * lo.xi[1], lo.lam * lo.xi[2], lo.lam]
+    i_z = len(chans)
+    chans.append(lo.z)
+    for c in channels:
+        chans += demodulate(split(low[c]), split(low[albedo_of[c]]))
+    packed = Packed(chans)
+    # the full pixel's guides once, not re-derived in every window-row kernel
+    dr.eval(hi.hit, hi.z, hi.normal, hi.xi, hi.lam, u, v)
+    dr.eval(packed.parts)
 
     inv_2s2 = 1.0 / (2.0 * sigma_s * sigma_s)
     sums = [mi.Float(0.0) for _ in channels]
@@ -202,14 +205,11 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
             qx, qy = x0 + dx, y0 + dy
             inside = lgrid.inside(qx, qy)
             q = lgrid.index(qx, qy)
-            if need_normal:
-                g = dr.gather(mi.Vector4f, geo, q)
-            if use_lobe:
-                lq = dr.gather(mi.Vector4f, lobes, q)
-            z_q = lq[3] if use_lobe else g[3]
+            vals = packed.fetch(q)
+            z_q = vals[i_z]
             # Kopf 2007: spatial Gaussian on the low-resolution grid
             d2 = dr.square(mi.Float(qx) - u) + dr.square(mi.Float(qy) - v)
-            w_sp = dr.select(inside, dr.exp(-d2 * inv_2s2), 0.0)
+            w_sp = dr.select(inside, exp_weight(-d2 * inv_2s2), 0.0)
             spatial_sum += w_sp
             valid = inside & hi.hit & (z_q > 0)  # never a background sample
             log_w = mi.Float(0.0)
@@ -218,21 +218,22 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
                 log_w = -dr.square((hi.z - z_q) / hi.z) / (2.0 * sigma_z2)
             if need_normal:
                 # sec. 2.2: w_n = exp(-|n_p - n_q|^2 / (2 sigma_n^2)), in w_z's exponent
-                dn2 = dr.squared_norm(hi.normal - mi.Vector3f(g[0], g[1], g[2]))
-                w_nrm = dr.select(valid, w_sp * dr.exp(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
+                dn2 = dr.squared_norm(hi.normal - mi.Vector3f(vals[0], vals[1], vals[2]))
+                w_nrm = dr.select(valid, w_sp * exp_weight(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
             if use_lobe:
-                v_q = mi.Vector3f(lq[0], lq[1], lq[2])
+                o = 3 if need_normal else 0
+                v_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
+                lb_q = vals[o + 3]
                 # sec. 4.2: the lobe weight between the full pixel's and the sample's lobes
                 if approx:
-                    ratio, log_g = lobe_weight_factors_packed(hi.xi, hi.lam, v_q, beta)
-                    w_lobe = dr.select(valid, w_sp * ratio * dr.exp(log_w + log_g), 0.0)
+                    ratio, log_g = lobe_weight_factors_packed(hi.xi, hi.lam, v_q, beta, lb_q)
+                    w_lobe = dr.select(valid, w_sp * ratio * exp_weight(log_w + log_g), 0.0)
                 else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
-                    lb_q = dr.norm(v_q)
-                    w_lobe = dr.select(valid, w_sp * dr.exp(log_w), 0.0) * lobe_weight(
+                    w_lobe = dr.select(valid, w_sp * exp_weight(log_w), 0.0) * lobe_weight(
                         hi.xi, hi.lam, v_q / dr.maximum(lb_q, 1e-30), lb_q, beta, None, False)
-            for k, s in enumerate(packed):
+            for k in range(len(channels)):
                 wk = w_lobe if (use_lobe and specular[k]) else w_nrm
-                val = dr.gather(mi.Vector4f, s, q)
+                val = vals[i_z + 1 + 3 * k:i_z + 4 + 3 * k]
                 # eq. 1, with the spatial fallback floor (module docstring)
                 wk = wk + _FLOOR * w_sp
                 sums[k] += wk
