@@ -46,3 +46,25 @@ def test_packed_fetch_equals_gathers(n_channels):
     assert len(got) == n_channels
     for g, c in zip(got, chs, strict=True):
         assert np.array_equal(g.numpy(), dr.gather(mi.Float, c, q).numpy())
+
+
+def test_merge_evaluates_its_channels_once():
+    """merge() interleaves C channels in one kernel: per-channel scatters launched a kernel
+    per channel, each recomputing the channels' shared unevaluated expression."""
+    from glossrt.denoise.common import merge
+
+    x = dr.linspace(mi.Float, 0.0, 1.0, 12)
+    dr.eval(x)
+    y = dr.sin(x) * 2.0 + 1.0  # unevaluated, shared by the channels
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        out = merge([y, y * 2.0, y * 3.0], 3, 4)
+        dr.eval(out)
+        kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(kernels) == 1
+    want = np.sin(np.linspace(0.0, 1.0, 12)) * 2.0 + 1.0
+    got = out.numpy().reshape(12, 3)
+    np.testing.assert_allclose(got, want[:, None] * [1.0, 2.0, 3.0], rtol=1e-6)
