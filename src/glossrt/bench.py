@@ -253,13 +253,10 @@ def ltc(ctx: BenchContext) -> dict:
     gb0, lights0, f00 = inputs[0]
     cases = {"ltc-traced": lambda: step(False), "ltc-frozen": lambda: step(True),
              "mc-1spp": lambda: render_mc(gb0, lights0, 1, f0=f00)}
-    res = {k: [] for k in cases}
-    for _ in range(3):
-        for name, fn in cases.items():
-            res[name].append(timeit(fn, 1, max(1, ctx.repeats // 3))["median_s"])
-    med = {k: statistics.median(v) for k, v in res.items()}
+    times = round_robin(cases, 1, max(3, ctx.repeats))
+    med = {k: statistics.median(v) for k, v in times.items()}
     return {"scene": "polygon-light", "size": [w, h], "lights": 1, "seconds": med,
-            "frozen_vs_traced": med["ltc-frozen"] / med["ltc-traced"],
+            "frozen_vs_traced": paired_ratio(times["ltc-frozen"], times["ltc-traced"]),
             "gpu_target_s_at_1920x1080": 0.5e-3}
 
 
@@ -304,11 +301,8 @@ def bspvt(ctx: BenchContext) -> dict:
                                                 f0=f0),
              "ltc": lambda: shade_frame(gb, lights, f0=f0),
              "ratio-1spp": lambda: render_ratio(gb, lights, setup.scene, spp=1, f0=f0)}
-    res = {k: [] for k in cases}
-    for _ in range(3):
-        for name, fn in cases.items():
-            res[name].append(timeit(fn, 1, max(1, ctx.repeats // 3))["median_s"])
-    med = {k: statistics.median(v) for k, v in res.items()}
+    times = round_robin(cases, 1, max(3, ctx.repeats))
+    med = {k: statistics.median(v) for k, v in times.items()}
     st = trees.stats()
     return {"scene": "polygon-light", "size": [w, h], "vertices": st["vertices"],
             "resolution": res, "build_s": build_s,

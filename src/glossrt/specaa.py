@@ -164,8 +164,8 @@ def transport(v: mi.Vector3f, n_from: mi.Vector3f, n_to: mi.Vector3f) -> mi.Vect
 
 def _slope(v: mi.Vector3f, t: mi.Vector3f, b: mi.Vector3f, n: mi.Vector3f) -> tuple:
     """Slope-space coordinates ``(v.t / v.n, v.b / v.n)`` (``v.n`` kept positive)."""
-    z = dr.maximum(dr.dot(v, n), _EPS)
-    return dr.dot(v, t) / z, dr.dot(v, b) / z
+    inv_z = dr.rcp(dr.maximum(dr.dot(v, n), _EPS))
+    return dr.dot(v, t) * inv_z, dr.dot(v, b) * inv_z
 
 
 def quad_partners(width: int, height: int) -> tuple[mi.UInt32, mi.UInt32]:
@@ -284,7 +284,13 @@ def isotropic_alpha(a11, a12, a22):
 @dataclass
 class _Quad:
     """A pixel's shading point, its tangent frame and its two quad partners' normals and
-    positions (``x``: horizontal, ``y``: vertical; a missing partner is the pixel itself)."""
+    positions (``x``: horizontal, ``y``: vertical; a missing partner is the pixel itself).
+
+    With positions (the per-light methods) also each partner's frame ``(t', b', n')``: the
+    pixel's ``(t, b)`` rotated by the smallest rotation taking ``n`` to the partner's normal
+    ``n'``. A partner's vector ``v`` carried into the pixel's frame (the inverse rotation,
+    :func:`transport` from ``n'`` to ``n``) has slopes ``(v.t', v.b') / v.n'``, so carrying
+    costs three dot products per light instead of a rotation."""
 
     sp: ShadingPoints
     t: mi.Vector3f
@@ -296,6 +302,7 @@ class _Quad:
     cam: mi.Point3f
     okx: mi.Bool  # whether the partner is another pixel (else its difference is 0)
     oky: mi.Bool
+    frames: tuple | None = None  # ((tx, bx), (ty, by)) with positions, else None
 
 
 def _quad(ch: dict, sp: ShadingPoints, cam: mi.Point3f, size: tuple[int, int],
@@ -322,7 +329,10 @@ def _quad(ch: dict, sp: ShadingPoints, cam: mi.Point3f, size: tuple[int, int],
 
     (nx, px, okx), (ny, py, oky) = partner(ix), partner(iy)
     frame = mi.Frame3f(sp.n)
-    return _Quad(sp, frame.s, frame.t, nx, ny, px, py, cam, okx, oky)
+    q = _Quad(sp, frame.s, frame.t, nx, ny, px, py, cam, okx, oky)
+    if positions:
+        q.frames = tuple((transport(q.t, sp.n, n), transport(q.b, sp.n, n)) for n in (nx, ny))
+    return q
 
 
 def _half(p: mi.Point3f, cam: mi.Point3f, light, kind: str) -> mi.Vector3f:
@@ -331,53 +341,55 @@ def _half(p: mi.Point3f, cam: mi.Point3f, light, kind: str) -> mi.Vector3f:
     return dr.normalize(wo + wi)
 
 
-def _quad_vectors(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
-    """``(N, v0, vx, vy)``: the vectors whose slopes about the unit normal ``N`` the method
-    differentiates across the quad. Half vector (Tokuyoshi sec. 1.1): the pixel's and its
-    partners' half vectors, the partners' carried into the pixel's frame, about the pixel's
-    normal. Average normal (sec. 2): the three normals about their 3-tap average."""
+def _slopes(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
+    """The slopes ``(s0, sx, sy)`` of the pixel's and its partners' vectors that the method
+    differentiates across the quad, in one tangent basis. Half vector (Tokuyoshi sec. 1.1):
+    the half vectors about the pixel's normal, the partners' carried into the pixel's frame
+    (through ``q.frames``). Average normal (sec. 2): the three normals about their 3-tap
+    average ``N`` (the pixel's basis carried to ``N``; any basis about it for the isotropic
+    forms)."""
     n = q.sp.n
     if method.source == "halfvector":
-        return (n, _half(q.sp.p, q.cam, light, kind),
-                transport(_half(q.px, q.cam, light, kind), q.nx, n),
-                transport(_half(q.py, q.cam, light, kind), q.ny, n))
-    return dr.normalize(n + q.nx + q.ny), n, q.nx, q.ny
+        (tx, bx), (ty, by) = q.frames
+        return (_slope(_half(q.sp.p, q.cam, light, kind), q.t, q.b, n),
+                _slope(_half(q.px, q.cam, light, kind), tx, bx, q.nx),
+                _slope(_half(q.py, q.cam, light, kind), ty, by, q.ny))
+    big_n = dr.normalize(n + q.nx + q.ny)
+    if method.isotropic:  # any tangent basis about n_bar will do
+        fb = mi.Frame3f(big_n)
+        t, b = fb.s, fb.t
+    else:  # A must be in the pixel's frame: carry (t, b) from n to n_bar
+        t, b = transport(q.t, n, big_n), transport(q.b, n, big_n)
+    return tuple(_slope(v, t, b, big_n) for v in (n, q.nx, q.ny))
 
 
 def _differences(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
     """Slope differences ``(du, dv)`` across the quad for the method's source, in the
     pixel's tangent basis (carried to the average normal for ``avgnormal``; any basis about
     it for the isotropic forms)."""
-    big_n, v0, vx, vy = _quad_vectors(q, method, light, kind)
-    if method.source == "halfvector":
-        t, b = q.t, q.b
-    elif method.isotropic:  # any tangent basis about n_bar will do
-        fb = mi.Frame3f(big_n)
-        t, b = fb.s, fb.t
-    else:  # A must be in the pixel's frame: carry (t, b) from n to n_bar
-        t, b = transport(q.t, q.sp.n, big_n), transport(q.b, q.sp.n, big_n)
-    s0, sx, sy = (_slope(v, t, b, big_n) for v in (v0, vx, vy))
+    s0, sx, sy = _slopes(q, method, light, kind)
     # a missing partner differs by exactly 0 (not by the rounding of two huge grazing slopes)
     du = tuple(dr.select(q.okx, sx[i] - s0[i], 0.0) for i in range(2))
     dv = tuple(dr.select(q.oky, sy[i] - s0[i], 0.0) for i in range(2))
     return du, dv
 
 
-def _largest_eigenvalue(q: _Quad, method: Method, light=None, kind: str = ""):
-    """``lambda_max(2 Sigma)`` (Tokuyoshi sec. 3) without a tangent basis: the slope of ``v``
-    about ``N`` is the tangent vector ``(v - (v.N) N) / (v.N)``, so the differences ``du,
-    dv`` are 3D vectors in ``N``'s tangent plane and ``Sigma``'s eigenvalues are those of their
-    Gram matrix ``sigma^2 [[du.du, du.dv], [du.dv, dv.dv]]`` (the same as :func:`kernel`'s
-    ``eig`` form in any basis, with less work)."""
-    big_n, v0, vx, vy = _quad_vectors(q, method, light, kind)
+def _largest_eigenvalue_avgnormal(q: _Quad):
+    """``lambda_max(2 Sigma)`` (Tokuyoshi sec. 3) of the average-normal source without a
+    tangent basis: the slope of ``v`` about ``N`` is the tangent vector ``(v - (v.N) N) /
+    (v.N)``, so the differences ``du, dv`` are 3D vectors in ``N``'s tangent plane and
+    ``Sigma``'s eigenvalues are those of their Gram matrix ``sigma^2 [[du.du, du.dv], [du.dv,
+    dv.dv]]`` (the same as :func:`kernel`'s ``eig`` form in any basis, with less work)."""
+    n = q.sp.n
+    big_n = dr.normalize(n + q.nx + q.ny)
 
     def lift(v):  # the tangential part over the normal one (clamped like _slope)
         z = dr.dot(v, big_n)
         return (v - z * big_n) / dr.maximum(z, _EPS)
 
-    q0 = lift(v0)
-    du = dr.select(q.okx, lift(vx) - q0, 0.0)
-    dv = dr.select(q.oky, lift(vy) - q0, 0.0)
+    q0 = lift(n)
+    du = dr.select(q.okx, lift(q.nx) - q0, 0.0)
+    dv = dr.select(q.oky, lift(q.ny) - q0, 0.0)
     gram = (dr.squared_norm(du), dr.dot(du, dv), dr.squared_norm(dv))
     # Tokuyoshi, eqs. 1-2: 2 sigma^2 times the Gram matrix's largest eigenvalue
     return 2.0 * SIGMA2 * _eigen(*gram)[0]
@@ -395,8 +407,8 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
         # Tokuyoshi & Kaplanyan 2021, eq. 14 (world-space normal differences)
         du, dv = q.nx - q.sp.n, q.ny - q.sp.n
         k = SIGMA2_PROJECTED * (dr.squared_norm(du) + dr.squared_norm(dv))
-    elif method.form == "eig":
-        k = _largest_eigenvalue(q, method, light, kind)
+    elif method.form == "eig" and method.source == "avgnormal":
+        k = _largest_eigenvalue_avgnormal(q)
     else:
         du, dv = _differences(q, method, light, kind)
         k = kernel(du, dv, method.form)

@@ -197,13 +197,12 @@ def timing_markdown(t: dict) -> str:
 
 
 def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE) -> dict:
-    """Shading time per method and its ratio to unfiltered shading, measured interleaved in
-    one run (frozen kernels, the real-time path)."""
+    """Shading time per method and its ratio to unfiltered shading (median of per-repeat
+    ratios), the methods called in turn (frozen kernels, the real-time path)."""
     import statistics
 
-    import drjit as dr
-
     from . import render, scenes, specaa
+    from .bench import paired_ratio, round_robin
     from .lights.analytic import analytic_lights
     from .lights.scene import polygon_lights
     from .lights.shading import f0_image
@@ -215,17 +214,7 @@ def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE) 
     f0 = f0_image(setup, gb)
     cases = {m: (lambda m=m: specaa.shade_tensor(gb, lights, polys, m, f0, frozen=True))
              for m in methods}
-    for fn in cases.values():  # record + compile
-        fn()
-        fn()
-    res = {k: [] for k in cases}
-    for _ in range(repeats):
-        for k, fn in cases.items():
-            dr.sync_thread()
-            t0 = time.perf_counter()
-            fn()
-            dr.sync_thread()
-            res[k].append(time.perf_counter() - t0)
-    med = {k: statistics.median(v) for k, v in res.items()}
+    times = round_robin(cases, 2, repeats)  # warm-up: record + compile
+    med = {k: statistics.median(v) for k, v in times.items()}
     return {"size": list(size), "seconds": med,
-            "ratio_to_none": {k: v / med["none"] for k, v in med.items()}}
+            "ratio_to_none": {k: paired_ratio(v, times["none"]) for k, v in times.items()}}
