@@ -271,6 +271,40 @@ def specaa(ctx: BenchContext) -> dict:
     return {"scene": se.SCENE, **t, "target_ratio": 1.10}
 
 
+@benchmark("highlights")
+def highlights(ctx: BenchContext) -> dict:
+    """Kimura & Tokoi's light-shape highlights on ``light-shapes`` at the bench size, the
+    light cube maps rendered once: the paper's ellipsoidal sampling and GGX visible normals
+    with filtered importance sampling, 4 samples, traced (hash samples, no culling) and
+    frozen (the real-time path, result left on the device), beside plain point-light
+    shading, called in turn. GPU target (issue 7): 1920x1080, 4 samples, at most 1 ms."""
+    import drjit as dr
+
+    from .highlight_experiments import _frame
+    from .lights.highlights import HighlightRenderer, shade_plain
+
+    setup, gb, lights, f0 = _frame(ctx.size)
+    maps = HighlightRenderer().maps(setup, 0, lights)
+    cases = {"plain": lambda: shade_plain(gb, lights, f0)}
+    state = {"k": 0}
+    for dist in ("ellipsoidal", "ggx"):
+        traced = HighlightRenderer(samples=4, distribution=dist, sampling="hash", cull=False)
+        frozen = HighlightRenderer(samples=4, distribution=dist, sampling="hash", cull=False,
+                                   frozen=True)
+        cases[f"{dist}-4-traced"] = lambda r=traced: r(gb, lights, maps, f0)
+
+        def replay(r=frozen):
+            state["k"] += 1  # a new frame index: new random numbers, same kernels
+            dr.eval(r.shade_tensor(gb, maps, f0, state["k"]))
+
+        cases[f"{dist}-4-frozen"] = replay
+    times = round_robin(cases, 2, max(3, ctx.repeats))
+    return {"scene": "light-shapes", "size": list(ctx.size),
+            "seconds": {k: statistics.median(v) for k, v in times.items()},
+            "ratio_to_plain": {k: paired_ratio(v, times["plain"]) for k, v in times.items()},
+            "gpu_target_s_at_1920x1080": 1e-3}
+
+
 @benchmark("bspvt")
 def bspvt(ctx: BenchContext) -> dict:
     """Okuno & Iwasaki's BSPVT shadows on ``polygon-light`` (4965 vertices): precomputation

@@ -122,6 +122,7 @@ def timing(size=(640, 360), repeats: int = 5) -> dict:
     rendered once (their cost, per frame for moving lights, is reported apart)."""
     import drjit as dr
 
+    from .bench import paired_ratio, round_robin
     from .lights.highlights import HighlightRenderer, shade_plain
 
     setup, gb, lights, f0 = _frame(size)
@@ -139,18 +140,10 @@ def timing(size=(640, 360), repeats: int = 5) -> dict:
                          ("GGX FIS 4", {"samples": 4, "distribution": "ggx"})):
             r = HighlightRenderer(cull=cull, **kw)
             cases[f"{name}, {tag}"] = (lambda r=r: r(gb, lights, maps, f0))
-    for fn in cases.values():  # compile
-        fn()
-    res = {k: [] for k in cases}
-    for _ in range(repeats):
-        for k, fn in cases.items():
-            t0 = time.perf_counter()
-            fn()
-            dr.sync_thread()
-            res[k].append(time.perf_counter() - t0)
-    med = {k: statistics.median(v) for k, v in res.items()}
+    times = round_robin(cases, 1, repeats)  # warm-up: compile
+    med = {k: statistics.median(v) for k, v in times.items()}
     return {"size": list(size), "seconds": med, "maps_seconds": maps_s,
-            "ratio_to_plain": {k: v / med["plain"] for k, v in med.items()}}
+            "ratio_to_plain": {k: paired_ratio(v, times["plain"]) for k, v in times.items()}}
 
 
 def timing_markdown(t: dict) -> str:

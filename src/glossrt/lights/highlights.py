@@ -246,6 +246,28 @@ class HighlightRenderer:
             self._textures[key] = NormalTexture(ratio, self.texture_size, self.texture_size)
         return self._textures[key]
 
+    def shade_tensor(self, frame, maps, f0: np.ndarray | None = None,
+                     frame_index: int = 0) -> mi.TensorXf:
+        """The frozen path's image as an (H, W, 3) ``mi.TensorXf`` left on the device (the
+        real-time use; ``frozen=True`` renderers only)."""
+        from ..jit import no_gc
+
+        if not self.frozen:
+            raise GlossrtError("shade_tensor is the frozen path: HighlightRenderer(frozen=True)")
+        check_frame(frame, NEEDS)
+        if frame.camera is None:
+            raise GlossrtError(f"{frame.where}: highlights need the camera")
+        ch = {k: frame[k] for k in NEEDS}
+        ch["f0"] = f0_tensor(frame, f0)
+        with no_gc():
+            out = _fast_frozen(ch, opaque(frame.camera.position), maps.data, maps._base,
+                               maps._has, maps._tables, maps._n_ids, maps.n_levels,
+                               dr.opaque(mi.UInt32, int(frame_index)), self.samples,
+                               self.distribution, int(maps.resolutions[0]),
+                               (frame.height, frame.width))
+            dr.eval(out)
+        return out
+
     def __call__(self, frame, lights: list, maps, f0: np.ndarray | None = None,
                  frame_index: int = 0, offset=0, fis_samples: int | None = None) -> np.ndarray:
         """Specular reflection (H, W, 3) of the ``lights`` in ``frame``'s G-buffer through the
@@ -257,18 +279,7 @@ class HighlightRenderer:
         check_frame(frame, NEEDS)
         h, w = frame.height, frame.width
         if self.frozen and offset == 0 and fis_samples is None:
-            from ..jit import no_gc
-
-            if frame.camera is None:
-                raise GlossrtError(f"{frame.where}: highlights need the camera")
-            ch = {k: frame[k] for k in NEEDS}
-            ch["f0"] = f0_tensor(frame, f0)
-            with no_gc():
-                out = _fast_frozen(ch, opaque(frame.camera.position), maps.data, maps._base,
-                                   maps._has, maps._tables, maps._n_ids, maps.n_levels,
-                                   dr.opaque(mi.UInt32, int(frame_index)), self.samples,
-                                   self.distribution, int(maps.resolutions[0]),
-                                   (frame.height, frame.width))
+            out = self.shade_tensor(frame, maps, f0, frame_index)
             self.last_stats = {"pixels": int(np.count_nonzero(
                 frame.numpy("mesh_id") > 0)), "shaded": None}
             return np.array(out, dtype=np.float32).reshape(h, w, 3)
