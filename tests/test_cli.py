@@ -89,8 +89,7 @@ def test_bench_json(tmp_path, capsys):
     r = res["results"]["render-vs-mitsuba-path"]
     assert res["variant"] and res["device"]
     assert r["glossrt_frame_s"] > 0 and r["mitsuba_path_1spp_s"] > 0
-    assert r["ratio_frame_vs_path"] == pytest.approx(
-        r["glossrt_frame_s"] / r["mitsuba_path_1spp_s"])
+    assert r["ratio_frame_vs_path"] > 0 and r["repeats"] >= 3
     d = res["results"]["denoisers"]
     assert d["cost_vs_atrous"]["atrous"] == 1.0 and d["seconds"]["svgf"] > 0
 

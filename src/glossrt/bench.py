@@ -36,24 +36,6 @@ def benchmark(name: str):
     return deco
 
 
-def timeit(fn: Callable[[], object], warmup: int, repeats: int) -> dict:
-    """Median / min / max wall time (s) of ``fn`` after ``warmup`` calls, synchronising the
-    Dr.Jit device before reading the clock."""
-    import drjit as dr
-
-    for _ in range(warmup):
-        fn()
-    dr.sync_thread()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        dr.sync_thread()
-        times.append(time.perf_counter() - t0)
-    return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times),
-            "repeats": repeats}
-
-
 def round_robin(cases: dict[str, Callable[[], object]], warmup: int,
                 repeats: int) -> dict[str, list[float]]:
     """Wall times (s) of every case, called in turn: repeat i times each case once, so the
@@ -109,14 +91,9 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
                         seed=counter["f"])
         dr.eval(img)
 
-    # interleave the measurements so machine noise hits both alike
-    rounds = 3
-    res = {"glossrt_kernels": [], "glossrt_frame": [], "mitsuba_path": []}
-    for _ in range(rounds):
-        res["glossrt_kernels"].append(timeit(ours, ctx.warmup, ctx.repeats)["median_s"])
-        res["glossrt_frame"].append(timeit(ours_frame, ctx.warmup, ctx.repeats)["median_s"])
-        res["mitsuba_path"].append(timeit(theirs, ctx.warmup, ctx.repeats)["median_s"])
-    med = {k: statistics.median(v) for k, v in res.items()}
+    times = round_robin({"glossrt_kernels": ours, "glossrt_frame": ours_frame,
+                         "mitsuba_path": theirs}, ctx.warmup, max(3, ctx.repeats))
+    med = {k: statistics.median(v) for k, v in times.items()}
     return {
         "scene": "glossy-cornell",
         "size": list(ctx.size),
@@ -124,10 +101,10 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
         "glossrt_trace_s": med["glossrt_kernels"],
         "glossrt_frame_s": med["glossrt_frame"],
         "mitsuba_path_1spp_s": med["mitsuba_path"],
-        "ratio_trace_vs_path": med["glossrt_kernels"] / med["mitsuba_path"],
-        "ratio_frame_vs_path": med["glossrt_frame"] / med["mitsuba_path"],
+        "ratio_trace_vs_path": paired_ratio(times["glossrt_kernels"], times["mitsuba_path"]),
+        "ratio_frame_vs_path": paired_ratio(times["glossrt_frame"], times["mitsuba_path"]),
         "target_ratio": 1.5,
-        "rounds": rounds,
+        "repeats": max(3, ctx.repeats),
     }
 
 

@@ -146,6 +146,8 @@ def pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets: np.ndarray) -
         ok = sel & (prim < len(faces))
         verts[ok] = faces[prim[ok]] + int(off)
         valid |= ok
+    # missed rays carry undefined (possibly non-finite) prim_uv: zero them before use
+    b1, b2 = np.where(valid, b1, 0.0), np.where(valid, b2, 0.0)
     bary = np.stack([1.0 - b1 - b2, b1, b2], -1).astype(np.float32)
     bary[~valid] = 0.0
     return PixelTriangles(verts, bary, valid)
