@@ -22,7 +22,7 @@ llvm: $(STAMP)
 	@bash scripts/ensure-llvm.sh $(BIN)/python
 
 test: llvm
-	$(BIN)/python -m pytest -q
+	bash scripts/run-tests.sh $(BIN)/python
 
 demo: llvm
 	$(BIN)/glossrt demo --out $(DEMO_OUT)
