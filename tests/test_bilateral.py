@@ -420,3 +420,17 @@ def test_screen_parameter_errors():
     g = Frame(channels=dict(f.channels), camera=None)
     with pytest.raises(FrameError, match="camera"):
         bilateral(g, weight="screen", radius=1)
+
+
+def test_exact_lobe_weight_without_depth_weight_runs():
+    """``approx=False`` with ``sigma_z2=None``: the screen weight alone is a Python number
+    before the exact lobe weight multiplies it (regression: exp_weight once rejected it)."""
+    from glossrt import render, scenes
+
+    frame = render.Renderer(scenes.load("roughness-map", size=(16, 12))).render(0)
+    a = bilateral(frame, weight="lobe", approx=False, sigma_z2=None, radius=2)
+    b = bilateral(frame, weight="lobe", approx=True, sigma_z2=None, radius=2)
+    a, b = np.asarray(a), np.asarray(b)
+    assert np.all(np.isfinite(a)) and a.shape == (12, 16, 3)
+    # eq. 6 exact vs eq. 7 approximate lobe weights: close, not identical
+    assert np.abs(a - b).max() <= 0.1 * max(np.abs(b).max(), 1e-6)

@@ -27,6 +27,8 @@ def test_exp_weight_against_numpy():
     # saturation instead of under/overflow, documented
     sat = exp_weight(mi.Float([-200.0, 200.0])).numpy()
     assert 0 < sat[0] < 1.2e-38 and np.isfinite(sat[1])
+    # a Python number (a filter's constant screen weight) stays a Python number
+    assert exp_weight(-0.5) == np.exp(-0.5)
 
 
 def test_pow_int_against_numpy():

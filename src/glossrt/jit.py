@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -47,10 +48,13 @@ def exp_weight(x):
     on the LLVM backend, where ``dr.exp`` dominates a tap of an edge-avoiding filter).
 
     ``2^t`` with ``t = x log2(e)`` split as ``2^floor(t)`` (built in the exponent bits) times
-    a polynomial for ``2^frac(t)``; relative error <= 2e-7 (a float32 ulp or two) for
-    ``|x| <= 87``. Outside that range the result saturates at ``2^-126`` (about 1e-38,
-    not 0) and ``2^127``, and it is meant for finite inputs (a filter's arguments are):
-    use ``dr.exp`` where the tails or NaN propagation matter."""
+    a polynomial for ``2^frac(t)``; relative error <= 3e-7 for ``|x| <= 1`` and <= 4e-6 up to
+    ``|x| = 87`` (the float32 rounding of ``x log2(e)``). Outside that range the result
+    saturates at ``2^-126`` (about 1e-38, not 0) and ``2^127``; it is meant for finite
+    float32 inputs (a filter's arguments are) and has no derivative: use ``dr.exp`` where
+    the tails, NaN propagation or gradients matter. A Python number gives ``math.exp``."""
+    if not dr.is_array_v(x):
+        return math.exp(x)
     t = dr.clip(x * _LOG2E, -126.0, 127.0)
     i = dr.floor(t)
     f = t - i

@@ -49,7 +49,6 @@ __all__ = [
     "ggx_lobe_to_sg",
     "lobe_weight",
     "lobe_weight_factors",
-    "lobe_weight_factors_packed",
     "phong_lobe_to_sg",
     "reflect",
     "sg_eval",
@@ -265,17 +264,16 @@ def lobe_weight(xi_p, l_p, xi_q, l_q, beta=20.0, kappa=100.0, approx=False):
 
 
 def _ratio_term(lb_p, lb_q, beta):
-    """``((4 lb_p lb_q / (lb_p + lb_q)^2)^(beta / 2), lb_p lb_q / (lb_p + lb_q), 1 / (lb_p +
-    lb_q))`` (Tokuyoshi 2015, sec. 4.2), the power by repeated squaring for a Python ``beta``
-    with integer half."""
+    """``((4 lb_p lb_q / (lb_p + lb_q)^2)^(beta / 2), lb_p lb_q / (lb_p + lb_q))`` (Tokuyoshi
+    2015, sec. 4.2), the power by repeated squaring for a Python ``beta`` with integer half."""
     inv_s = dr.rcp(lb_p + lb_q)
     r = lb_p * lb_q * inv_s
     # 4 a b / (a + b)^2 <= 1 (AM-GM); clamp rounding
     x = dr.minimum(4.0 * r * inv_s, 1.0)
     if isinstance(beta, int | float):
-        return pow_int(x, 0.5 * beta), r, inv_s
+        return pow_int(x, 0.5 * beta), r
     # an opaque Dr.Jit beta (parameter sweeps without recompiling)
-    return dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30))), r, inv_s
+    return dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30))), r
 
 
 def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
@@ -288,25 +286,9 @@ def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
     integer, as for the paper's 20) and ``log_g = beta lb_p lb_q / (lb_p + lb_q) (xi_p . xi_q -
     1)``; a filter folds ``log_g`` into the exponent of its other Gaussian weights, so the
     lobe weight costs one ``exp`` per tap."""
-    ratio, r, _ = _ratio_term(lb_p, lb_q, beta)
+    ratio, r = _ratio_term(lb_p, lb_q, beta)
     # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
     return ratio, (beta * r) * _cos_minus_one(xi_p, xi_q)
-
-
-def lobe_weight_factors_packed(xi_p, lb_p, v_q, beta=20.0, lb_q=None):
-    """:func:`lobe_weight_factors` with the neighbour's lobe packed as one vector ``v_q =
-    lb_q xi_q`` (so a filter loads axis and smoothed sharpness together); ``lb_q`` is
-    ``|v_q|`` unless the filter loads it too (saving a square root per tap).
-
-    With ``s = lb_p + lb_q``: ``lb_p lb_q / s (xi_p . xi_q - 1) = lb_p (xi_p . v_q - lb_q) /
-    s``, so no division by ``lb_q`` either (clamped to <= 0; the cancellation near ``xi_p =
-    xi_q`` leaves ~1e-7 relative to ``lb_q``, far below any lobe's width)."""
-    if lb_q is None:
-        lb_q = dr.norm(v_q)
-    ratio, _, inv_s = _ratio_term(lb_p, lb_q, beta)
-    # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
-    log_g = (beta * lb_p) * inv_s * dr.minimum(dr.dot(xi_p, v_q) - lb_q, 0.0)
-    return ratio, log_g
 
 
 def gaussian_weight(mu_p, var_p, mu_q, var_q, beta=20.0, kappa=100.0, dim=1):

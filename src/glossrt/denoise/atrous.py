@@ -63,18 +63,18 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
     ``lobes = (axis (3 Floats), sharpness, use_lobe (list of bool per signal), beta, kappa)``
     replaces w_n by Tokuyoshi 2015's lobe weight for the signals marked True."""
     n_sig = len(colors)
-    # (nx, ny, nz, 1/z) for the geometry, [(lambda_bar xi, lambda_bar) for the lobe weight]
+    # (nx, ny, nz, 1/z) for the geometry, [(xi, lambda_bar) for the lobe weight]
     # and (r, g, b, var) per signal interleaved, read with one packet gather per 8 channels
     # and tap (Dr.Jit's PacketOps)
     chans = [gb.normal[0], gb.normal[1], gb.normal[2], gb.inv_z]
     if lobes is not None:
-        from ..brdf.sg import lobe_weight_factors_packed, smoothed_sharpness
+        from ..brdf.sg import lobe_weight_factors, smoothed_sharpness
 
         axis_p, lam_p, use_lobe, beta, kappa = lobes
         xi_p = mi.Vector3f(axis_p[0], axis_p[1], axis_p[2])
         # Tokuyoshi 2015, sec. 4.2: lambda_bar once per pixel, not per tap
         lb_p = smoothed_sharpness(lam_p, kappa)
-        chans += [lb_p * xi_p[0], lb_p * xi_p[1], lb_p * xi_p[2], lb_p]
+        chans += [xi_p[0], xi_p[1], xi_p[2], lb_p]
     i_sig = len(chans)
     for c, v in zip(colors, variances, strict=True):
         chans += [c[0], c[1], c[2], v]
@@ -102,10 +102,10 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
         valid_q = inside & (z_q > 0)  # never across into background
         w_n = dr.select(valid_q, h * w_n, 0.0)
         if lobes is not None:
-            v_q = mi.Vector3f(allq[4], allq[5], allq[6])
+            xi_q = mi.Vector3f(allq[4], allq[5], allq[6])
             # Tokuyoshi 2015, sec. 4.2 (closed form): the lobe weight in place of w_n, as
             # ratio * exp(log_g) with log_g folded into the exponent of w_z * w_l below
-            ratio, log_g = lobe_weight_factors_packed(xi_p, lb_p, v_q, beta, allq[7])
+            ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, allq[7], beta)
             w_lobe = dr.select(valid_q, h * ratio, 0.0)
         for k in range(n_sig):
             cq = allq[i_sig + 4 * k:i_sig + 4 + 4 * k]

@@ -79,7 +79,7 @@ from ..brdf.sg import (
     WANG_SG,
     ggx_lobe_to_sg,
     lobe_weight,
-    lobe_weight_factors_packed,
+    lobe_weight_factors,
     smoothed_sharpness,
 )
 from ..errors import FrameError, GlossrtError
@@ -193,7 +193,7 @@ def bilateral(frame, weight: str = "normal",
         lam_p = dr.select(hit, lam_p, 1.0)
     if use_lobe:
         # sec. 4.2: the smoothed sharpness lambda_bar = lambda kappa / (lambda + kappa), once
-        # per pixel (not per tap), read by the taps as (lambda_bar xi, lambda_bar)
+        # per pixel (not per tap), read by the taps beside the lobe axis
         lb_p = smoothed_sharpness(lam_p, kappa)
         dr.eval(xi_p, lb_p)
     if use_screen:
@@ -213,10 +213,10 @@ def bilateral(frame, weight: str = "normal",
     # the normal weight is needed unless the lobe weight serves every channel
     need_normal = not (use_lobe and all(specular))
     # everything a tap reads, interleaved: one packet gather per 8 channels; layout
-    # [normal (3)] [lambda_bar xi (3), lambda_bar] z [illumination (3) per channel]
+    # [normal (3)] [lobe axis xi (3), lambda_bar] z [illumination (3) per channel]
     chans = list(normal) if need_normal else []
     if use_lobe:
-        chans += [lb_p * xi_p[0], lb_p * xi_p[1], lb_p * xi_p[2], lb_p]
+        chans += [xi_p[0], xi_p[1], xi_p[2], lb_p]
     i_z = len(chans)
     chans.append(zkey)
     for sig in signals:
@@ -260,16 +260,16 @@ def bilateral(frame, weight: str = "normal",
                     w_scr = dr.select(valid, exp_weight(log_ws - log_n), 0.0)
             if use_lobe:
                 o = 3 if need_normal else 0
-                v_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
+                xi_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
                 lb_q = vals[o + 3]
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
                 #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j))
                 if approx:
-                    ratio, log_g = lobe_weight_factors_packed(xi_p, lb_p, v_q, beta, lb_q)
+                    ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta)
                     w_lobe = dr.select(valid, ratio * exp_weight(log_w + log_g), 0.0)
                 else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
                     w_lobe = dr.select(valid, exp_weight(log_w), 0.0) * lobe_weight(
-                        xi_p, lb_p, v_q / dr.maximum(lb_q, 1e-30), lb_q, beta, None, False)
+                        xi_p, lb_p, xi_q, lb_q, beta, None, False)
             for k in range(len(signals)):
                 if specular[k] and use_lobe:
                     wk = w_lobe

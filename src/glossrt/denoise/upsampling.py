@@ -58,7 +58,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors_packed, smoothed_sharpness
+from ..brdf.sg import ggx_lobe_to_sg, lobe_weight, lobe_weight_factors, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from ..jit import exp_weight
@@ -183,10 +183,10 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     # the normal weight is needed unless the lobe weight serves every channel
     need_normal = not (use_lobe and all(specular))
     # the low-resolution data a tap reads, interleaved (one packet gather per 8 channels):
-    # [normal (3)] [lambda_bar xi (3), lambda_bar] z [illumination (3) per channel]
+    # [normal (3)] [lobe axis xi (3), lambda_bar] z [illumination (3) per channel]
     chans = list(lo.normal) if need_normal else []
     if use_lobe:
-        chans += [lo.lam * lo.xi[0], lo.lam * lo.xi[1], lo.lam * lo.xi[2], lo.lam]
+        chans += [lo.xi[0], lo.xi[1], lo.xi[2], lo.lam]
     i_z = len(chans)
     chans.append(lo.z)
     for c in channels:
@@ -222,15 +222,15 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
                 w_nrm = dr.select(valid, w_sp * exp_weight(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
             if use_lobe:
                 o = 3 if need_normal else 0
-                v_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
+                xi_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
                 lb_q = vals[o + 3]
                 # sec. 4.2: the lobe weight between the full pixel's and the sample's lobes
                 if approx:
-                    ratio, log_g = lobe_weight_factors_packed(hi.xi, hi.lam, v_q, beta, lb_q)
+                    ratio, log_g = lobe_weight_factors(hi.xi, hi.lam, xi_q, lb_q, beta)
                     w_lobe = dr.select(valid, w_sp * ratio * exp_weight(log_w + log_g), 0.0)
                 else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
                     w_lobe = dr.select(valid, w_sp * exp_weight(log_w), 0.0) * lobe_weight(
-                        hi.xi, hi.lam, v_q / dr.maximum(lb_q, 1e-30), lb_q, beta, None, False)
+                        hi.xi, hi.lam, xi_q, lb_q, beta, None, False)
             for k in range(len(channels)):
                 wk = w_lobe if (use_lobe and specular[k]) else w_nrm
                 val = vals[i_z + 1 + 3 * k:i_z + 4 + 3 * k]
