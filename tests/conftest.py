@@ -18,3 +18,21 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+#: scripts/run-tests.sh sets this: a file that records each finished test (and each failure),
+#: so that after a crash of the whole process only the rest of the suite is run again
+_PROGRESS = os.environ.get("GLOSSRT_TEST_PROGRESS")
+
+
+def pytest_runtest_logreport(report):
+    if not _PROGRESS:
+        return
+    lines = []
+    if report.failed:
+        lines.append(f"FAILED {report.nodeid}")
+    if report.when == "teardown":
+        lines.append(f"done {report.nodeid}")
+    if lines:
+        with open(_PROGRESS, "a") as f:
+            f.write("".join(line + "\n" for line in lines))
