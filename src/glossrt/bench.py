@@ -25,6 +25,11 @@ class BenchContext:
     repeats: int = 9
     extra: dict = field(default_factory=dict)
 
+    @property
+    def turns(self) -> int:
+        """Repeats of a :func:`round_robin` (at least 3, so a median of ratios means something)."""
+        return max(3, self.repeats)
+
 
 def benchmark(name: str):
     """Register ``fn(ctx) -> dict`` as benchmark ``name``."""
@@ -92,7 +97,7 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
         dr.eval(img)
 
     times = round_robin({"glossrt_kernels": ours, "glossrt_frame": ours_frame,
-                         "mitsuba_path": theirs}, ctx.warmup, max(3, ctx.repeats))
+                         "mitsuba_path": theirs}, ctx.warmup, ctx.turns)
     med = {k: statistics.median(v) for k, v in times.items()}
     return {
         "scene": "glossy-cornell",
@@ -104,7 +109,7 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
         "ratio_trace_vs_path": paired_ratio(times["glossrt_kernels"], times["mitsuba_path"]),
         "ratio_frame_vs_path": paired_ratio(times["glossrt_frame"], times["mitsuba_path"]),
         "target_ratio": 1.5,
-        "repeats": max(3, ctx.repeats),
+        "repeats": ctx.turns,
     }
 
 
@@ -151,10 +156,10 @@ def denoisers(ctx: BenchContext) -> dict:
             dr.eval(d(frames[counter["i"] % 4]))
 
         runners[name] = step
-    times = round_robin(runners, 1, max(3, ctx.repeats))
+    times = round_robin(runners, 1, ctx.turns)
     med = {k: statistics.median(v) for k, v in times.items()}
     out = {"scene": "glossy-cornell (static camera)", "size": list(ctx.size),
-           "seconds": med, "repeats": max(3, ctx.repeats)}
+           "seconds": med, "repeats": ctx.turns}
     if "oidn" in times:
         out["oidn_over"] = {k: paired_ratio(times["oidn"], v) for k, v in times.items()}
     if "atrous" in times:
@@ -189,13 +194,13 @@ def lobe_weights(ctx: BenchContext) -> dict:
                 cases[f"upsample-1/{f}-{cname}-{weight}"] = (
                     lambda wt=weight, lo=low, ch=ch: dr.eval(
                         upsample(full, lo, weight=wt, channels=ch)))
-    times = round_robin(cases, 1, max(3, ctx.repeats))
+    times = round_robin(cases, 1, ctx.turns)
     med = {k: statistics.median(v) for k, v in times.items()}
     ratios = {k.replace("-normal", ""): paired_ratio(times[k.replace("-normal", "-lobe")], v)
               for k, v in times.items() if k.endswith("-normal")}
     return {"scene": "roughness-map", "size": [w, h], "seconds": med,
             "ratio_lobe_vs_normal": ratios, "target_ratio": 1.15,
-            "repeats": max(3, ctx.repeats)}
+            "repeats": ctx.turns}
 
 
 @benchmark("ltc")
@@ -230,7 +235,7 @@ def ltc(ctx: BenchContext) -> dict:
     gb0, lights0, f00 = inputs[0]
     cases = {"ltc-traced": lambda: step(False), "ltc-frozen": lambda: step(True),
              "mc-1spp": lambda: render_mc(gb0, lights0, 1, f0=f00)}
-    times = round_robin(cases, 1, max(3, ctx.repeats))
+    times = round_robin(cases, 1, ctx.turns)
     med = {k: statistics.median(v) for k, v in times.items()}
     return {"scene": "polygon-light", "size": [w, h], "lights": 1, "seconds": med,
             "frozen_vs_traced": paired_ratio(times["ltc-frozen"], times["ltc-traced"]),
@@ -244,7 +249,7 @@ def specaa(ctx: BenchContext) -> dict:
     one run; ratios to unfiltered shading. Target (issue 8): filtering adds at most 10%."""
     from . import specaa_experiments as se
 
-    t = se.timing(size=ctx.size, repeats=max(3, ctx.repeats))
+    t = se.timing(size=ctx.size, repeats=ctx.turns)
     return {"scene": se.SCENE, **t, "target_ratio": 1.10}
 
 
@@ -275,7 +280,7 @@ def highlights(ctx: BenchContext) -> dict:
             dr.eval(r.shade_tensor(gb, maps, f0, state["k"]))
 
         cases[f"{dist}-4-frozen"] = replay
-    times = round_robin(cases, 2, max(3, ctx.repeats))
+    times = round_robin(cases, 2, ctx.turns)
     return {"scene": "light-shapes", "size": list(ctx.size),
             "seconds": {k: statistics.median(v) for k, v in times.items()},
             "ratio_to_plain": {k: paired_ratio(v, times["plain"]) for k, v in times.items()},
@@ -312,7 +317,7 @@ def bspvt(ctx: BenchContext) -> dict:
                                                 f0=f0),
              "ltc": lambda: shade_frame(gb, lights, f0=f0),
              "ratio-1spp": lambda: render_ratio(gb, lights, setup.scene, spp=1, f0=f0)}
-    times = round_robin(cases, 1, max(3, ctx.repeats))
+    times = round_robin(cases, 1, ctx.turns)
     med = {k: statistics.median(v) for k, v in times.items()}
     st = trees.stats()
     return {"scene": "polygon-light", "size": [w, h], "vertices": st["vertices"],

@@ -33,6 +33,16 @@ def _vis_ids(ids: np.ndarray) -> np.ndarray:
     return colours[ids[..., 0].astype(int)]
 
 
+def _section_size(ctx: DemoContext, base: tuple[int, int], step: int,
+                  floor: tuple[int, int]) -> tuple[float, tuple[int, int]]:
+    """A paper section's image size: ``base`` scaled like the demo against its default 160
+    pixels of width (smaller in the tests' small demos), rounded down to multiples of
+    ``step``, at least ``floor``. Returns ``(scale, (w, h))``."""
+    scale = min(1.0, ctx.frames[0].width / 160)
+    return scale, tuple(max(lo, int(b * scale) // step * step)
+                        for b, lo in zip(base, floor, strict=True))
+
+
 @register_section("frames", order=10)
 def section_frames(ctx: DemoContext, report: Report) -> None:
     s = report.section(
@@ -175,8 +185,7 @@ def section_lobes(ctx: DemoContext, report: Report) -> None:
 
     t0 = time.perf_counter()
     # 96x72 at 256 spp for the demo's 160x120; smaller when the demo itself is (tests)
-    scale = min(1.0, ctx.frames[0].width / 160)
-    size = (max(16, int(96 * scale) // 4 * 4), max(12, int(72 * scale) // 4 * 4))
+    _, size = _section_size(ctx, (96, 72), 4, (16, 12))
     spp = min(256, int(ctx.references[0].meta.get("spp", 256))) if ctx.references else 256
     s = report.section(
         "Specular-lobe-aware filtering and upsampling",
@@ -214,8 +223,7 @@ def section_ltc(ctx: DemoContext, report: Report) -> None:
     from . import ltc_experiments as le
 
     t0 = time.perf_counter()
-    scale = min(1.0, ctx.frames[0].width / 160)
-    size = (max(16, int(96 * scale) // 4 * 4), max(12, int(72 * scale) // 4 * 4))
+    _, size = _section_size(ctx, (96, 72), 4, (16, 12))
     spp = min(512, int(ctx.references[0].meta.get("spp", 256)) * 2) if ctx.references else 512
     res = le.images(alphas=le.ALPHAS, size=size, ref_spp=spp, max_spp=64, textured=True)
     s = report.section(
@@ -241,8 +249,7 @@ def section_bspvt(ctx: DemoContext, report: Report) -> None:
     from . import bspvt_experiments as be
 
     t0 = time.perf_counter()
-    scale = min(1.0, ctx.frames[0].width / 160)
-    size = (max(16, int(96 * scale) // 4 * 4), max(12, int(72 * scale) // 4 * 4))
+    scale, size = _section_size(ctx, (96, 72), 4, (16, 12))
     spp = min(512, int(ctx.references[0].meta.get("spp", 256)) * 2) if ctx.references else 512
     res = max(8, int(16 * scale))
     small = scale < 1.0  # (tests run the demo tiny)
@@ -275,8 +282,7 @@ def section_highlights(ctx: DemoContext, report: Report) -> None:
     from . import highlight_experiments as he
 
     t0 = time.perf_counter()
-    scale = min(1.0, ctx.frames[0].width / 160)
-    size = (max(32, int(160 * scale) // 2 * 2), max(18, int(90 * scale) // 2 * 2))
+    scale, size = _section_size(ctx, (160, 90), 2, (32, 18))
     ref = 256 if scale >= 1 else 32
     conv = he.convergence(size=size, ref_samples=ref, counts=(4, 16) if scale >= 1 else (4,))
     s = report.section(
@@ -305,8 +311,7 @@ def section_specaa(ctx: DemoContext, report: Report) -> None:
     from . import specaa_experiments as se
 
     t0 = time.perf_counter()
-    scale = min(1.0, ctx.frames[0].width / 160)
-    size = (max(32, int(160 * scale) // 2 * 2), max(18, int(90 * scale) // 2 * 2))
+    scale, size = _section_size(ctx, (160, 90), 2, (32, 18))
     spp = 256 if scale >= 1 else 16
     frames = 6 if scale >= 1 else 2
     res = se.evaluate(size=size, spp=spp, frames=frames, temporal_spp=min(spp, 64))

@@ -215,6 +215,7 @@ def bilateral(frame, weight: str = "normal",
     # everything a tap reads, interleaved: one packet gather per 8 channels; layout
     # [normal (3)] [lobe axis xi (3), lambda_bar] z [illumination (3) per channel]
     chans = list(normal) if need_normal else []
+    i_lobe = len(chans)
     if use_lobe:
         chans += [xi_p[0], xi_p[1], xi_p[2], lb_p]
     i_z = len(chans)
@@ -223,7 +224,7 @@ def bilateral(frame, weight: str = "normal",
         chans += sig
     packed = Packed(chans)
     # the centre pixel's guides once, not re-derived in every window-row kernel
-    dr.eval(packed.parts, hit, z, n_p)
+    dr.eval(packed.arrays, hit, z, n_p)
 
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
@@ -259,9 +260,8 @@ def bilateral(frame, weight: str = "normal",
                 if use_screen:
                     w_scr = dr.select(valid, exp_weight(log_ws - log_n), 0.0)
             if use_lobe:
-                o = 3 if need_normal else 0
-                xi_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
-                lb_q = vals[o + 3]
+                xi_q = mi.Vector3f(vals[i_lobe], vals[i_lobe + 1], vals[i_lobe + 2])
+                lb_q = vals[i_lobe + 3]
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
                 #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j))
                 if approx:

@@ -53,13 +53,17 @@ def split(t: mi.TensorXf) -> Img:
     return [dr.gather(mi.Float, t.array, idx + k) for k in range(c)]
 
 
+def interleave(chs: Img):
+    """C flat channels -> one flat array ``[c0[0], c1[0], .., c0[1], ..]``, in one kernel.
+    (One ``dr.scatter`` per channel would launch a kernel per channel, each evaluating the
+    channels' whole unevaluated expression again.)"""
+    t = type(chs[0])
+    return dr.ravel(sys.modules[t.__module__].ArrayXf([t(ch) for ch in chs]))
+
+
 def merge(chs: Img, h: int, w: int) -> mi.TensorXf:
-    """C flat channels -> (H, W, C) tensor, interleaved in one kernel. (One ``dr.scatter``
-    per channel would launch a kernel per channel, each evaluating the channels' whole
-    unevaluated expression again: 3x the shading cost of an RGB image.)"""
-    array_xf = sys.modules[type(chs[0]).__module__].ArrayXf
-    flat = dr.ravel(array_xf([type(chs[0])(ch) for ch in chs]))
-    return mi.TensorXf(flat, (h, w, len(chs)))
+    """C flat channels -> (H, W, C) tensor (:func:`interleave`)."""
+    return mi.TensorXf(interleave(chs), (h, w, len(chs)))
 
 
 def fetch(chs: Img, index: mi.UInt32, active=True) -> Img:
@@ -175,24 +179,24 @@ class Packed:
     """Per-pixel channels interleaved for neighbour reads: ``Packed(chs).fetch(q)`` returns
     the channels at pixels ``q`` with one packet gather per 8 channels (and one 4-wide for a
     remainder of 4 or fewer), instead of one load per channel. ``q`` must be valid (clamped):
-    masked packet gathers abort inside ``dr.freeze`` (Dr.Jit 1.5)."""
+    masked packet gathers abort inside ``dr.freeze`` (Dr.Jit 1.5). ``arrays``: the
+    interleaved arrays (to ``dr.eval`` them ahead of the kernels that read them)."""
 
     def __init__(self, chs: Img):
-        self.n = len(chs)
-        self.size = dr.width(chs[0])
-        array_xf = sys.modules[type(chs[0]).__module__].ArrayXf
-        self.parts = []  # (width, interleaved array, number of real channels)
-        for k in range(0, self.n, 8):
-            part = [type(chs[0])(c) for c in chs[k:k + 8]]
+        t = type(chs[0])
+        self._xf = sys.modules[t.__module__].ArrayXf
+        self._parts = []  # (packet width, number of real channels)
+        self.arrays = []
+        for k in range(0, len(chs), 8):
+            part = list(chs[k:k + 8])
             width = 8 if len(part) > 4 else 4
-            real = len(part)
-            part += [dr.zeros(type(chs[0]), self.size)] * (width - real)
-            self.parts.append((width, dr.ravel(array_xf(part)), real))
-        self._xf = array_xf
+            self._parts.append((width, len(part)))
+            self.arrays.append(interleave(part + [dr.zeros(t, dr.width(chs[0]))] *
+                                          (width - len(part))))
 
     def fetch(self, q: mi.UInt32) -> Img:
         out = []
-        for width, arr, real in self.parts:
+        for (width, real), arr in zip(self._parts, self.arrays, strict=True):
             v = dr.gather(self._xf, arr, q, shape=(width, dr.width(q)))
             out.extend(v[j] for j in range(real))
         return out

@@ -185,6 +185,7 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     # the low-resolution data a tap reads, interleaved (one packet gather per 8 channels):
     # [normal (3)] [lobe axis xi (3), lambda_bar] z [illumination (3) per channel]
     chans = list(lo.normal) if need_normal else []
+    i_lobe = len(chans)
     if use_lobe:
         chans += [lo.xi[0], lo.xi[1], lo.xi[2], lo.lam]
     i_z = len(chans)
@@ -194,7 +195,7 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     packed = Packed(chans)
     # the full pixel's guides once, not re-derived in every window-row kernel
     dr.eval(hi.hit, hi.z, hi.normal, hi.xi, hi.lam, u, v)
-    dr.eval(packed.parts)
+    dr.eval(packed.arrays)
 
     inv_2s2 = 1.0 / (2.0 * sigma_s * sigma_s)
     sums = [mi.Float(0.0) for _ in channels]
@@ -221,9 +222,8 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
                 dn2 = dr.squared_norm(hi.normal - mi.Vector3f(vals[0], vals[1], vals[2]))
                 w_nrm = dr.select(valid, w_sp * exp_weight(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
             if use_lobe:
-                o = 3 if need_normal else 0
-                xi_q = mi.Vector3f(vals[o], vals[o + 1], vals[o + 2])
-                lb_q = vals[o + 3]
+                xi_q = mi.Vector3f(vals[i_lobe], vals[i_lobe + 1], vals[i_lobe + 2])
+                lb_q = vals[i_lobe + 3]
                 # sec. 4.2: the lobe weight between the full pixel's and the sample's lobes
                 if approx:
                     ratio, log_g = lobe_weight_factors(hi.xi, hi.lam, xi_q, lb_q, beta)
