@@ -92,6 +92,29 @@ def test_bench_json(tmp_path, capsys):
     assert r["ratio_frame_vs_path"] > 0 and r["repeats"] >= 3
     d = res["results"]["denoisers"]
     assert d["cost_vs_atrous"]["atrous"] == 1.0 and d["seconds"]["svgf"] > 0
+    lw = res["results"]["lobe-weights"]["ratio_lobe_vs_normal"]
+    assert {"bilateral-spec-traced", "bilateral-spec-frozen", "upsample-1/2-both-frozen"} <= set(lw)
+
+
+def test_frozen_on_frames_replays_the_same_result():
+    """The bench's frozen wrapper gives the traced result, on replay too (lobe weights read the
+    camera, which the wrapper bakes in)."""
+    import drjit as dr
+    import numpy as np
+
+    from glossrt import render, scenes
+    from glossrt.bench import frozen_on_frames
+    from glossrt.denoise import bilateral, upsample
+
+    full = render.Renderer(scenes.load("roughness-map", size=(32, 24))).render(0)
+    low = render.Renderer(scenes.load("roughness-map", size=(16, 12))).render(0)
+    for fn, frames in ((lambda f: bilateral(f, weight="lobe"), (full,)),
+                       (lambda f, lo: upsample(f, lo, weight="lobe"), (full, low))):
+        want = np.asarray(fn(*frames))
+        call = frozen_on_frames(fn, *frames)
+        for _ in range(3):
+            np.testing.assert_array_equal(np.asarray(call()), want)
+        assert dr.width(call()) == want.size
 
 
 def test_round_robin_pairs_samples():

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from glossrt.brdf import sg
 
 mi = sg.mi
+dr = sg.dr
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -366,10 +367,18 @@ def test_plot_fig3_writes_png(tmp_path):
     assert np.max(np.abs(ex - ap)) > 0.05  # the approximation is poor for broad lobes
 
 
-@pytest.mark.parametrize("beta", [20.0, 7.3, 1.0])
-def test_lobe_weight_factors_match_the_closed_form(beta):
-    """The per-tap split used by the filters (ratio by repeated squaring for integer beta/2)
-    against the sec. 4.2 closed form in float64, and against lobe_weight(approx=True)."""
+def _tap_weight(xp, lbp, xq, lbq, beta):
+    """The filters' per-tap lobe weight from lambda_bar values (float64 NumPy out)."""
+    y_pow, a_g = sg.lobe_tap_terms(_v(xp), sg.lobe_tap_sharpness(_f(lbp), beta), _v(xq),
+                                   sg.lobe_tap_sharpness(_f(lbq), beta), beta)
+    return np.exp(_np(sg.lobe_tap_log_scale(beta))) * _np(y_pow) * np.exp(-_np(a_g)), a_g
+
+
+@pytest.mark.parametrize("beta", [20.0, 7.3, 1.0, "opaque"])
+def test_lobe_tap_terms_match_the_closed_form(beta):
+    """The per-tap form used by the filters (y^(beta/2) by repeated squaring for integer
+    beta/2, the constant 4^(beta/2) apart) against the sec. 4.2 closed form in float64, and
+    against lobe_weight(approx=True); an opaque Dr.Jit beta takes the exp/log path."""
     rng = np.random.default_rng(7)
     k = 300
     xp, xq = _rand_dirs(rng, k), _rand_dirs(rng, k)
@@ -379,19 +388,22 @@ def test_lobe_weight_factors_match_the_closed_form(beta):
     kappa = 100.0
     a, b = lp * kappa / (lp + kappa), lq * kappa / (lq + kappa)
     cos = np.sum(xp * xq, 1)
-    want = (2 * np.sqrt(a * b) / (a + b)) ** beta * np.exp(beta * a * b / (a + b) * (cos - 1))
-    ratio, log_g = sg.lobe_weight_factors(
-        _v(xp), sg.smoothed_sharpness(_f(lp), kappa), _v(xq),
-        sg.smoothed_sharpness(_f(lq), kappa), beta)
-    got = _np(ratio) * np.exp(_np(log_g))
+    b_np = 12.0 if beta == "opaque" else beta
+    b_dr = dr.opaque(mi.Float, 12.0) if beta == "opaque" else beta
+    want = (2 * np.sqrt(a * b) / (a + b)) ** b_np * np.exp(b_np * a * b / (a + b) * (cos - 1))
+    got, _ = _tap_weight(xp, _np(sg.smoothed_sharpness(_f(lp), kappa)), xq,
+                         _np(sg.smoothed_sharpness(_f(lq), kappa)), b_dr)
+    assert np.sum(want > 1e-2) > 20  # the comparison covers weights that matter
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7)
-    full = _np(sg.lobe_weight(_v(xp), _f(lp), _v(xq), _f(lq), beta, kappa, approx=True))
+    full = _np(sg.lobe_weight(_v(xp), _f(lp), _v(xq), _f(lq), b_dr, kappa, approx=True))
     np.testing.assert_allclose(got, full, rtol=2e-4, atol=1e-7)
+    same, _ = _tap_weight(xp, a, xp, a, b_dr)  # w(p, p) = 1
+    np.testing.assert_allclose(same, 1.0, rtol=2e-5)
 
 
-def test_lobe_weight_factors_sharp_nearly_equal_lobes():
+def test_lobe_tap_terms_sharp_nearly_equal_lobes():
     """Without smoothing (kappa=None) lambda_bar reaches 1e6 and more for mirror-like pixels;
-    the filters' per-tap split must stay accurate for two such lobes a hair apart (a packed
+    the filters' per-tap form must stay accurate for two such lobes a hair apart (a packed
     lambda_bar * axis form, xi_p . v_q - lambda_q, loses it to float32 cancellation)."""
     rng = np.random.default_rng(3)
     k = 200
@@ -403,5 +415,5 @@ def test_lobe_weight_factors_sharp_nearly_equal_lobes():
     # float64 closed form (sec. 4.2); cos - 1 as -|a - b|^2 / 2
     cm1 = -0.5 * np.sum((xp - xq) ** 2, 1)
     want = beta * lp * lq / (lp + lq) * cm1
-    _, log_g = sg.lobe_weight_factors(_v(xp), _f(lp), _v(xq), _f(lq), beta)
-    np.testing.assert_allclose(_np(log_g), want, rtol=1e-3, atol=1e-3)
+    _, a_g = _tap_weight(xp, lp, xq, lq, beta)
+    np.testing.assert_allclose(-_np(a_g), want, rtol=1e-3, atol=1e-3)

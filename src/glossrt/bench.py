@@ -167,6 +167,40 @@ def denoisers(ctx: BenchContext) -> dict:
     return out
 
 
+class _Static:
+    """A plain holder: ``dr.freeze`` does not traverse it (frame cameras and metadata that
+    stay fixed while a frozen function replays)."""
+
+
+def frozen_on_frames(fn: Callable, *frames) -> Callable[[], object]:
+    """``fn(*frames)`` frozen (``dr.freeze``) with the frames' channels as its inputs, for
+    timing a pure function of Frames as the real-time path would run it: each call returns
+    the evaluated result, and Python tracing is gone after the first calls. The cameras and
+    metadata are baked in (the frames here are fixed between calls)."""
+    import drjit as dr
+
+    from .frame import Frame
+    from .jit import no_gc
+
+    static = _Static()
+    static.meta = [(f.camera, f.prev_camera, f.index, f.meta) for f in frames]
+
+    def run(chans):
+        return fn(*(Frame(c, camera=m[0], prev_camera=m[1], index=m[2], meta=m[3])
+                    for c, m in zip(chans, static.meta, strict=True)))
+
+    frozen = dr.freeze(run)
+    chans = [dict(f.channels) for f in frames]
+
+    def call():
+        with no_gc():
+            out = frozen(chans)
+            dr.eval(out)
+        return out
+
+    return call
+
+
 @benchmark("lobe-weights")
 def lobe_weights(ctx: BenchContext) -> dict:
     """Cost of Tokuyoshi 2015's lobe weight over the normal weight at the same footprint,
@@ -174,7 +208,8 @@ def lobe_weights(ctx: BenchContext) -> dict:
     joint bilateral upsampling from 1/2 and 1/4 resolution (4x4 samples), each for the
     specular channel alone (``spec``: the weight function is swapped) and for both indirect
     channels (``both``: the diffuse one keeps the normal weight, so lobe mode computes both
-    weights). Target: lobe / normal <= 1.15."""
+    weights); each traced anew per call and frozen (``frozen_on_frames``: kernels replayed,
+    no Python tracing, the real-time path). Target: lobe / normal <= 1.15."""
     import drjit as dr
 
     from . import render, scenes
@@ -188,13 +223,16 @@ def lobe_weights(ctx: BenchContext) -> dict:
     cases = {}
     for cname, ch in sets.items():
         for weight in ("normal", "lobe"):
-            cases[f"bilateral-{cname}-{weight}"] = (
-                lambda wt=weight, ch=ch: dr.eval(bilateral(full, weight=wt, channels=ch)))
+            fns = {"bilateral": (lambda fr, wt=weight, ch=ch: bilateral(
+                fr, weight=wt, channels=ch), (full,))}
             for f, low in lows.items():
-                cases[f"upsample-1/{f}-{cname}-{weight}"] = (
-                    lambda wt=weight, lo=low, ch=ch: dr.eval(
-                        upsample(full, lo, weight=wt, channels=ch)))
-    times = round_robin(cases, 1, ctx.turns)
+                fns[f"upsample-1/{f}"] = (lambda fr, lo, wt=weight, ch=ch: upsample(
+                    fr, lo, weight=wt, channels=ch), (full, low))
+            for op, (fn, frames) in fns.items():
+                cases[f"{op}-{cname}-traced-{weight}"] = (
+                    lambda fn=fn, frames=frames: dr.eval(fn(*frames)))
+                cases[f"{op}-{cname}-frozen-{weight}"] = frozen_on_frames(fn, *frames)
+    times = round_robin(cases, 2, ctx.turns)
     med = {k: statistics.median(v) for k, v in times.items()}
     ratios = {k.replace("-normal", ""): paired_ratio(times[k.replace("-normal", "-lobe")], v)
               for k, v in times.items() if k.endswith("-normal")}

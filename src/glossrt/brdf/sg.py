@@ -48,7 +48,9 @@ __all__ = [
     "gaussian_weight",
     "ggx_lobe_to_sg",
     "lobe_weight",
-    "lobe_weight_factors",
+    "lobe_tap_log_scale",
+    "lobe_tap_sharpness",
+    "lobe_tap_terms",
     "phong_lobe_to_sg",
     "reflect",
     "sg_eval",
@@ -263,32 +265,45 @@ def lobe_weight(xi_p, l_p, xi_q, l_q, beta=20.0, kappa=100.0, approx=False):
     return dr.exp(beta * dr.minimum(log_q, 0.0))
 
 
-def _ratio_term(lb_p, lb_q, beta):
-    """``((4 lb_p lb_q / (lb_p + lb_q)^2)^(beta / 2), lb_p lb_q / (lb_p + lb_q))`` (Tokuyoshi
-    2015, sec. 4.2), the power by repeated squaring for a Python ``beta`` with integer half."""
-    inv_s = dr.rcp(lb_p + lb_q)
-    r = lb_p * lb_q * inv_s
-    # 4 a b / (a + b)^2 <= 1 (AM-GM); clamp rounding
-    x = dr.minimum(4.0 * r * inv_s, 1.0)
+def lobe_tap_sharpness(lb, beta=20.0):
+    """The per-pixel value the filters store for :func:`lobe_tap_terms`: ``s = (beta / 2)
+    lambda_bar`` (``lb`` from :func:`smoothed_sharpness`)."""
+    return (0.5 * beta) * lb
+
+
+def lobe_tap_log_scale(beta=20.0):
+    """``log(4^(beta / 2))``: the constant factor of :func:`lobe_tap_terms`' weight, which a
+    filter adds to the constant part of its exponent (free for a Python ``beta``)."""
+    return (0.5 * beta) * math.log(4.0)
+
+
+def lobe_tap_terms(xi_p, s_p, xi_q, s_q, beta=20.0):
+    """The closed-form lobe weight (``lobe_weight(..., approx=True)``) in the form filters
+    evaluate per tap, from the per-pixel ``s = (beta / 2) lambda_bar``
+    (:func:`lobe_tap_sharpness`, once per pixel rather than per tap):
+
+        w = 4^(beta / 2) * y_pow * exp(-a_g)
+
+    Tokuyoshi 2015, sec. 4.2: ``(2 sqrt(lb_p lb_q) / (lb_p + lb_q))^beta = (4 y)^(beta / 2)``
+    with ``y = lb_p lb_q / (lb_p + lb_q)^2 = r / (s_p + s_q)`` (scale-free), so ``y_pow =
+    y^(beta / 2)`` (by repeated squaring when ``beta / 2`` is an integer, as for the paper's
+    20); and ``G(xi_p; xi_q, beta lb_p lb_q / (lb_p + lb_q)) = exp(-a_g)`` with ``a_g = r
+    |xi_p - xi_q|^2``, ``r = s_p s_q / (s_p + s_q) = (beta / 2) lb_p lb_q / (lb_p + lb_q)``
+    (``cos - 1 = -|xi_p - xi_q|^2 / 2``: no cancellation for sharp lobes a hair apart).
+
+    The constant ``4^(beta / 2)`` (:func:`lobe_tap_log_scale` in the log domain) is left to
+    the caller, which folds it into constants it already has, and ``a_g`` joins the exponent
+    of the filter's other Gaussian weights: the lobe weight costs no ``exp`` or constant
+    multiply of its own. Returns ``(y_pow, a_g)``."""
+    inv_s = dr.rcp(s_p + s_q)
+    r = s_p * s_q * inv_s
+    y = r * inv_s  # <= 1/4 (AM-GM)
     if isinstance(beta, int | float):
-        return pow_int(x, 0.5 * beta), r
-    # an opaque Dr.Jit beta (parameter sweeps without recompiling)
-    return dr.exp((0.5 * beta) * dr.log(dr.maximum(x, 1e-30))), r
-
-
-def lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta=20.0):
-    """The closed-form lobe weight (``lobe_weight(..., approx=True)``) split for filters that
-    evaluate it per tap: ``w = ratio * exp(log_g)``, from *smoothed* sharpnesses ``lb``
-    (:func:`smoothed_sharpness`, computed once per pixel rather than per tap).
-
-    Tokuyoshi 2015, sec. 4.2: ``ratio = (2 sqrt(lb_p lb_q) / (lb_p + lb_q))^beta =
-    (4 lb_p lb_q / (lb_p + lb_q)^2)^(beta / 2)`` (by repeated squaring when ``beta / 2`` is an
-    integer, as for the paper's 20) and ``log_g = beta lb_p lb_q / (lb_p + lb_q) (xi_p . xi_q -
-    1)``; a filter folds ``log_g`` into the exponent of its other Gaussian weights, so the
-    lobe weight costs one ``exp`` per tap."""
-    ratio, r = _ratio_term(lb_p, lb_q, beta)
-    # Tokuyoshi 2015, sec. 4.2: G(xi_p, xi_q, beta lb_p lb_q / (lb_p + lb_q)) in the log domain
-    return ratio, (beta * r) * _cos_minus_one(xi_p, xi_q)
+        y_pow = pow_int(y, 0.5 * beta)
+    else:  # an opaque Dr.Jit beta (parameter sweeps without recompiling)
+        y_pow = dr.exp((0.5 * beta) * dr.log(dr.maximum(y, 1e-30)))
+    d = xi_p - xi_q
+    return y_pow, r * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
 
 
 def gaussian_weight(mu_p, var_p, mu_q, var_q, beta=20.0, kappa=100.0, dim=1):

@@ -8,6 +8,8 @@ Produces: the filtered RGB image (H, W, 3).
 
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
@@ -68,12 +70,19 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
     # and tap (Dr.Jit's PacketOps)
     chans = [gb.normal[0], gb.normal[1], gb.normal[2], gb.inv_z]
     if lobes is not None:
-        from ..brdf.sg import lobe_weight_factors, smoothed_sharpness
+        from ..brdf.sg import (
+            lobe_tap_log_scale,
+            lobe_tap_sharpness,
+            lobe_tap_terms,
+            smoothed_sharpness,
+        )
 
         axis_p, lam_p, use_lobe, beta, kappa = lobes
         xi_p = mi.Vector3f(axis_p[0], axis_p[1], axis_p[2])
-        # Tokuyoshi 2015, sec. 4.2: lambda_bar once per pixel, not per tap
-        lb_p = smoothed_sharpness(lam_p, kappa)
+        # Tokuyoshi 2015, sec. 4.2: lambda_bar once per pixel, not per tap, stored as
+        # (beta / 2) lambda_bar for lobe_tap_terms
+        lb_p = lobe_tap_sharpness(smoothed_sharpness(lam_p, kappa), beta)
+        scale = math.exp(lobe_tap_log_scale(beta))  # the constant 4^(beta / 2), into h
         chans += [xi_p[0], xi_p[1], xi_p[2], lb_p]
     i_sig = len(chans)
     for c, v in zip(colors, variances, strict=True):
@@ -104,14 +113,14 @@ def svgf_level_multi(grid: Grid, colors: list, variances: list, gb: GBuffer, ste
         if lobes is not None:
             xi_q = mi.Vector3f(allq[4], allq[5], allq[6])
             # Tokuyoshi 2015, sec. 4.2 (closed form): the lobe weight in place of w_n, as
-            # ratio * exp(log_g) with log_g folded into the exponent of w_z * w_l below
-            ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, allq[7], beta)
-            w_lobe = dr.select(valid_q, h * ratio, 0.0)
+            # 4^(beta / 2) y_pow exp(-a_g) with a_g joining the exponent of w_z * w_l below
+            y_pow, a_lobe = lobe_tap_terms(xi_p, lb_p, xi_q, allq[7], beta)
+            w_lobe = dr.select(valid_q, (h * scale) * y_pow, 0.0)
         for k in range(n_sig):
             cq = allq[i_sig + 4 * k:i_sig + 4 + 4 * k]
             lobe_k = lobes is not None and use_lobe[k]
             w_g = w_lobe if lobe_k else w_n
-            a_g = a_z - log_g if lobe_k else a_z
+            a_g = a_z + a_lobe if lobe_k else a_z
             if lum_weights:
                 # Schied 2017, eq. 3 * eq. 5: exp(-a_z) exp(-a_l) = exp(-(a_z + a_l))
                 l_q = luminance([cq[0], cq[1], cq[2]])

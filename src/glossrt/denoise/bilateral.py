@@ -78,8 +78,10 @@ import mitsuba as mi
 from ..brdf.sg import (
     WANG_SG,
     ggx_lobe_to_sg,
+    lobe_tap_log_scale,
+    lobe_tap_sharpness,
+    lobe_tap_terms,
     lobe_weight,
-    lobe_weight_factors,
     smoothed_sharpness,
 )
 from ..errors import FrameError, GlossrtError
@@ -195,7 +197,8 @@ def bilateral(frame, weight: str = "normal",
         # sec. 4.2: the smoothed sharpness lambda_bar = lambda kappa / (lambda + kappa), once
         # per pixel (not per tap), read by the taps beside the lobe axis
         lb_p = smoothed_sharpness(lam_p, kappa)
-        dr.eval(xi_p, lb_p)
+        if approx:  # the closed form per tap reads (beta / 2) lambda_bar (lobe_tap_terms)
+            lb_p = lobe_tap_sharpness(lb_p, beta)
     if use_screen:
         # glossrt's fig. 4(c) baseline: per-pixel sigma_s,i from the lobe sharpness
         sig_i = screen_sigma(lam_p, pixel_angle(frame), k_s, sigma_min, sigma_s)
@@ -223,8 +226,8 @@ def bilateral(frame, weight: str = "normal",
     for sig in signals:
         chans += sig
     packed = Packed(chans)
-    # the centre pixel's guides once, not re-derived in every window-row kernel
-    dr.eval(packed.arrays, hit, z, n_p)
+    # the centre pixel's guides once (one kernel), not re-derived in every window-row kernel
+    dr.eval(packed.arrays, hit, z, n_p, *((xi_p, lb_p) if use_lobe else ()))
 
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
@@ -241,6 +244,9 @@ def bilateral(frame, weight: str = "normal",
             valid = hit & grid.inside(qx, qy) & (z_q > 0)  # never a background tap
             # sec. 2.2: f(s_i, s_j) = exp(-|s_i - s_j|^2 / (2 sigma_s^2))
             log_w = -float(dx * dx + dy * dy) * inv_2s2
+            if use_lobe and approx:
+                # the lobe weight's constant 4^(beta / 2) (lobe_tap_terms) joins f's exponent
+                log_wl = log_w + lobe_tap_log_scale(beta)
             if use_screen:
                 # fig. 4(c) baseline: f with the pixel's adapted sigma_s,i
                 log_ws = -float(dx * dx + dy * dy) * inv_2si2
@@ -249,6 +255,8 @@ def bilateral(frame, weight: str = "normal",
                 rel = (z - z_q) / z
                 log_z = dr.square(rel) / (2.0 * sigma_z2)
                 log_w = log_w - log_z
+                if use_lobe and approx:
+                    log_wl = log_wl - log_z
                 if use_screen:
                     log_ws = log_ws - log_z
             # sec. 2.2: w_n = g(|n_i - n_j|, sigma_n^2) = exp(-|n_i - n_j|^2 / (2 sigma_n^2)),
@@ -265,8 +273,8 @@ def bilateral(frame, weight: str = "normal",
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
                 #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j))
                 if approx:
-                    ratio, log_g = lobe_weight_factors(xi_p, lb_p, xi_q, lb_q, beta)
-                    w_lobe = dr.select(valid, ratio * exp_weight(log_w + log_g), 0.0)
+                    y_pow, a_g = lobe_tap_terms(xi_p, lb_p, xi_q, lb_q, beta)
+                    w_lobe = dr.select(valid, y_pow * exp_weight(log_wl - a_g), 0.0)
                 else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
                     w_lobe = dr.select(valid, exp_weight(log_w), 0.0) * lobe_weight(
                         xi_p, lb_p, xi_q, lb_q, beta, None, False)
