@@ -227,7 +227,8 @@ def bilateral(frame, weight: str = "normal",
         chans += sig
     packed = Packed(chans)
     # the centre pixel's guides once (one kernel), not re-derived in every window-row kernel
-    dr.eval(packed.arrays, hit, z, n_p, *((xi_p, lb_p) if use_lobe else ()))
+    # (and the demodulated signals, the centre tap's values)
+    dr.eval(packed.arrays, hit, z, n_p, signals, *((xi_p, lb_p) if use_lobe else ()))
 
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
