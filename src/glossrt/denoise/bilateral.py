@@ -75,27 +75,21 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from ..brdf.sg import (
-    WANG_SG,
-    ggx_lobe_to_sg,
-    lobe_tap_log_scale,
-    lobe_tap_sharpness,
-    lobe_tap_terms,
-    lobe_weight,
-    smoothed_sharpness,
-)
+from ..brdf.sg import WANG_SG, ggx_lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from ..jit import exp_weight
 from .common import (
     Grid,
-    Packed,
     albedo_channel,
     check_frame,
     demodulate,
+    lobe_tap_weight,
     merge,
     remodulate,
     split,
+    tap_channels,
+    tap_sharpness,
     view_directions,
 )
 
@@ -196,9 +190,7 @@ def bilateral(frame, weight: str = "normal",
     if use_lobe:
         # sec. 4.2: the smoothed sharpness lambda_bar = lambda kappa / (lambda + kappa), once
         # per pixel (not per tap), read by the taps beside the lobe axis
-        lb_p = smoothed_sharpness(lam_p, kappa)
-        if approx:  # the closed form per tap reads (beta / 2) lambda_bar (lobe_tap_terms)
-            lb_p = lobe_tap_sharpness(lb_p, beta)
+        lb_p = tap_sharpness(smoothed_sharpness(lam_p, kappa), beta, approx)
     if use_screen:
         # glossrt's fig. 4(c) baseline: per-pixel sigma_s,i from the lobe sharpness
         sig_i = screen_sigma(lam_p, pixel_angle(frame), k_s, sigma_min, sigma_s)
@@ -215,17 +207,10 @@ def bilateral(frame, weight: str = "normal",
         specular.append(c.endswith("specular"))
     # the normal weight is needed unless the lobe weight serves every channel
     need_normal = not (use_lobe and all(specular))
-    # everything a tap reads, interleaved: one packet gather per 8 channels; layout
-    # [normal (3)] [lobe axis xi (3), lambda_bar] z [illumination (3) per channel]
-    chans = list(normal) if need_normal else []
-    i_lobe = len(chans)
-    if use_lobe:
-        chans += [xi_p[0], xi_p[1], xi_p[2], lb_p]
-    i_z = len(chans)
-    chans.append(zkey)
-    for sig in signals:
-        chans += sig
-    packed = Packed(chans)
+    # everything a tap reads, interleaved: one packet gather per 8 channels
+    packed, i_lobe, i_z = tap_channels(
+        normal if need_normal else None,
+        [xi_p[0], xi_p[1], xi_p[2], lb_p] if use_lobe else None, zkey, signals)
     # the centre pixel's guides once (one kernel), not re-derived in every window-row kernel
     # (and the demodulated signals, the centre tap's values)
     dr.eval(packed.arrays, hit, z, n_p, signals, *((xi_p, lb_p) if use_lobe else ()))
@@ -245,9 +230,6 @@ def bilateral(frame, weight: str = "normal",
             valid = hit & grid.inside(qx, qy) & (z_q > 0)  # never a background tap
             # sec. 2.2: f(s_i, s_j) = exp(-|s_i - s_j|^2 / (2 sigma_s^2))
             log_w = -float(dx * dx + dy * dy) * inv_2s2
-            if use_lobe and approx:
-                # the lobe weight's constant 4^(beta / 2) (lobe_tap_terms) joins f's exponent
-                log_wl = log_w + lobe_tap_log_scale(beta)
             if use_screen:
                 # fig. 4(c) baseline: f with the pixel's adapted sigma_s,i
                 log_ws = -float(dx * dx + dy * dy) * inv_2si2
@@ -256,8 +238,6 @@ def bilateral(frame, weight: str = "normal",
                 rel = (z - z_q) / z
                 log_z = dr.square(rel) / (2.0 * sigma_z2)
                 log_w = log_w - log_z
-                if use_lobe and approx:
-                    log_wl = log_wl - log_z
                 if use_screen:
                     log_ws = log_ws - log_z
             # sec. 2.2: w_n = g(|n_i - n_j|, sigma_n^2) = exp(-|n_i - n_j|^2 / (2 sigma_n^2)),
@@ -269,16 +249,10 @@ def bilateral(frame, weight: str = "normal",
                 if use_screen:
                     w_scr = dr.select(valid, exp_weight(log_ws - log_n), 0.0)
             if use_lobe:
-                xi_q = mi.Vector3f(vals[i_lobe], vals[i_lobe + 1], vals[i_lobe + 2])
-                lb_q = vals[i_lobe + 3]
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
-                #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j))
-                if approx:
-                    y_pow, a_g = lobe_tap_terms(xi_p, lb_p, xi_q, lb_q, beta)
-                    w_lobe = dr.select(valid, y_pow * exp_weight(log_wl - a_g), 0.0)
-                else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
-                    w_lobe = dr.select(valid, exp_weight(log_w), 0.0) * lobe_weight(
-                        xi_p, lb_p, xi_q, lb_q, beta, None, False)
+                #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j)), times f w_z
+                w_lobe = dr.select(valid, lobe_tap_weight(
+                    xi_p, lb_p, vals[i_lobe:i_lobe + 4], log_w, beta, approx), 0.0)
             for k in range(len(signals)):
                 if specular[k] and use_lobe:
                     wk = w_lobe

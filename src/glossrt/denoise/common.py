@@ -12,9 +12,10 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from ..brdf.sg import lobe_tap_log_scale, lobe_tap_sharpness, lobe_tap_terms, lobe_weight
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
-from ..jit import opaque
+from ..jit import exp_weight, opaque
 
 #: Rec. 709 luminance weights (linear RGB)
 LUM = (0.2126, 0.7152, 0.0722)
@@ -200,3 +201,43 @@ class Packed:
             v = dr.gather(self._xf, arr, q, shape=(width, dr.width(q)))
             out.extend(v[j] for j in range(real))
         return out
+
+
+# -- the cross-bilateral filters' taps (bilateral.py, upsampling.py) -------------------------
+
+
+def tap_channels(normal: Img | None, lobe: Img | None, z: mi.Float,
+                 signals: list) -> tuple[Packed, int, int]:
+    """What a cross-bilateral tap reads, interleaved for :class:`Packed`: ``[normal (3)]
+    [lobe axis (3), sharpness] z [illumination (3) per signal]`` (the bracketed parts only
+    when given). Returns the packed channels and the positions of the lobe and of z."""
+    chans = list(normal) if normal is not None else []
+    i_lobe = len(chans)
+    if lobe is not None:
+        chans += list(lobe)
+    i_z = len(chans)
+    chans.append(z)
+    for sig in signals:
+        chans += sig
+    return Packed(chans), i_lobe, i_z
+
+
+def tap_sharpness(lb: mi.Float, beta, approx: bool) -> mi.Float:
+    """The per-pixel sharpness the filters store for :func:`lobe_tap_weight`: the smoothed
+    ``lambda_bar`` for the exact weight, ``(beta / 2) lambda_bar`` for the closed form
+    (:func:`~glossrt.brdf.sg.lobe_tap_terms`)."""
+    return lobe_tap_sharpness(lb, beta) if approx else lb
+
+
+def lobe_tap_weight(xi_p: mi.Vector3f, s_p: mi.Float, lobe_q: Img, log_w, beta,
+                    approx: bool):
+    """``exp(log_w)`` times Tokuyoshi 2015's lobe weight (sec. 4.2) between a pixel's lobe
+    ``(xi_p, s_p)`` and a tap's ``lobe_q`` (axis (3), sharpness), sharpnesses from
+    :func:`tap_sharpness`. ``approx``: the closed form through eq. 7, its ``a_g`` and
+    constant joining ``log_w`` in one exponential; else the exact eq. 6."""
+    xi_q = mi.Vector3f(lobe_q[0], lobe_q[1], lobe_q[2])
+    if approx:
+        y_pow, a_g = lobe_tap_terms(xi_p, s_p, xi_q, lobe_q[3], beta)
+        return y_pow * exp_weight(lobe_tap_log_scale(beta) + log_w - a_g)
+    # sharpnesses already smoothed: kappa=None
+    return exp_weight(log_w) * lobe_weight(xi_p, s_p, xi_q, lobe_q[3], beta, None, False)

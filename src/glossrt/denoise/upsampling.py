@@ -58,27 +58,22 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..brdf.sg import (
-    ggx_lobe_to_sg,
-    lobe_tap_log_scale,
-    lobe_tap_sharpness,
-    lobe_tap_terms,
-    lobe_weight,
-    smoothed_sharpness,
-)
+from ..brdf.sg import ggx_lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from ..jit import exp_weight
 from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2
 from .common import (
     Grid,
-    Packed,
     albedo_channel,
     check_frame,
     demodulate,
+    lobe_tap_weight,
     merge,
     remodulate,
     split,
+    tap_channels,
+    tap_sharpness,
     view_directions,
 )
 
@@ -189,21 +184,13 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     specular = [c.endswith("specular") for c in channels]
     # the normal weight is needed unless the lobe weight serves every channel
     need_normal = not (use_lobe and all(specular))
-    # the low-resolution data a tap reads, interleaved (one packet gather per 8 channels):
-    # [normal (3)] [lobe axis xi (3), lambda_bar] z [illumination (3) per channel]
-    chans = list(lo.normal) if need_normal else []
-    i_lobe = len(chans)
-    lam_p = hi.lam
-    if use_lobe:
-        lam_q = lo.lam
-        if approx:  # the closed form per tap reads (beta / 2) lambda_bar (lobe_tap_terms)
-            lam_p, lam_q = lobe_tap_sharpness(lam_p, beta), lobe_tap_sharpness(lam_q, beta)
-        chans += [lo.xi[0], lo.xi[1], lo.xi[2], lam_q]
-    i_z = len(chans)
-    chans.append(lo.z)
-    for c in channels:
-        chans += demodulate(split(low[c]), split(low[albedo_of[c]]))
-    packed = Packed(chans)
+    # the low-resolution data a tap reads, interleaved (one packet gather per 8 channels)
+    lam_p = tap_sharpness(hi.lam, beta, approx) if use_lobe else None
+    packed, i_lobe, i_z = tap_channels(
+        lo.normal if need_normal else None,
+        [lo.xi[0], lo.xi[1], lo.xi[2], tap_sharpness(lo.lam, beta, approx)] if use_lobe
+        else None, lo.z,
+        [demodulate(split(low[c]), split(low[albedo_of[c]])) for c in channels])
     dr.eval(packed.arrays)
     # window rows per kernel: the default 4x4 window is one kernel for one weight and one
     # channel (the full pixel's guides computed in it); more work per tap is split into
@@ -239,17 +226,9 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
                 dn2 = dr.squared_norm(hi.normal - mi.Vector3f(vals[0], vals[1], vals[2]))
                 w_nrm = dr.select(valid, w_sp * exp_weight(log_w - dn2 / (2.0 * sigma_n2)), 0.0)
             if use_lobe:
-                xi_q = mi.Vector3f(vals[i_lobe], vals[i_lobe + 1], vals[i_lobe + 2])
-                lb_q = vals[i_lobe + 3]
                 # sec. 4.2: the lobe weight between the full pixel's and the sample's lobes
-                if approx:
-                    y_pow, a_g = lobe_tap_terms(hi.xi, lam_p, xi_q, lb_q, beta)
-                    # lobe_tap_terms' constant 4^(beta / 2) joins the exponent
-                    w_lobe = dr.select(valid, w_sp * y_pow * exp_weight(
-                        lobe_tap_log_scale(beta) + log_w - a_g), 0.0)
-                else:  # exact eq. 6 (sharpnesses already smoothed: kappa=None)
-                    w_lobe = dr.select(valid, w_sp * exp_weight(log_w), 0.0) * lobe_weight(
-                        hi.xi, lam_p, xi_q, lb_q, beta, None, False)
+                w_lobe = dr.select(valid, w_sp * lobe_tap_weight(
+                    hi.xi, lam_p, vals[i_lobe:i_lobe + 4], log_w, beta, approx), 0.0)
             for k in range(len(channels)):
                 wk = w_lobe if (use_lobe and specular[k]) else w_nrm
                 val = vals[i_z + 1 + 3 * k:i_z + 4 + 3 * k]
