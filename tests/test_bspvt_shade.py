@@ -29,6 +29,7 @@ from glossrt import backend
 
 backend.ensure()
 
+import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from glossrt.errors import GlossrtError  # noqa: E402
@@ -249,9 +250,10 @@ class Queries:
                        rng.integers(0, trees, q))
 
 
-def integrals(trees, qs: Queries, light, two_sided, stats=None, texture=None):
+def integrals(trees, qs: Queries, light, two_sided, stats=None, texture=None,
+              traversal="kernel"):
     i_d, i_s = bs.visible_integrals(trees, *qs.dr(), np.asarray(light, np.float64), two_sided,
-                                    texture=texture, stats=stats)
+                                    texture=texture, stats=stats, traversal=traversal)
     return np.array(i_d, np.float64), np.array(i_s, np.float64)
 
 
@@ -442,6 +444,52 @@ def test_pieces_with_many_vertices():
         np.testing.assert_allclose([got_d[0], got_s[0]], [want_d[0], want_s[0]], atol=ATOL_F32)
         assert want_d[0] > 0.1
         check_against_reference(tr, qs, light, two, "16-gon")
+
+
+def test_kernel_traversal_equals_wavefront(monkeypatch):
+    """The one-kernel depth-first traversal (default) and the per-level wavefront split the
+    same items into the same pieces: equal ``items`` and ``pieces`` counts and integrals equal
+    to float32 summation order (the pieces are summed in another order), on deep random trees
+    (60 leaves per face, values in {0, 1, uniform}) and random lights straddling faces,
+    including lanes redone with KMAX slots (a 7-gon clipped to a face has up to 11 vertices).
+    With the output capacity forced to 1 piece, the traversal reruns with the exact capacity
+    and gives the same result."""
+    rng = np.random.default_rng(9)
+    tr = bs.DeviceTrees.of(make_trees([[random_face_tree(rng, 60) for _ in range(6)]
+                                       for _ in range(3)]))
+    assert tr.depth >= 8
+    passes = []  # (slots, lanes) of each traversal pass: the KMAX pass must run too
+    first_pass = bs._traverse_pass
+
+    def counting(dev, items, k, cap):
+        passes.append((k, dr.width(items.n)))
+        return first_pass(dev, items, k, cap)
+
+    monkeypatch.setattr(bs, "_traverse_pass", counting)
+    runs = []
+    for k, two in ((4, False), (7, True)):
+        light = random_light(rng, k, dist=(0.8, 1.2), size=(1.0, 1.5))
+        qs = Queries.random(rng, 200, spread=0.3, trees=3)
+        got = {}
+        for traversal in bs.TRAVERSALS:
+            st = {}
+            got[traversal] = integrals(tr, qs, light, two, stats=st, traversal=traversal)
+            got[traversal + " stats"] = st
+        w, kn = got["wavefront stats"], got["kernel stats"]
+        assert (kn["items"], kn["pieces"]) == (w["items"], w["pieces"])
+        # deep, busy traversals: several splits and more than one leaf piece per lit query
+        assert w["items"] > 5 * w["live"] and w["pieces"] > 1.5 * w["live"]
+        assert w["levels"] >= 5
+        for a, b in zip(got["kernel"], got["wavefront"], strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+        runs.append((qs, light, two, got["kernel"]))
+    assert any(k == bs.KMAX for k, _ in passes)  # lanes with pieces of more than 8 vertices
+    monkeypatch.setattr(bs, "_capacity", lambda n: 1)
+    for qs, light, two, want in runs:
+        for a, b in zip(integrals(tr, qs, light, two), want, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    with pytest.raises(GlossrtError, match="traversal"):
+        integrals(tr, qs, light, True, traversal="breadth")
 
 
 def _light(vertices, radiance=(1.0, 0.8, 0.6), two_sided=False, texture=None, uv=None):

@@ -6,6 +6,7 @@ the same run (machines are noisy). The device and versions are recorded with the
 
 from __future__ import annotations
 
+import functools
 import json
 import platform
 import statistics
@@ -330,8 +331,9 @@ def bspvt(ctx: BenchContext) -> dict:
     """Okuno & Iwasaki's BSPVT shadows on ``polygon-light`` (4965 vertices): precomputation
     (visibility rays and trees, 32x32 cube maps, 8x8 below 320 pixels wide: the 64x64
     default is in ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a
-    frame at the bench size per vertex (the paper's mode) and per pixel, with unshadowed LTC
-    and the ratio estimator at 1 spp beside them, interleaved in one run. GPU targets
+    frame at the bench size per vertex (the paper's mode) and per pixel, each with the
+    one-kernel traversal (default) and the per-level wavefront, with unshadowed LTC and the
+    ratio estimator at 1 spp beside them, interleaved in one run. GPU targets
     (issue 6): build 50x faster than the paper's 2.7 min for 17K vertices; per-vertex shading
     of 512x512 at 200 fps or more."""
     from . import render, scenes
@@ -350,11 +352,14 @@ def bspvt(ctx: BenchContext) -> dict:
     gb = render.Renderer(setup).render(0)
     lights = polygon_lights(setup, 0)
     f0 = f0_image(setup, gb)
-    cases = {"bspvt-vertex": lambda: shade_bspvt(setup.scene, gb, trees, lights, "vertex"),
-             "bspvt-pixel": lambda: shade_bspvt(setup.scene, gb, trees, lights, "pixel",
-                                                f0=f0),
-             "ltc": lambda: shade_frame(gb, lights, f0=f0),
-             "ratio-1spp": lambda: render_ratio(gb, lights, setup.scene, spp=1, f0=f0)}
+    cases = {}
+    for mode in ("vertex", "pixel"):
+        for trav in ("kernel", "wavefront"):
+            name = f"bspvt-{mode}" + ("" if trav == "kernel" else "-wavefront")
+            cases[name] = functools.partial(shade_bspvt, setup.scene, gb, trees, lights, mode,
+                                            f0=f0 if mode == "pixel" else None, traversal=trav)
+    cases |= {"ltc": lambda: shade_frame(gb, lights, f0=f0),
+              "ratio-1spp": lambda: render_ratio(gb, lights, setup.scene, spp=1, f0=f0)}
     times = round_robin(cases, 1, ctx.turns)
     med = {k: statistics.median(v) for k, v in times.items()}
     st = trees.stats()

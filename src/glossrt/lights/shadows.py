@@ -154,14 +154,16 @@ def pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets: np.ndarray) -
 
 
 def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex",
-                f0: np.ndarray | None = None, textures: dict | None = None) -> np.ndarray:
+                f0: np.ndarray | None = None, textures: dict | None = None,
+                traversal: str = "kernel") -> np.ndarray:
     """Direct light (H, W, 3) of ``frame`` from the polygon ``lights`` with BSPVT shadows
     (Okuno & Iwasaki, eq. 2 per vertex tree; see the module docstring for ``mode``).
 
     ``trees`` must have been built for ``scene``'s vertices (:func:`build_scene_trees`);
     ``f0`` (H, W, 3) is the per-pixel F0 of the ``pixel`` mode (the ``vertex`` mode takes
-    materials per mesh, :func:`vertex_materials`). Pixels on shapes without trees (the lights
-    themselves, analytic shapes) and background pixels get 0."""
+    materials per mesh, :func:`vertex_materials`); ``traversal``: how the trees are walked
+    (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result). Pixels on shapes without
+    trees (the lights themselves, analytic shapes) and background pixels get 0."""
     from . import bspvt_shade
     from .shading import NEEDS
 
@@ -185,7 +187,7 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
         wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
         alpha, albedo, vf0 = vertex_materials(scene)
         d, s = bspvt_shade.shade_vertices(trees, lights, wo, alpha, albedo, vf0,
-                                          textures=textures)
+                                          textures=textures, traversal=traversal)
         col = d + s
         v = pt.vertices[pt.valid]
         out[pt.valid] = np.einsum("pk,pkc->pc", pt.bary[pt.valid], col[v])
@@ -202,6 +204,7 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
         h * w, 3)[sel]
     d, s = bspvt_shade.shade_pixels(trees, lights, p, chan("normal"), wo,
                                     chan("roughness")[:, 0], chan("albedo_diffuse"), f0p,
-                                    pt.vertices[sel], pt.bary[sel], textures=textures)
+                                    pt.vertices[sel], pt.bary[sel], textures=textures,
+                                    traversal=traversal)
     out[sel] = d + s
     return out.reshape(h, w, 3)
