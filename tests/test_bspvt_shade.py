@@ -446,9 +446,10 @@ def test_pieces_with_many_vertices():
         check_against_reference(tr, qs, light, two, "16-gon")
 
 
-def test_kernel_traversal_equals_wavefront(monkeypatch):
-    """The one-kernel depth-first traversal (default) and the per-level wavefront split the
-    same items into the same pieces: equal ``items`` and ``pieces`` counts and integrals equal
+def test_traversals_agree(monkeypatch):
+    """The one-kernel depth-first traversal (default), the per-level wavefront and the fused
+    traversal (splits and integration in one loop, no host synchronisation) split the same
+    items into the same pieces: equal ``items`` and ``pieces`` counts and integrals equal
     to float32 summation order (the pieces are summed in another order), on deep random trees
     (60 leaves per face, values in {0, 1, uniform}) and random lights straddling faces,
     including lanes redone with KMAX slots (a 7-gon clipped to a face has up to 11 vertices).
@@ -475,13 +476,15 @@ def test_kernel_traversal_equals_wavefront(monkeypatch):
             st = {}
             got[traversal] = integrals(tr, qs, light, two, stats=st, traversal=traversal)
             got[traversal + " stats"] = st
-        w, kn = got["wavefront stats"], got["kernel stats"]
+        w, kn, fu = got["wavefront stats"], got["kernel stats"], got["fused stats"]
         assert (kn["items"], kn["pieces"]) == (w["items"], w["pieces"])
+        assert (fu["items"], fu["pieces"], fu["live"]) == (w["items"], w["pieces"], w["live"])
         # deep, busy traversals: several splits and more than one leaf piece per lit query
         assert w["items"] > 5 * w["live"] and w["pieces"] > 1.5 * w["live"]
         assert w["levels"] >= 5
-        for a, b in zip(got["kernel"], got["wavefront"], strict=True):
-            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+        for other in ("kernel", "fused"):
+            for a, b in zip(got[other], got["wavefront"], strict=True):
+                np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
         runs.append((qs, light, two, got["kernel"]))
     assert any(k == bs.KMAX for k, _ in passes)  # lanes with pieces of more than 8 vertices
     monkeypatch.setattr(bs, "_capacity", lambda n: 1)
@@ -536,6 +539,37 @@ def test_shade_vertices_against_unshadowed_formulas():
     d4, s4 = bs.shade_vertices(with_values(tr, 0.4), lights, wo, alpha, albedo, f0)
     np.testing.assert_allclose(d4, 0.4 * diff, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(s4, 0.4 * spec, rtol=1e-5, atol=1e-7)
+
+
+def test_frozen_shading_replays_the_traced_result():
+    """``frozen=True`` (the fused traversal recorded by dr.freeze) == the traced kernel
+    traversal for three views and a moved light, per vertex and per pixel, with one recording
+    per call signature (new views and light positions replay)."""
+    rng = np.random.default_rng(10)
+    nv = 30
+    pos = rng.normal(size=(nv, 3)) * 0.3
+    nrm = unit(rng.normal(size=(nv, 3)) * 0.5 + [0, 0, 1])
+    alpha = rng.uniform(0.2, 1.0, nv)
+    albedo, f0 = rng.uniform(0, 1, (nv, 3)), rng.uniform(0, 1, (nv, 3))
+    dev = bs.DeviceTrees.of(make_trees([[random_face_tree(rng, 24) for _ in range(6)]
+                                        for _ in range(nv)], pos, nrm))
+    before = bs._shade_frozen.n_recordings
+    for step in range(3):
+        wo = unit(rng.normal(size=(nv, 3)) * 0.6 + nrm)
+        lights = [_light(QUAD_DOWN + [0.1 * step, 0.0, 0.0]),
+                  _light(QUAD_DOWN[:3] + [0.3, 0.2, 0.4], (0.5, 1.0, 2.0), True)]
+        want = bs.shade_vertices(dev, lights, wo, alpha, albedo, f0)
+        got = bs.shade_vertices(dev, lights, wo, alpha, albedo, f0, frozen=True)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6)
+        assert want[0].max() > 0.05
+    assert bs._shade_frozen.n_recordings - before == 1
+    tri = rng.integers(0, nv, (nv, 3))
+    bary = rng.dirichlet([1, 1, 1], nv)
+    pix = [bs.shade_pixels(dev, lights, pos, nrm, wo, alpha, albedo, f0, tri, bary,
+                           frozen=fz) for fz in (False, True)]
+    for g, w in zip(pix[1], pix[0], strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6)
 
 
 def test_shade_pixels_blends_the_three_trees():
@@ -618,6 +652,15 @@ def test_textured_lights():
         ratio = c[:, lit] / i[lit]
         assert np.all(ratio >= lo[:, None] - 1e-3) and np.all(ratio <= hi[:, None] + 1e-3)
         assert lit.sum() > 10
+    with pytest.raises(GlossrtError, match="textured"):
+        integrals(shadow, qs, QUAD_DOWN, False, texture=(light, tex), traversal="fused")
+    # frozen shading takes textured lights traced anew: the same colours as not frozen
+    sp = bs._points(qs.p, qs.n, qs.wo, qs.alpha, np.ones((len(qs.p), 3)), None, len(qs.p))
+    tex_light = _light(QUAD_DOWN, texture=img, uv=light.uv)
+    shaded = [bs._np_color(bs.shade_points(shadow, [tex_light], sp, [qs.dr()[0]],
+                                           frozen=fz)[0]) for fz in (False, True)]
+    np.testing.assert_array_equal(shaded[0], shaded[1])
+    assert shaded[0].max() > 0
 
 
 def test_errors():
@@ -626,6 +669,13 @@ def test_errors():
     qs = Queries.random(rng, 4)
     dev = bs.DeviceTrees.of(good)
     assert bs.DeviceTrees.of(dev) is dev
+    # the upload is cached on the trees with its arrays; new arrays upload anew
+    assert bs.DeviceTrees.of(good) is dev
+    again = SimpleNamespace(**vars(good))
+    again.leaf_value = good.leaf_value * 0.5
+    assert bs.DeviceTrees.of(again) is not dev
+    np.testing.assert_allclose(np.array(bs.DeviceTrees.of(again).leaf_value),
+                               0.5 * np.array(dev.leaf_value))
 
     def broken(**kw):
         out = SimpleNamespace(**vars(good))

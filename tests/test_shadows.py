@@ -23,6 +23,7 @@ import mitsuba as mi  # noqa: E402
 from glossrt import render, scenes  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
 from glossrt.lights.bspvt import scene_vertices  # noqa: E402
+from glossrt.lights.bspvt_shade import shade_vertices  # noqa: E402
 from glossrt.lights.ltc import shade_frame  # noqa: E402
 from glossrt.lights.mc import render_mc  # noqa: E402
 from glossrt.lights.scene import polygon_lights  # noqa: E402
@@ -108,14 +109,27 @@ def test_bspvt_against_shadowed_reference():
     ltc = shade_frame(gb, lights, f0=f0)
     hit = gb.numpy("mesh_id")[..., 0] > 0
     err = {"ltc": np.abs(ltc - ref)[hit].mean()}
+    imgs = {}
     for mode in ("vertex", "pixel"):
-        img = shade_bspvt(setup.scene, gb, trees, lights, mode, f0=f0)
+        img = imgs[mode] = shade_bspvt(setup.scene, gb, trees, lights, mode, f0=f0)
         assert np.all(np.isfinite(img))
         err[mode] = np.abs(img - ref)[hit].mean()
+        # frozen (the fused traversal, replayed) == traced
+        frozen = shade_bspvt(setup.scene, gb, trees, lights, mode, f0=f0, frozen=True)
+        np.testing.assert_allclose(frozen, img, rtol=1e-5, atol=1e-6)
     print("mean abs error", err)
     assert err["pixel"] < 0.4 * err["ltc"]
     assert err["vertex"] < 0.6 * err["ltc"]
     assert err["pixel"] < err["vertex"]
+    # the device per-vertex path == shade_vertices at the vertices, blended in NumPy
+    _, _, offsets = scene_vertices(setup.scene)
+    pt = pixel_triangles(setup.scene, gb, scene_meshes(setup.scene), offsets)
+    wo = np.asarray(gb.camera.position, np.float64) - trees.positions
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    d, s = shade_vertices(trees, lights, wo, *vertex_materials(setup.scene))
+    want = np.zeros((pt.valid.size, 3))
+    want[pt.valid] = np.einsum("pk,pkc->pc", pt.bary[pt.valid], (d + s)[pt.vertices[pt.valid]])
+    np.testing.assert_allclose(imgs["vertex"].reshape(-1, 3), want, rtol=1e-5, atol=1e-6)
 
 
 def test_vertex_materials_follow_the_bsdfs():

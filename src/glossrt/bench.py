@@ -332,8 +332,9 @@ def bspvt(ctx: BenchContext) -> dict:
     (visibility rays and trees, 32x32 cube maps, 8x8 below 320 pixels wide: the 64x64
     default is in ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a
     frame at the bench size per vertex (the paper's mode) and per pixel, each with the
-    one-kernel traversal (default) and the per-level wavefront, with unshadowed LTC and the
-    ratio estimator at 1 spp beside them, interleaved in one run. GPU targets
+    one-kernel traversal (default), the per-level wavefront and frozen (the fused traversal
+    replayed), with unshadowed LTC and the ratio estimator at 1 spp beside them, interleaved
+    in one run. GPU targets
     (issue 6): build 50x faster than the paper's 2.7 min for 17K vertices; per-vertex shading
     of 512x512 at 200 fps or more."""
     from . import render, scenes
@@ -354,10 +355,11 @@ def bspvt(ctx: BenchContext) -> dict:
     f0 = f0_image(setup, gb)
     cases = {}
     for mode in ("vertex", "pixel"):
-        for trav in ("kernel", "wavefront"):
-            name = f"bspvt-{mode}" + ("" if trav == "kernel" else "-wavefront")
-            cases[name] = functools.partial(shade_bspvt, setup.scene, gb, trees, lights, mode,
-                                            f0=f0 if mode == "pixel" else None, traversal=trav)
+        for kind, kw in (("", {}), ("-wavefront", {"traversal": "wavefront"}),
+                         ("-frozen", {"frozen": True})):
+            cases[f"bspvt-{mode}{kind}"] = functools.partial(
+                shade_bspvt, setup.scene, gb, trees, lights, mode,
+                f0=f0 if mode == "pixel" else None, **kw)
     cases |= {"ltc": lambda: shade_frame(gb, lights, f0=f0),
               "ratio-1spp": lambda: render_ratio(gb, lights, setup.scene, spp=1, f0=f0)}
     times = round_robin(cases, 1, ctx.turns)

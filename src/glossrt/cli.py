@@ -355,8 +355,10 @@ def cmd_light(args) -> int:
             elif args.method == "bspvt":
                 from .lights.shadows import shade_bspvt
 
+                # per vertex the frozen (fused) traversal is fastest; per pixel, on the CPU,
+                # the traced one-kernel traversal (docs/PERFORMANCE.md)
                 img = shade_bspvt(setup.scene, gb, trees, lights, args.mode, f0=f0,
-                                  textures=cache)
+                                  textures=cache, frozen=args.mode == "vertex")
                 p.update(i + 1)
             elif args.method == "highlight":
                 from .lights.highlights import HighlightRenderer

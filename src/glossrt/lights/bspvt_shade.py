@@ -16,8 +16,9 @@ both with the horizon clipping and one- / two-sided handling of
 :func:`glossrt.lights.polygon.cosine_integral`. With an all-visible tree the sums equal the
 unshadowed ``_integrals`` of the whole light (the pieces partition it).
 
-How (Okuno & Iwasaki, sec. 3.3 and fig. 5; step 2 depth-first in one kernel by default, or
-as a breadth-first wavefront: ``visible_integrals(..., traversal=)``):
+How (Okuno & Iwasaki, sec. 3.3 and fig. 5; step 2 depth-first in one kernel by default, as
+a breadth-first wavefront, or fused with step 3 in one loop: ``visible_integrals(...,
+traversal=)``, :data:`TRAVERSALS`):
 
 1. Per query (shading point ``p``) and cube face ``f`` (world axes; conventions of
    :mod:`glossrt.lights.bspvt`: face ``f`` has axis ``k = f // 2``, sign ``sg``, in-face axes
@@ -34,7 +35,10 @@ as a breadth-first wavefront: ``visible_integrals(..., traversal=)``):
    ``dr.compress``), children at leaves with mean visibility ``v > 0`` are integrated at once
    and leaves with ``v = 0`` are dropped without integration (fig. 5 (c), (d)). The kernel
    traversal does the same cuts per root item in a loop with a stack in local memory
-   (``dr.alloc_local``) and appends the leaf pieces to one buffer (``dr.scatter_inc``).
+   (``dr.alloc_local``) and appends the leaf pieces to one buffer (``dr.scatter_inc``). The
+   fused traversal pushes leaf pieces onto that stack too and integrates them when popped:
+   no array whose size depends on the data and no host synchronisation, so ``dr.freeze`` can
+   record it (``shade_points(..., frozen=True)``, the real-time path).
 3. A leaf piece is lifted back to directions ``dir(f, s, t) = sg e_k + s e_u + t e_v`` (a
    polygon on the plane ``sg d_k = 1``: the same solid angle and the same winding seen from
    ``p``), expressed in the shading frame and integrated; ``v i_d`` and ``v i_s`` are summed
@@ -78,10 +82,11 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque, owned  # noqa: E402
+from ..jit import no_gc, opaque, owned  # noqa: E402
 from .ltc import (  # noqa: E402
     PrefilteredTexture,
     _apply_minv,
+    _device_lights,
     _local,
     _table,
     _tex_eval,
@@ -99,7 +104,7 @@ __all__ = ["KMAX", "TRAVERSALS", "DeviceTrees", "shade_pixels", "shade_points", 
 #: How :func:`visible_integrals` walks the trees: ``"kernel"`` (one kernel, a depth-first
 #: loop per item with its stack in local memory) or ``"wavefront"`` (breadth-first, a few
 #: kernels and a host synchronisation per tree level).
-TRAVERSALS = ("kernel", "wavefront")
+TRAVERSALS = ("kernel", "wavefront", "fused")
 #: Most 2D vertices a piece keeps (see the module docstring).
 KMAX = 16
 #: Vertex slot counts the wavefront rounds up to (each size compiles its own kernels).
@@ -156,6 +161,9 @@ def _tree_depth(children: np.ndarray, roots: np.ndarray) -> int:
     return depth
 
 
+_TREE_ATTRS = ("lines", "children", "leaf_value", "roots", "positions", "normals")
+
+
 @dataclass
 class DeviceTrees:
     """The flat tree arrays of all vertices, uploaded once (opaque Dr.Jit arrays).
@@ -179,12 +187,29 @@ class DeviceTrees:
         """Validate and upload ``trees`` (``lines`` (N, 3), ``children`` (N, 2), ``leaf_value``
         (L,), ``roots`` (V, 6), ``positions`` and ``normals`` (V, 3)); a :class:`DeviceTrees`
         is returned as it is. Raises GlossrtError naming the problem: wrong shapes, NaN / Inf,
-        child or root codes out of range, leaf values outside [0, 1], cycles."""
+        child or root codes out of range, leaf values outside [0, 1], cycles.
+
+        The upload (and its validation, ~7 ms for 5K vertices) is cached on ``trees`` with the
+        arrays it was made from: treat a BSPVT's arrays as read-only (assign new arrays to
+        change them; changes made in place are not seen)."""
         if isinstance(trees, DeviceTrees):
             return trees
-        for attr in ("lines", "children", "leaf_value", "roots", "positions", "normals"):
+        for attr in _TREE_ATTRS:
             if not hasattr(trees, attr):
                 raise GlossrtError(f"BSPVT trees need the attribute {attr!r}")
+        arrays = tuple(getattr(trees, a) for a in _TREE_ATTRS)
+        cached = getattr(trees, "_glossrt_device", None)
+        if cached is not None and all(a is b for a, b in zip(cached[0], arrays, strict=True)):
+            return cached[1]
+        dev = cls._upload(trees)
+        try:  # kept with the arrays it was made from (replaced arrays upload anew)
+            trees._glossrt_device = (arrays, dev)
+        except AttributeError:  # objects without a __dict__
+            pass
+        return dev
+
+    @classmethod
+    def _upload(cls, trees: Any) -> DeviceTrees:
         lines = _float_array("lines", trees.lines, (3,))
         children = _int_array("children", trees.children, 2, 2)
         leaf = _float_array("leaf_value", trees.leaf_value, ())
@@ -301,6 +326,35 @@ def _area2(s: list, t: list, n: mi.UInt32) -> mi.Float:
             sb, tb = s[0], t[0]
         acc = acc + dr.select(n > i, s[i] * tb - sb * t[i], 0.0)
     return acc
+
+
+def _root_items(dev: DeviceTrees, tree_index: mi.UInt32, rel: list, q: mi.UInt32,
+                f: mi.UInt32) -> tuple[_Items, mi.Bool]:
+    """Root work items of the lanes ``(q, f)`` (query, face): the light (``rel``: its vertices
+    relative to each query) clipped to face ``f``'s frustum and projected (module docstring,
+    step 1), at the root of tree ``tree_index[q]``; and whether the piece is a non-degenerate
+    polygon."""
+    ws, xs, ys = [], [], []
+    for v in rel:
+        w, x, y = _face_coords(f, dr.gather(mi.Vector3f, v, q))
+        ws.append(w)
+        xs.append(x)
+        ys.append(y)
+    comps, cnt = [ws, xs, ys], dr.full(mi.UInt32, len(rel), dr.width(q))
+    for sx, sy in ((-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0)):
+        # the face's frustum: w + sx x >= 0, w + sy y >= 0 (planes through the origin)
+        dist = [w + sx * x + sy * y for w, x, y in zip(*comps, strict=True)]
+        comps, cnt = _clip(comps, cnt, dist, len(dist) + 1)
+    s_l, t_l = [], []
+    for w, x, y in zip(*comps, strict=True):
+        # gnomonic projection: (s, t) = (d_u, d_v) / (sg d_k); w > 0 inside the frustum
+        inv = dr.select(w > 0.0, dr.rcp(w), 0.0)
+        s_l.append(dr.clip(x * inv, -1.0, 1.0))
+        t_l.append(dr.clip(y * inv, -1.0, 1.0))
+    tree = dr.gather(mi.UInt32, tree_index, q)
+    code = dr.gather(mi.Int32, dev.roots, tree * 6 + f)
+    keep = (cnt >= 3) & (dr.abs(_area2(s_l, t_l, cnt)) > 0.0)
+    return _Items(q, f, code, cnt, s_l, t_l), keep
 
 
 # --------------------------------------------------------------------------------------------
@@ -421,6 +475,47 @@ def _fan_start(g: int) -> int:
     return 0 if g == 0 else _KI - 1 + (_KI - 2) * (g - 1)
 
 
+def _piece_integrals(f: mi.UInt32, s: list, t: list, n: mi.UInt32, groups, frame: tuple,
+                     coeffs: mi.Vector4f, two_sided) -> tuple:
+    """The pieces ``(f, s, t, n)`` lifted to the shading ``frame`` ``(t1, t2, n)``: returns
+    ``(local vertices, i_d, i_s)``, the integrals summed over the fan ``groups``
+    (:func:`_fan_integrals`)."""
+    local = _lift_local(f, s, t, frame)
+    return (local, *_fan_integrals(local, n, groups, coeffs, two_sided))
+
+
+def _lift_local(f: mi.UInt32, s: list, t: list, frame: tuple) -> list:
+    """Piece vertices back to directions (a polygon on the face's plane ``sg d_k = 1``) in the
+    shading frame ``(t1, t2, n)``."""
+    t1, t2, nn = frame
+    local = []
+    for sj, tj in zip(s, t, strict=True):
+        d = _lift(f, sj, tj)
+        local.append(mi.Vector3f(dr.dot(d, t1), dr.dot(d, t2), dr.dot(d, nn)))
+    return local
+
+
+def _fan_integrals(local: list, n: mi.UInt32, groups, coeffs: mi.Vector4f,
+                   two_sided) -> tuple:
+    """``(i_d, i_s)`` of the pieces ``local`` (``n`` vertices used) summed over the fan
+    ``groups`` (module docstring; Heitz et al. 2016 as ``ltc._integrals``: the identity and
+    ``M^-1``-transformed piece)."""
+    i_d = i_s = None
+    for g in groups:
+        start = _fan_start(g)
+        if g == 0:
+            verts, cnt = local[:_KI], n
+        else:
+            verts = [local[0]] + local[start:start + _KI - 1]
+            rest = dr.maximum(mi.Int32(n) - start, 0)
+            cnt = mi.UInt32(dr.select(rest >= 2, dr.minimum(rest, _KI - 1) + 1, 0))
+        d_g = cosine_integral(verts, cnt, two_sided)
+        s_g = cosine_integral(_apply_minv(coeffs, verts), cnt, two_sided)
+        i_d = d_g if i_d is None else i_d + d_g
+        i_s = s_g if i_s is None else i_s + s_g
+    return i_d, i_s
+
+
 def _accumulate_groups(pieces: _Items, groups: list, dev: DeviceTrees, qd: _Queries, acc: dict,
                        two_sided, texture) -> None:
     q = pieces.q
@@ -429,25 +524,8 @@ def _accumulate_groups(pieces: _Items, groups: list, dev: DeviceTrees, qd: _Quer
     t2 = dr.gather(mi.Vector3f, qd.t2, q)
     nn = dr.gather(mi.Vector3f, qd.n, q)
     coeffs = dr.gather(mi.Vector4f, qd.coeffs, q)
-    local = []
-    for s, t in zip(pieces.s, pieces.t, strict=True):
-        # back to directions (a polygon on the face's plane sg d_k = 1), in the shading frame
-        d = _lift(pieces.f, s, t)
-        local.append(mi.Vector3f(dr.dot(d, t1), dr.dot(d, t2), dr.dot(d, nn)))
-    i_d = i_s = None
-    for g in groups:
-        start = _fan_start(g)
-        if g == 0:
-            verts, cnt = local[:_KI], pieces.n
-        else:
-            verts = [local[0]] + local[start:start + _KI - 1]
-            rest = dr.maximum(mi.Int32(pieces.n) - start, 0)
-            cnt = mi.UInt32(dr.select(rest >= 2, dr.minimum(rest, _KI - 1) + 1, 0))
-        # Heitz et al. 2016 (as ltc._integrals): identity and M^-1-transformed piece
-        d_g = cosine_integral(verts, cnt, two_sided)
-        s_g = cosine_integral(_apply_minv(coeffs, verts), cnt, two_sided)
-        i_d = d_g if i_d is None else i_d + d_g
-        i_s = s_g if i_s is None else i_s + s_g
+    local, i_d, i_s = _piece_integrals(pieces.f, pieces.s, pieces.t, pieces.n, groups,
+                                       (t1, t2, nn), coeffs, two_sided)
     if texture is None:
         w_d, w_s = val * i_d, val * i_s
     else:
@@ -631,6 +709,163 @@ def _traverse_kernel(dev: DeviceTrees, items: _Items, k: int, cap: int):
     return out, counters, over, n_iter
 
 
+def _clip_into(s: list, t: list, n: mi.UInt32, dist: list, ls, lt, dst, mask) -> mi.UInt32:
+    """:func:`_clip` of the polygon ``(s, t)`` (``n`` of its slots used) to ``{dist >= 0}``,
+    written vertex by vertex into the local-memory buffers ``ls``, ``lt`` from index ``dst``
+    on where ``mask`` holds (at most ``len(s)`` vertices: the rest dropped, as ``_clip``
+    does). Returns the number of vertices the clip produced (before that cap)."""
+    k = len(s)
+    one, none = mi.UInt32(1), mi.UInt32(0)
+    cnt = dr.zeros(mi.UInt32, dr.width(n))
+    for i in range(k):
+        active = n > i
+        if i + 1 < k:
+            wrap = n > i + 1
+            sb = dr.select(wrap, s[i + 1], s[0])
+            tb = dr.select(wrap, t[i + 1], t[0])
+            db = dr.select(wrap, dist[i + 1], dist[0])
+        else:
+            sb, tb, db = s[0], t[0], dist[0]
+        da = dist[i]
+        a_in, b_in = da >= 0.0, db >= 0.0
+        emit_a = active & a_in
+        crosses = active & (a_in ^ b_in)
+        u = da / dr.select(crosses, da - db, 1.0)
+        for (vs, vt), e in (((s[i], t[i]), emit_a),
+                            ((s[i] + (sb - s[i]) * u, t[i] + (tb - t[i]) * u), crosses)):
+            w = mask & e & (cnt < k)
+            ls.write(vs, dst + cnt, w)
+            lt.write(vt, dst + cnt, w)
+            cnt = cnt + dr.select(e, one, none)
+    return cnt
+
+
+def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Vector3f,
+                     wo: mi.Vector3f, coeffs: mi.Vector4f, world: list, two_sided,
+                     width: int, stats: dict | None = None) -> tuple[mi.Float, mi.Float]:
+    """Shadowed integrals ``(i_d, i_s)`` with no data-dependent array size and no host
+    synchronisation (what ``dr.freeze`` can record): one lane per query and cube face
+    (``width`` queries, an explicit int), the root items of :func:`_root_items` for every
+    lane, and one ``dr.while_loop`` that both splits and integrates (Okuno & Iwasaki, eq. 2
+    and sec. 3.3). Each iteration pops a stack entry (local memory, :data:`KMAX` vertex slots
+    per piece, truncated as the wavefront does): at an internal node it cuts the piece by the
+    node's line and pushes the non-empty children that are internal or leaves of visibility
+    > 0; at a leaf it integrates the piece (:func:`_piece_integrals`) into the lane's sums.
+    The six faces' sums are added per query at the end. Same pieces as the other
+    traversals; no textured lights."""
+    k = KMAX
+    t1, t2 = ltc_frame(n, wo)
+    local = _local(world, p, t1, t2, n)
+    whole_d = cosine_integral(local, None, two_sided)
+    whole_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
+    live = (whole_d > 0.0) | (whole_s > 0.0)
+    rel = [mi.Vector3f(v - p) for v in world]
+    lanes = dr.arange(mi.UInt32, 6 * width)
+    nq = dr.opaque(mi.UInt32, width)
+    f = lanes // nq
+    q = lanes - f * nq
+    roots, keep = _root_items(dev, tree_index, rel, q, f)
+    keep &= dr.gather(mi.Bool, live, q)
+    code0 = roots.code
+    leaf0 = code0 < 0
+    val0 = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code0), leaf0)
+    start = keep & (~leaf0 | (val0 > 0.0))
+    frame = (dr.gather(mi.Vector3f, t1, q), dr.gather(mi.Vector3f, t2, q),
+             dr.gather(mi.Vector3f, n, q))
+    lane_coeffs = dr.gather(mi.Vector4f, coeffs, q)
+    # stack entries: internal nodes and leaf pieces waiting to be integrated (at most
+    # depth + 2), rounded up so that trees of similar depth share the compiled kernel
+    depth = -(-(dev.depth + 3) // 8) * 8
+    codes = dr.alloc_local(mi.Int32, depth)
+    counts = dr.alloc_local(mi.UInt32, depth)
+    ls = dr.alloc_local(mi.Float, depth * k)
+    lt = dr.alloc_local(mi.Float, depth * k)
+    codes.write(code0, 0)
+    counts.write(roots.n, 0)
+    zero = dr.zeros(mi.Float, 6 * width)
+    for j in range(k):
+        ls.write(roots.s[j] if j < len(roots.s) else zero, j)
+        lt.write(roots.t[j] if j < len(roots.t) else zero, j)
+    one, none = mi.UInt32(1), mi.UInt32(0)
+
+    def cond(sp, acc_d, acc_s, n_split, n_piece, codes, counts, ls, lt):
+        return sp > 0
+
+    def body(sp, acc_d, acc_s, n_split, n_piece, codes, counts, ls, lt):
+        top = sp - 1
+        code = codes.read(top)
+        cnt = counts.read(top)
+        base = top * k
+        s = [ls.read(base + j) for j in range(k)]
+        t = [lt.read(base + j) for j in range(k)]
+        at_leaf = code < 0
+        inner = ~at_leaf
+
+        # dr.if_stmt: the LLVM backend skips a branch no lane of a packet takes
+        def integrate(acc_d, acc_s):
+            # a leaf piece: v * its integrals (Okuno & Iwasaki, eq. 2); fans past 8 vertices
+            val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code))
+            local = _lift_local(f, s, t, frame)
+            i_d, i_s = _fan_integrals(local, cnt, (0,), lane_coeffs, two_sided)
+            i_d, i_s = dr.if_stmt(
+                (i_d, i_s), cnt > _KI,
+                lambda d, s_: tuple(x + y for x, y in zip(
+                    (d, s_), _fan_integrals(local, cnt, (1, 2), lane_coeffs, two_sided),
+                    strict=True)),
+                lambda d, s_: (d, s_))
+            return acc_d + val * i_d, acc_s + val * i_s
+
+        acc_d, acc_s = dr.if_stmt((acc_d, acc_s), at_leaf, integrate, lambda d, s_: (d, s_))
+
+        def split(top):
+            # an internal node: its line cuts the piece into the children
+            node = mi.UInt32(code)
+            a = dr.gather(mi.Float, dev.lines, node * 3)
+            b = dr.gather(mi.Float, dev.lines, node * 3 + 1)
+            c = dr.gather(mi.Float, dev.lines, node * 3 + 2)
+            dst = top
+            for side in (0, 1):
+                sgn = 1.0 if side else -1.0
+                dist = [sgn * (a * sj + b * tj + c) for sj, tj in zip(s, t, strict=True)]
+                some = dr.zeros(mi.Bool, dr.width(cnt))
+                for j in range(k):
+                    some = some | ((cnt > j) & (dist[j] > 0.0))
+                child = dr.gather(mi.Int32, dev.children, node * 2 + side)
+                leaf = child < 0
+                v = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~child), leaf)
+                push = some & (~leaf | (v > 0.0))
+                # into slot `dst` (first the popped entry, now in registers)
+                c_out = _clip_into(s, t, cnt, dist, ls, lt, dst * k, push)
+                codes.write(child, dst, push)
+                counts.write(dr.minimum(c_out, k), dst, push)
+                dst = dst + dr.select(push, one, none)
+            return (dst,)
+
+        top = dr.if_stmt((top,), inner, split, lambda x: (x,))[0]
+        n_split = n_split + dr.select(inner, one, none)
+        n_piece = n_piece + dr.select(at_leaf, one, none)
+        return top, acc_d, acc_s, n_split, n_piece, codes, counts, ls, lt
+
+    sp = dr.select(start, one, none)
+    acc = dr.zeros(mi.Float, 6 * width)
+    ctr = dr.zeros(mi.UInt32, 6 * width)
+    _, acc_d, acc_s, n_split, n_piece, *_ = dr.while_loop(
+        (sp, acc, mi.Float(acc), ctr, mi.UInt32(ctr), codes, counts, ls, lt), cond, body)
+    dr.eval(acc_d, acc_s)  # one loop kernel for both (the gathers below would run it twice)
+    i_d = i_s = None
+    for face in range(6):
+        idx = dr.arange(mi.UInt32, width) + face * nq
+        d_f, s_f = dr.gather(mi.Float, acc_d, idx), dr.gather(mi.Float, acc_s, idx)
+        i_d = d_f if i_d is None else i_d + d_f
+        i_s = s_f if i_s is None else i_s + s_f
+    if stats is not None:
+        stats.update(levels=int(dr.max(n_split + n_piece)[0]),
+                     items=int(dr.sum(n_split)[0]), pieces=int(dr.sum(n_piece)[0]),
+                     live=int(dr.sum(mi.UInt32(live))[0]))
+    # exact zeros where the whole light gives 0 (as ltc._integrals)
+    return dr.select(whole_d > 0.0, i_d, 0.0), dr.select(whole_s > 0.0, i_s, 0.0)
+
+
 def _check_traversal(traversal: str) -> None:
     if traversal not in TRAVERSALS:
         raise GlossrtError(f"unknown BSPVT traversal {traversal!r}; choose one of {TRAVERSALS}")
@@ -715,9 +950,19 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     else:
         tex_arg = None
 
+    world = [mi.Point3f(*opaque(v)) for v in lv]
+    if traversal == "fused":
+        if tex_arg is not None:
+            raise GlossrtError("the fused BSPVT traversal does not take textured lights")
+        st = {} if stats is not None else None
+        i_d, i_s = _fused_integrals(dev, tree_index, p, n, wo, coeffs, world, two_sided,
+                                    width, st)
+        dr.eval(i_d, i_s)
+        if stats is not None:
+            stats.update(st, queries=width)
+        return i_d, i_s
     # per query: shading frame, whole-light integrals (for exact zeros and pruning)
     t1, t2 = ltc_frame(n, wo)
-    world = [mi.Point3f(*opaque(v)) for v in lv]
     local = _local(world, p, t1, t2, n)
     local_s = _apply_minv(coeffs, local)
     whole_d = cosine_integral(local, None, two_sided)
@@ -738,27 +983,8 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
         nq = dr.opaque(mi.UInt32, n_live)
         f = lanes // nq
         q = dr.gather(mi.UInt32, live, lanes - f * nq)
-        ws, xs, ys = [], [], []
-        for v in rel:
-            w, x, y = _face_coords(f, dr.gather(mi.Vector3f, v, q))
-            ws.append(w)
-            xs.append(x)
-            ys.append(y)
-        comps, cnt = [ws, xs, ys], dr.full(mi.UInt32, len(rel), dr.width(q))
-        for sx, sy in ((-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0)):
-            # the face's frustum: w + sx x >= 0, w + sy y >= 0 (planes through the origin)
-            dist = [w + sx * x + sy * y for w, x, y in zip(*comps, strict=True)]
-            comps, cnt = _clip(comps, cnt, dist, len(dist) + 1)
-        s_l, t_l = [], []
-        for w, x, y in zip(*comps, strict=True):
-            # gnomonic projection: (s, t) = (d_u, d_v) / (sg d_k); w > 0 inside the frustum
-            inv = dr.select(w > 0.0, dr.rcp(w), 0.0)
-            s_l.append(dr.clip(x * inv, -1.0, 1.0))
-            t_l.append(dr.clip(y * inv, -1.0, 1.0))
-        tree = dr.gather(mi.UInt32, tree_index, q)
-        code = dr.gather(mi.Int32, dev.roots, tree * 6 + f)
-        roots = _Items(q, f, code, cnt, s_l, t_l)
-        keep = (cnt >= 3) & (dr.abs(_area2(s_l, t_l, cnt)) > 0.0)
+        roots, keep = _root_items(dev, tree_index, rel, q, f)
+        code = roots.code
         leaf = code < 0
         val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code), leaf)
         keep_int, keep_leaf = keep & ~leaf, keep & leaf & (val > 0.0)
@@ -805,34 +1031,14 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
 # shading
 
 
-def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
-                 tree_index: Sequence[mi.UInt32], weights: Sequence[mi.Float] | None = None,
-                 textures: dict | None = None,
-                 traversal: str = "kernel") -> tuple[mi.Color3f, mi.Color3f]:
-    """Shadowed direct light (diffuse, specular) at the shading points ``sp``, summed over the
-    polygon ``lights`` (objects with ``vertices``, ``radiance``, ``two_sided``, optional
-    ``texture`` and ``uv``; :class:`glossrt.lights.scene.PolygonLight`).
-
-    Each lane reads the trees ``tree_index[j]`` (one ``mi.UInt32`` per lane each) and blends
-    the shadowed integrals with ``weights[j]`` (default: one tree, weight 1). The BRDF is
-    combined as in :func:`glossrt.lights.ltc.shade_frame`: diffuse ``L albedo i_d``, specular
-    ``L (F0 (norm - fres) + fres) i_s``; 0 where ``sp.hit`` is False. ``textures``: a cache
-    {id(light texture): PrefilteredTexture} reused across calls; ``traversal``: as
-    :func:`visible_integrals`."""
-    _check_traversal(traversal)
-    dev = DeviceTrees.of(trees)
-    width = dr.width(sp.p)
-    idx = [mi.UInt32(t) for t in tree_index]
-    if not idx:
-        raise GlossrtError("shade_points needs at least one tree index per lane")
-    w = [mi.Float(x) for x in weights] if weights is not None else [mi.Float(1.0)]
-    if len(w) != len(idx):
-        raise GlossrtError(f"{len(idx)} tree indices but {len(w)} weights")
-    for t in idx:
-        if dr.width(t) != width:
-            raise GlossrtError(f"tree indices have {dr.width(t)} lanes, the points {width}")
+def _shade_core(dev: DeviceTrees, lights: list, sp: ShadingPoints, idx: list, w: list, table,
+                width: int, traversal: str, direct: bool = False) -> tuple[mi.Color3f, mi.Color3f]:
+    """:func:`shade_points` after validation. ``lights``: per light ``(world vertices (opaque
+    Point3f), radiance (Color3f), two_sided, light vertices (K, 3), texture or None)``;
+    ``direct``: call :func:`_fused_integrals` without :func:`visible_integrals`' checks (no
+    host synchronisation: what :data:`_shade_frozen` records)."""
     cos_o = dr.clip(dr.dot(sp.n, sp.wo), 0.0, 1.0)
-    coeffs, norm, fres = _table().lookup(sp.alpha, cos_o)
+    coeffs, norm, fres = table.lookup(sp.alpha, cos_o)
     # as ltc.shade_frame: Schlick split of the fit, int f F cos = F0 (norm - fres) + fres
     spec_w = sp.f0 * (norm - fres) + fres
     m = len(idx)
@@ -850,13 +1056,12 @@ def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
     args = (tree, g(sp.p), g(sp.n), g(sp.wo), g(coeffs))
     total_d = dr.zeros(mi.Color3f, width)
     total_s = dr.zeros(mi.Color3f, width)
-    cache = {} if textures is None else textures
-    for light in lights:
-        lv = light_vertices(light)
-        le = mi.Color3f(*opaque(np.asarray(light.radiance, float).ravel()[:3]))
-        tex = prefiltered(light, cache)
-        i_d, i_s = visible_integrals(dev, *args, lv, bool(getattr(light, "two_sided", False)),
-                                     texture=tex, traversal=traversal)
+    for world, le, two_sided, lv, tex in lights:
+        if direct:
+            i_d, i_s = _fused_integrals(dev, *args, world, two_sided, m * width)
+        else:
+            i_d, i_s = visible_integrals(dev, *args, lv, two_sided, texture=tex,
+                                         traversal=traversal)
         if m == 1:
             b_d, b_s = w[0] * i_d, w[0] * i_s
         else:
@@ -869,8 +1074,70 @@ def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
                 b_s = s_j if b_s is None else b_s + s_j
         total_d = total_d + le * (sp.albedo * b_d)
         total_s = total_s + le * (spec_w * b_s)
-    total_d = dr.select(sp.hit, total_d, 0.0)
-    total_s = dr.select(sp.hit, total_s, 0.0)
+    return dr.select(sp.hit, total_d, 0.0), dr.select(sp.hit, total_s, 0.0)
+
+
+def _shade_frozen_kernel(dev: DeviceTrees, lights: list, sp: ShadingPoints, idx: list,
+                         w: list, table, width: int) -> tuple[mi.Color3f, mi.Color3f]:
+    # ``width`` is an explicit argument, part of dr.freeze's key (sizes baked into a
+    # recording); each light's two-sidedness (a Python bool) is too
+    return _shade_core(dev, [(world, le, two, None, None) for world, le, two in lights], sp,
+                       idx, w, table, width, "fused", direct=True)
+
+
+#: :func:`shade_points` with ``frozen=True``: the fused traversal recorded once per tree set,
+#: light count and lane count, replayed afterwards.
+_shade_frozen = dr.freeze(_shade_frozen_kernel, warn_after=16)
+
+
+def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
+                 tree_index: Sequence[mi.UInt32], weights: Sequence[mi.Float] | None = None,
+                 textures: dict | None = None, traversal: str = "kernel",
+                 frozen: bool = False) -> tuple[mi.Color3f, mi.Color3f]:
+    """Shadowed direct light (diffuse, specular) at the shading points ``sp``, summed over the
+    polygon ``lights`` (objects with ``vertices``, ``radiance``, ``two_sided``, optional
+    ``texture`` and ``uv``; :class:`glossrt.lights.scene.PolygonLight`).
+
+    Each lane reads the trees ``tree_index[j]`` (one ``mi.UInt32`` per lane each) and blends
+    the shadowed integrals with ``weights[j]`` (default: one tree, weight 1). The BRDF is
+    combined as in :func:`glossrt.lights.ltc.shade_frame`: diffuse ``L albedo i_d``, specular
+    ``L (F0 (norm - fres) + fres) i_s``; 0 where ``sp.hit`` is False. ``textures``: a cache
+    {id(light texture): PrefilteredTexture} reused across calls; ``traversal``: as
+    :func:`visible_integrals`.
+
+    ``frozen=True``: the real-time path. The ``"fused"`` traversal (whatever ``traversal``
+    says) is recorded once with ``dr.freeze`` and replayed for later calls with the same
+    trees, number of lights and lanes (new views, materials and light positions replay;
+    ~10 K traced operations and the host synchronisations of the other traversals are gone).
+    Textured lights are always traced anew."""
+    _check_traversal(traversal)
+    dev = DeviceTrees.of(trees)
+    width = dr.width(sp.p)
+    idx = [mi.UInt32(t) for t in tree_index]
+    if not idx:
+        raise GlossrtError("shade_points needs at least one tree index per lane")
+    w = [mi.Float(x) for x in weights] if weights is not None else [mi.Float(1.0)]
+    if len(w) != len(idx):
+        raise GlossrtError(f"{len(idx)} tree indices but {len(w)} weights")
+    for t in idx:
+        if dr.width(t) != width:
+            raise GlossrtError(f"tree indices have {dr.width(t)} lanes, the points {width}")
+    cache = {} if textures is None else textures
+    dev_lights, two = _device_lights(lights)
+    lv = [light_vertices(light) for light in lights]
+    tex = [prefiltered(light, cache) for light in lights]
+    if frozen and width and all(t is None for t in tex):
+        for t in idx:
+            _check_lanes(t, dev, sp.p, sp.n, sp.wo)
+        with no_gc():
+            total_d, total_s = _shade_frozen(
+                dev, [(world, le, tw) for (world, le), tw in zip(dev_lights, two, strict=True)],
+                sp, idx, w, _table(), width)
+    else:
+        total_d, total_s = _shade_core(
+            dev, [(world, le, tw, v, tx) for (world, le), tw, v, tx
+                  in zip(dev_lights, two, lv, tex, strict=True)],
+            sp, idx, w, _table(), width, traversal)
     dr.eval(total_d, total_s)
     return total_d, total_s
 
@@ -925,13 +1192,14 @@ def _np_color(c: mi.Color3f) -> np.ndarray:
 
 
 def shade_vertices(trees: Any, lights: Sequence, wo: Any, alpha: Any, albedo: Any,
-                   f0: Any = None, textures: dict | None = None,
-                   traversal: str = "kernel") -> tuple[np.ndarray, np.ndarray]:
+                   f0: Any = None, textures: dict | None = None, traversal: str = "kernel",
+                   frozen: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The paper's per-vertex shading (Okuno & Iwasaki, sec. 3.3): each vertex shaded at its
     own position and normal (``trees.positions``, ``trees.normals``) with its own tree.
 
     ``wo`` (V, 3) view directions (towards the viewer), ``alpha`` (V,) GGX roughness (or a
-    scalar), ``albedo`` and ``f0`` (V, 3); ``traversal`` as :func:`visible_integrals`.
+    scalar), ``albedo`` and ``f0`` (V, 3); ``traversal`` and ``frozen`` as
+    :func:`shade_points`.
     Returns (diffuse, specular), (V, 3) float32 each (:func:`shade_points`; 0 where the view
     is below the vertex's tangent plane)."""
     dev = DeviceTrees.of(trees)
@@ -940,20 +1208,20 @@ def shade_vertices(trees: Any, lights: Sequence, wo: Any, alpha: Any, albedo: An
     nrm = np.stack([np.asarray(dev.normals[c], np.float64) for c in range(3)], -1)
     sp = _points(pos, nrm, wo, alpha, albedo, f0, nv)
     d, s = shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)], textures=textures,
-                        traversal=traversal)
+                        traversal=traversal, frozen=frozen)
     return _np_color(d), _np_color(s)
 
 
 def shade_pixels(trees: Any, lights: Sequence, p: Any, n: Any, wo: Any, alpha: Any,
                  albedo: Any, f0: Any, triangles: Any, barycentrics: Any, hit: Any = None,
-                 textures: dict | None = None,
-                 traversal: str = "kernel") -> tuple[np.ndarray, np.ndarray]:
+                 textures: dict | None = None, traversal: str = "kernel",
+                 frozen: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel shading: each pixel evaluates the trees of its triangle's three vertices
     with its own position ``p``, normal ``n``, view ``wo``, ``alpha``, ``albedo`` and ``f0``
     (P, 3) / (P,) and blends the shadowed integrals by its ``barycentrics`` (P, 3);
     ``triangles`` (P, 3) are the vertex (tree) indices; ``hit`` (P,) optional mask;
-    ``traversal`` as :func:`visible_integrals`. Returns (diffuse, specular), (P, 3) float32
-    each (:func:`shade_points`)."""
+    ``traversal`` and ``frozen`` as :func:`shade_points`. Returns (diffuse, specular), (P, 3)
+    float32 each (:func:`shade_points`)."""
     dev = DeviceTrees.of(trees)
     tri = np.asarray(triangles)
     rows = tri.shape[0] if tri.ndim == 2 else -1
@@ -967,5 +1235,6 @@ def shade_pixels(trees: Any, lights: Sequence, p: Any, n: Any, wo: Any, alpha: A
     sp = _points(p, n, wo, alpha, albedo, f0, rows, hit)
     idx = [owned(mi.UInt32, tri[:, j]) for j in range(3)]
     wts = [owned(mi.Float, bary[:, j]) for j in range(3)]
-    d, s = shade_points(dev, lights, sp, idx, wts, textures=textures, traversal=traversal)
+    d, s = shade_points(dev, lights, sp, idx, wts, textures=textures, traversal=traversal,
+                        frozen=frozen)
     return _np_color(d), _np_color(s)

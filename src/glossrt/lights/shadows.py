@@ -25,8 +25,10 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..denoise.common import check_frame, split, view_directions  # noqa: E402
+from ..denoise.common import check_frame, merge, split, view_directions  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
+from ..jit import opaque, owned  # noqa: E402
+from .shading import ShadingPoints  # noqa: E402
 
 MODES = ("vertex", "pixel")
 
@@ -115,6 +117,16 @@ def pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets: np.ndarray) -
     A ray from the camera position to the G-buffer's ``position`` (stopping just short of it
     would miss it: it runs 1% past) finds the same surface point; Mitsuba's ``prim_uv``
     ``(b1, b2)`` weights the triangle's vertices ``(1 - b1 - b2, b1, b2)``."""
+    verts, bary, valid = _pixel_triangles(scene, frame, meshes, offsets)
+    dr.eval(verts, bary, valid)
+    return PixelTriangles(np.stack([np.array(v).astype(np.int64) for v in verts], -1),
+                          np.stack([np.array(b, np.float32) for b in bary], -1),
+                          np.array(valid, bool))
+
+
+def _pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets) -> tuple:
+    """:func:`pixel_triangles` on the device: (three ``mi.UInt32`` vertex indices, three
+    ``mi.Float`` barycentrics, ``mi.Bool`` valid); 0 where not valid."""
     check_frame(frame, ("position", "mesh_id"))
     if frame.camera is None:
         raise FrameError(f"{frame.where}: per-vertex shading needs the camera")
@@ -122,47 +134,68 @@ def pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets: np.ndarray) -
 
     p = mi.Point3f(*split(frame["position"]))
     hit = split(frame["mesh_id"])[0] > 0
-    c = frame.camera.position
-    o = mi.Point3f(float(c[0]), float(c[1]), float(c[2]))
+    o = mi.Point3f(*opaque(frame.camera.position))
     d = p - o
     dist = dr.norm(d)
     ray = mi.Ray3f(o, d / dr.maximum(dist, 1e-12))
     ray.maxt = dist * 1.01 + 1e-4
     pi = scene.ray_intersect_preliminary(ray, active=hit)
     shape_id = dr.reinterpret_array(mi.UInt32, pi.shape)
-    dr.eval(shape_id, pi.prim_index, pi.prim_uv)
-    sid = np.array(shape_id)
-    prim = np.array(pi.prim_index).astype(np.int64)
-    b1 = np.array(pi.prim_uv.x)
-    b2 = np.array(pi.prim_uv.y)
-    n = sid.size
-    verts = np.zeros((n, 3), np.int64)
-    valid = np.zeros(n, bool)
+    width = dr.width(hit)
+    verts = [dr.zeros(mi.UInt32, width) for _ in range(3)]
+    valid = dr.zeros(mi.Bool, width)
     for mesh, off in zip(meshes, offsets, strict=True):
-        sel = (sid == _registry_id(mi.ShapePtr, mesh)) & np.array(hit)
-        if not sel.any():
-            continue
-        faces = np.array(mesh.faces_buffer()).reshape(-1, 3).astype(np.int64)
-        ok = sel & (prim < len(faces))
-        verts[ok] = faces[prim[ok]] + int(off)
-        valid |= ok
+        sel = hit & (shape_id == _registry_id(mi.ShapePtr, mesh)) & (
+            pi.prim_index < mesh.face_count())
+        faces = mesh.faces_buffer()
+        for j in range(3):
+            v = dr.gather(mi.UInt32, faces, pi.prim_index * 3 + j, sel) + int(off)
+            verts[j] = dr.select(sel, v, verts[j])
+        valid |= sel
     # missed rays carry undefined (possibly non-finite) prim_uv: zero them before use
-    b1, b2 = np.where(valid, b1, 0.0), np.where(valid, b2, 0.0)
-    bary = np.stack([1.0 - b1 - b2, b1, b2], -1).astype(np.float32)
-    bary[~valid] = 0.0
-    return PixelTriangles(verts, bary, valid)
+    b1 = dr.select(valid, pi.prim_uv.x, 0.0)
+    b2 = dr.select(valid, pi.prim_uv.y, 0.0)
+    return verts, [dr.select(valid, 1.0 - b1 - b2, 0.0), b1, b2], valid
+
+
+def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, meshes: list, offsets,
+                       textures, traversal: str, frozen: bool) -> mi.TensorXf:
+    """Per-vertex mode on the device: every tree vertex shaded at its own position and normal
+    towards the camera (:func:`glossrt.lights.bspvt_shade.shade_points`), then blended per
+    pixel by the barycentrics of the triangle it sees."""
+    from . import bspvt_shade
+
+    verts, bary, valid = _pixel_triangles(scene, frame, meshes, offsets)
+    nv = dev.n_vertices
+    cam = mi.Point3f(*opaque(frame.camera.position))
+    to_cam = cam - dev.positions
+    wo = to_cam / dr.maximum(dr.norm(to_cam), 1e-12)
+    alpha, albedo, vf0 = vertex_materials(scene)
+    # as shade_vertices: views at or below a vertex's tangent plane shade it black
+    sp = ShadingPoints(dev.positions, dev.normals, wo, owned(mi.Float, alpha),
+                       bspvt_shade._dr_vec(mi.Color3f, albedo),
+                       bspvt_shade._dr_vec(mi.Color3f, vf0), dr.dot(dev.normals, wo) > 0)
+    d, s = bspvt_shade.shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)],
+                                    textures=textures, traversal=traversal, frozen=frozen)
+    col = d + s
+    out = dr.zeros(mi.Color3f, dr.width(valid))
+    for v, b in zip(verts, bary, strict=True):
+        out += b * dr.gather(mi.Color3f, col, v, valid)
+    out = dr.select(valid, out, 0.0)
+    return merge([out[0], out[1], out[2]], frame.height, frame.width)
 
 
 def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex",
                 f0: np.ndarray | None = None, textures: dict | None = None,
-                traversal: str = "kernel") -> np.ndarray:
+                traversal: str = "kernel", frozen: bool = False) -> np.ndarray:
     """Direct light (H, W, 3) of ``frame`` from the polygon ``lights`` with BSPVT shadows
     (Okuno & Iwasaki, eq. 2 per vertex tree; see the module docstring for ``mode``).
 
     ``trees`` must have been built for ``scene``'s vertices (:func:`build_scene_trees`);
     ``f0`` (H, W, 3) is the per-pixel F0 of the ``pixel`` mode (the ``vertex`` mode takes
     materials per mesh, :func:`vertex_materials`); ``traversal``: how the trees are walked
-    (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result). Pixels on shapes without
+    (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result); ``frozen``: replay recorded
+    kernels (:func:`glossrt.lights.bspvt_shade.shade_points`). Pixels on shapes without
     trees (the lights themselves, analytic shapes) and background pixels get 0."""
     from . import bspvt_shade
     from .shading import NEEDS
@@ -175,22 +208,15 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
         raise GlossrtError(f"the trees hold {trees.vertex_count} vertices but the scene's "
                            f"meshes have {int(offsets[-1])}: built for another scene?")
     check_frame(frame, NEEDS)
-    pt = pixel_triangles(scene, frame, meshes, offsets[:-1])
     h, w = frame.height, frame.width
+    if mode == "vertex":
+        dev = bspvt_shade.DeviceTrees.of(trees)
+        img = _shade_vertex_mode(scene, frame, dev, lights, meshes, offsets[:-1], textures,
+                                 traversal, frozen)
+        return np.array(img, np.float32).reshape(h, w, 3)
+    pt = pixel_triangles(scene, frame, meshes, offsets[:-1])
     out = np.zeros((h * w, 3), np.float32)
     if not pt.valid.any():
-        return out.reshape(h, w, 3)
-    if mode == "vertex":
-        pos = np.asarray(trees.positions, np.float64)
-        cam = np.asarray(frame.camera.position, np.float64)
-        wo = cam[None, :] - pos
-        wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
-        alpha, albedo, vf0 = vertex_materials(scene)
-        d, s = bspvt_shade.shade_vertices(trees, lights, wo, alpha, albedo, vf0,
-                                          textures=textures, traversal=traversal)
-        col = d + s
-        v = pt.vertices[pt.valid]
-        out[pt.valid] = np.einsum("pk,pkc->pc", pt.bary[pt.valid], col[v])
         return out.reshape(h, w, 3)
     sel = np.flatnonzero(pt.valid)
 
@@ -205,6 +231,6 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     d, s = bspvt_shade.shade_pixels(trees, lights, p, chan("normal"), wo,
                                     chan("roughness")[:, 0], chan("albedo_diffuse"), f0p,
                                     pt.vertices[sel], pt.bary[sel], textures=textures,
-                                    traversal=traversal)
+                                    traversal=traversal, frozen=frozen)
     out[sel] = d + s
     return out.reshape(h, w, 3)
