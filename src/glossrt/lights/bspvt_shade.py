@@ -411,6 +411,37 @@ def _split(dev: DeviceTrees, items: _Items, idx: mi.UInt32, n_items) -> _Items:
     return _Items(it.q, it.f, child, n, s, t)
 
 
+def _cut(dev: DeviceTrees, node: mi.UInt32, side, s: list, t: list, n: mi.UInt32) -> tuple:
+    """Node ``node``'s line ``a s + b t + c`` against the piece ``(s, t)`` (``n`` vertices) for
+    its child on ``side`` (0 / False: left, ``d < 0``; 1 / True: right, ``d >= 0``; a Python
+    int or a per-lane ``mi.Bool``): ``(dist, some, child, leaf, val)``, the vertices' signed
+    distances towards that side, whether some vertex lies strictly on it (else the child's
+    piece has zero area), the child's code, whether it is a leaf and its mean visibility
+    (Okuno & Iwasaki, sec. 3.2-3.3)."""
+    a = dr.gather(mi.Float, dev.lines, node * 3)
+    b = dr.gather(mi.Float, dev.lines, node * 3 + 1)
+    c = dr.gather(mi.Float, dev.lines, node * 3 + 2)
+    if isinstance(side, int):
+        sgn, off = (1.0 if side else -1.0), side
+    else:
+        sgn, off = dr.select(side, mi.Float(1.0), mi.Float(-1.0)), mi.UInt32(side)
+    dist = [sgn * (a * sj + b * tj + c) for sj, tj in zip(s, t, strict=True)]
+    some = dr.zeros(mi.Bool, dr.width(n))
+    for j, d in enumerate(dist):
+        some = some | ((n > j) & (d > 0.0))
+    child = dr.gather(mi.Int32, dev.children, node * 2 + off)
+    leaf = child < 0
+    val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~child), leaf)
+    return dist, some, child, leaf, val
+
+
+def _pop(top: mi.UInt32, codes, counts, ls, lt, k: int) -> tuple:
+    """Stack entry ``top`` of the local-memory stack: ``(code, count, s, t)`` (``k`` slots)."""
+    base = top * k
+    return (codes.read(top), counts.read(top), [ls.read(base + j) for j in range(k)],
+            [lt.read(base + j) for j in range(k)])
+
+
 def _children_masks(dev: DeviceTrees, items: _Items, n_items):
     """For the 2N children of the items: (non-empty at an internal node, non-empty at a leaf
     with mean visibility > 0). A child is non-empty when some parent vertex lies strictly on
@@ -421,20 +452,10 @@ def _children_masks(dev: DeviceTrees, items: _Items, n_items):
     par = dr.select(side, idx - n_items, idx)
     code = dr.gather(mi.Int32, items.code, par)
     n = dr.gather(mi.UInt32, items.n, par)
-    node = mi.UInt32(code)
-    a = dr.gather(mi.Float, dev.lines, node * 3)
-    b = dr.gather(mi.Float, dev.lines, node * 3 + 1)
-    c = dr.gather(mi.Float, dev.lines, node * 3 + 2)
-    sgn = dr.select(side, mi.Float(1.0), mi.Float(-1.0))
-    some = dr.zeros(mi.Bool, width)
-    for k in range(len(items.s)):
-        d = sgn * (a * dr.gather(mi.Float, items.s[k], par)
-                   + b * dr.gather(mi.Float, items.t[k], par) + c)
-        some = some | ((n > k) & (d > 0.0))
-    child = dr.gather(mi.Int32, dev.children, node * 2 + mi.UInt32(side))
-    leaf = child < 0
+    s = [dr.gather(mi.Float, x, par) for x in items.s]
+    t = [dr.gather(mi.Float, x, par) for x in items.t]
+    _, some, _, leaf, val = _cut(dev, mi.UInt32(code), side, s, t, n)
     # Okuno & Iwasaki, sec. 3.3 / fig. 5 (d): a leaf with mean visibility 0 is dropped
-    val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~child), leaf)
     return some & ~leaf, some & leaf & (val > 0.0)
 
 
@@ -658,24 +679,10 @@ def _traverse_kernel(dev: DeviceTrees, items: _Items, k: int, cap: int):
 
     def body(sp, n_iter, over, codes, counts, ls, lt):
         top = sp - 1
-        code = codes.read(top)
-        n = counts.read(top)
-        base = top * k
-        s = [ls.read(base + j) for j in range(k)]
-        t = [lt.read(base + j) for j in range(k)]
+        code, n, s, t = _pop(top, codes, counts, ls, lt, k)
         node = mi.UInt32(code)
-        a = dr.gather(mi.Float, dev.lines, node * 3)
-        b = dr.gather(mi.Float, dev.lines, node * 3 + 1)
-        c = dr.gather(mi.Float, dev.lines, node * 3 + 2)
         for side in (0, 1):
-            sgn = 1.0 if side else -1.0
-            dist = [sgn * (a * sj + b * tj + c) for sj, tj in zip(s, t, strict=True)]
-            some = dr.zeros(mi.Bool, dr.width(n))
-            for j in range(k):
-                some = some | ((n > j) & (dist[j] > 0.0))
-            child = dr.gather(mi.Int32, dev.children, node * 2 + side)
-            leaf = child < 0
-            val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~child), leaf)
+            dist, some, child, leaf, val = _cut(dev, node, side, s, t, n)
             push = some & ~leaf
             emit = some & leaf & (val > 0.0)
             slot = dr.scatter_inc(counters[side], mi.UInt32(0), emit)
@@ -793,11 +800,7 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
 
     def body(sp, acc_d, acc_s, n_split, n_piece, codes, counts, ls, lt):
         top = sp - 1
-        code = codes.read(top)
-        cnt = counts.read(top)
-        base = top * k
-        s = [ls.read(base + j) for j in range(k)]
-        t = [lt.read(base + j) for j in range(k)]
+        code, cnt, s, t = _pop(top, codes, counts, ls, lt, k)
         at_leaf = code < 0
         inner = ~at_leaf
 
@@ -820,19 +823,9 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
         def split(top):
             # an internal node: its line cuts the piece into the children
             node = mi.UInt32(code)
-            a = dr.gather(mi.Float, dev.lines, node * 3)
-            b = dr.gather(mi.Float, dev.lines, node * 3 + 1)
-            c = dr.gather(mi.Float, dev.lines, node * 3 + 2)
             dst = top
             for side in (0, 1):
-                sgn = 1.0 if side else -1.0
-                dist = [sgn * (a * sj + b * tj + c) for sj, tj in zip(s, t, strict=True)]
-                some = dr.zeros(mi.Bool, dr.width(cnt))
-                for j in range(k):
-                    some = some | ((cnt > j) & (dist[j] > 0.0))
-                child = dr.gather(mi.Int32, dev.children, node * 2 + side)
-                leaf = child < 0
-                v = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~child), leaf)
+                dist, some, child, leaf, v = _cut(dev, node, side, s, t, cnt)
                 push = some & (~leaf | (v > 0.0))
                 # into slot `dst` (first the popped entry, now in registers)
                 c_out = _clip_into(s, t, cnt, dist, ls, lt, dst * k, push)
