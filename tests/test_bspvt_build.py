@@ -462,6 +462,30 @@ def test_chunking_and_threads_do_not_change_the_tree(maps16):
         assert np.array_equal(getattr(a, k), getattr(b, k))
 
 
+def test_drjit_engine_builds_the_same_trees(maps16):
+    """The Dr.Jit engine (prefix sums, scatter-reductions and the partition on the device)
+    gives the NumPy engine's trees bit for bit: exact reconstruction (epsilon 0, stalled
+    clusters split by the fallback), and an error threshold with a leaf budget and a depth
+    cap in chunks of eight faces."""
+    stalled = []
+    for kw in ({}, {"epsilon": 2.0, "max_leaves": 6, "max_depth": 5, "angles": 16}):
+        a = bspvt.build_trees(maps16, progress=False, **kw)
+        stalled.append(a.info["stalled_splits"])
+        chunk = 8 * len(_angles(kw)) * 256 if kw else None  # 8 faces per chunk
+        b = bspvt.build_trees(maps16, progress=False, engine="drjit", chunk_work=chunk, **kw)
+        for k in ("lines", "children", "leaf_value", "roots"):
+            assert np.array_equal(getattr(a, k), getattr(b, k)), (kw, k)
+        assert a.info["stalled_splits"] == b.info["stalled_splits"]
+        assert b.info["engine"] == "drjit" and a.info["depth"] >= 4
+    assert stalled[0] > 0  # the fallback split of stalled clusters ran on the device too
+    with pytest.raises(GlossrtError, match="engine"):
+        bspvt.build_trees(maps16, engine="torch", progress=False)
+
+
+def _angles(kw: dict):
+    return bspvt._Angles.get(16, kw.get("angles", bspvt.DEFAULT_ANGLES)).theta
+
+
 def test_evaluate_matches_reconstruct_and_directions(maps16):
     tree = bspvt.build_trees(maps16, epsilon=2, progress=False)
     d = bspvt.cube_directions(16) * 3.0  # any length

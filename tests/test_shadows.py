@@ -161,7 +161,7 @@ def test_cli_build_and_shade(tmp_path, capsys):
 
     f = tmp_path / "t.npz"
     assert main(["bspvt", "build", "polygon-light", "--out", str(f), "--resolution", "4",
-                 "--epsilon", "2"]) == 0
+                 "--epsilon", "2", "--engine", "drjit"]) == 0
     assert "leaves_per_vertex" in capsys.readouterr().out
     for extra in (["--method", "bspvt", "--bspvt", str(f), "--mode", "pixel"],
                   ["--method", "ratio"]):

@@ -334,9 +334,9 @@ def bspvt(ctx: BenchContext) -> dict:
     frame at the bench size per vertex (the paper's mode) and per pixel, each with the
     one-kernel traversal (default), the per-level wavefront and frozen (the fused traversal
     replayed), with unshadowed LTC and the ratio estimator at 1 spp beside them, interleaved
-    in one run. GPU targets
-    (issue 6): build 50x faster than the paper's 2.7 min for 17K vertices; per-vertex shading
-    of 512x512 at 200 fps or more."""
+    in one run; and the tree build alone with each array engine (NumPy, Dr.Jit) at 64x64 on
+    512 vertices (``tree_engines``). GPU targets (issue 6): build 50x faster than the
+    paper's 2.7 min for 17K vertices; per-vertex shading of 512x512 at 200 fps or more."""
     from . import render, scenes
     from .lights.ltc import shade_frame
     from .lights.ratio import render_ratio
@@ -350,6 +350,7 @@ def bspvt(ctx: BenchContext) -> dict:
     t0 = time.perf_counter()
     trees = build_scene_trees(setup.scene, res, progress=False)
     build_s = time.perf_counter() - t0
+    engines = _bspvt_engines(setup.scene, 64 if w >= 320 else 8, 512 if w >= 320 else 16)
     gb = render.Renderer(setup).render(0)
     lights = polygon_lights(setup, 0)
     f0 = f0_image(setup, gb)
@@ -370,7 +371,34 @@ def bspvt(ctx: BenchContext) -> dict:
             "build_ms_per_vertex": 1000 * build_s / st["vertices"],
             "visibility_s": trees.info["visibility_seconds"],
             "leaves_per_vertex": st["leaves_per_vertex"], "data_mb": st["data_mb"],
-            "seconds": med}
+            "tree_engines": engines, "seconds": med}
+
+
+def _bspvt_engines(scene, res: int, count: int) -> dict:
+    """The tree build alone (visibility computed once) with each array engine on ``count``
+    vertices spread over the scene at ``res`` x ``res`` maps: ms per vertex, the time
+    extrapolated to the paper's 17K-vertex model (issue 6's GPU target: 2.7 min / 50 =
+    3.24 s), and whether the engines' trees are identical."""
+    import numpy as np
+
+    from .lights import bspvt
+
+    pos, nrm, _ = bspvt.scene_vertices(scene)
+    sel = np.linspace(0, len(pos) - 1, min(count, len(pos))).astype(int)
+    vis = bspvt.visibility_cubemaps(bspvt.occluders(scene), pos[sel], nrm[sel], res,
+                                    progress=False)
+    out, built = {"resolution": res, "vertices": len(sel), "target_s_17k": 2.7 * 60 / 50}, {}
+    for engine in bspvt.ENGINES:
+        bspvt.build_trees(vis[:2], progress=False, engine=engine)  # compile / warm up
+        t0 = time.perf_counter()
+        built[engine] = bspvt.build_trees(vis, progress=False, engine=engine)
+        dt = time.perf_counter() - t0
+        out[engine] = {"seconds": dt, "ms_per_vertex": 1000 * dt / len(sel),
+                       "extrapolated_17k_s": dt / len(sel) * 17000}
+    a, b = built["numpy"], built["drjit"]
+    out["identical"] = all(np.array_equal(getattr(a, k), getattr(b, k))
+                           for k in ("lines", "children", "leaf_value", "roots"))
+    return out
 
 
 def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,

@@ -408,7 +408,7 @@ def cmd_bspvt(args) -> int:
 
     setup = scenes.load(args.scene)
     trees = build_scene_trees(setup.scene, resolution=args.resolution, epsilon=args.epsilon,
-                              method=args.method, progress=True)
+                              method=args.method, progress=True, engine=args.engine)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True)
@@ -553,6 +553,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=["batched", "nelder-mead"], default="batched",
                    help="split-line search: glossrt's exact batched search or the paper's "
                         "Nelder-Mead (slow)")
+    p.add_argument("--engine", choices=["numpy", "drjit"], default="numpy",
+                   help="array engine of the batched search: NumPy threads, or Dr.Jit (the "
+                        "device of --device; the same trees)")
 
     p = add("ltc-fit", cmd_ltc_fit, "fit glossrt's GGX LTC table (minutes)",
             "glossrt ltc-fit --out ltc_ggx.npz")

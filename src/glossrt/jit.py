@@ -94,13 +94,14 @@ def owned_float(values):
 
 
 def owned(t, values):
-    """:func:`owned_float` for a flat Dr.Jit type ``t`` (``mi.Float``, ``mi.Int32``,
-    ``mi.UInt32``): the data converted to ``t``'s dtype, copied by a kernel into memory
-    Dr.Jit allocated, evaluated (empty input: an empty array)."""
+    """:func:`owned_float` for a flat Dr.Jit type ``t`` (``mi.Float``, ``mi.Float64``,
+    ``mi.Int32``, ``mi.UInt32``): the data converted to ``t``'s dtype, copied by a kernel
+    into memory Dr.Jit allocated, evaluated (empty input: an empty array)."""
     import mitsuba as mi
     import numpy as np
 
-    dt = {mi.Float: np.float32, mi.Int32: np.int32, mi.UInt32: np.uint32}[t]
+    dt = {mi.Float: np.float32, mi.Float64: np.float64, mi.Int32: np.int32,
+          mi.UInt32: np.uint32}[t]
     a = np.ascontiguousarray(values, dtype=dt).ravel()
     if a.size == 0:
         return t()

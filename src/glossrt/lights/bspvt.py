@@ -57,7 +57,10 @@ texels) is a leaf storing its mean ``V``; otherwise the line ``l`` minimising eq
   and the tests). Work is vectorised over all clusters of many faces at once, level by level:
   without a leaf budget the tree does not depend on the order in which clusters with
   ``e > epsilon`` are split (a cluster's split depends on the cluster alone), so the
-  level-synchronous build gives Algorithm 1's tree.
+  level-synchronous build gives Algorithm 1's tree. The array work (the orders, prefix sums,
+  per-cluster minima and maxima, texel sides, partition) runs in NumPy threads
+  (``engine="numpy"``) or in Dr.Jit (``engine="drjit"``: the current variant's device, with
+  global prefix sums and scatter-reductions; the same trees bit for bit).
 * ``"nelder-mead"`` (the paper's): SciPy's Nelder-Mead over ``(angle, offset)`` of eq. 3
   (piecewise constant, so the simplex stops wherever it gets stuck -- as in the paper), from
   the best of 16 angles of the exact-offset search and from the cluster's two principal
@@ -111,6 +114,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
+from ..jit import owned  # noqa: E402
 from ..progress import Progress  # noqa: E402
 
 __all__ = [
@@ -156,8 +160,12 @@ DEFAULT_MAX_DEPTH = 32
 CHUNK_RAYS = 1 << 22
 #: texels x angles per batched level step and thread (bounds memory: ~22 bytes each, ~90 MB)
 CHUNK_WORK = 1 << 22
+#: texels x angles per step of the Dr.Jit engine (~20 bytes each on the device, ~340 MB)
+CHUNK_WORK_DRJIT = 1 << 24
 #: most worker threads of the batched build by default
 MAX_THREADS = 8
+#: array engines of the batched build
+ENGINES = ("numpy", "drjit")
 
 _EYE = np.eye(3)
 _NO_CUT = np.int64(1) << 62
@@ -934,24 +942,218 @@ def _err(n, ones):
     return np.minimum(ones, n - ones)
 
 
+class _NpOps:
+    """The batched build's array work on one chunk in NumPy (:func:`_build_chunk` keeps the
+    per-cluster bookkeeping): every angle's texel order (``order`` (A, N), the clusters'
+    texels as contiguous segments in every row), Okuno & Iwasaki's eq. 3 over it, the texels'
+    sides of the chosen lines and the stable partition into the children's segments."""
+
+    def __init__(self, vals2: np.ndarray, ang: _Angles, m: int):
+        r2 = ang.r * ang.r
+        self.vals2, self.ang, self.work, self.spare = vals2, ang, _Work(), "order1"
+        self.order = self.work.get("order0", (len(ang.theta), m * r2), np.intp)
+        np.add(ang.perm[:, None, :], (np.arange(m, dtype=np.intp) * r2)[None, :, None],
+               out=self.order.reshape(len(ang.theta), m, r2))
+
+    def best_splits(self, start, length, ones):
+        return _best_splits(self.vals2, self.order, start, length, ones, work=self.work)
+
+    def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        return self.order[rows[:, None], cols[None, :]]
+
+    def at(self, a: np.ndarray, col: np.ndarray) -> np.ndarray:
+        return self.order[a, col]
+
+    def sides(self, length, seg_line: np.ndarray, split: np.ndarray):
+        """Per segment ``(right, ones on the right)``: the texels on the right (``d >= 0``) of
+        the segment's float32 line evaluated in float64, as ``BSPVT.leaf_map`` does
+        (segments where ``split`` is False: none)."""
+        r, r2 = self.ang.r, self.ang.r * self.ang.r
+        cs = texel_centres(r)
+        self.seg = seg = _segment_ids(length)
+        start = np.cumsum(length) - length
+        tex0 = self.order[0]
+        tau = tex0 % r2
+        ln = seg_line[seg]
+        right0 = (ln[:, 0] * cs[tau % r] + ln[:, 1] * cs[tau // r] + ln[:, 2] >= 0)
+        right0 &= split[seg]
+        self.side_tex = np.zeros(len(self.vals2), bool)
+        self.side_tex[tex0] = right0
+        return (np.add.reduceat(right0, start).astype(np.int64),
+                np.add.reduceat(right0 & (self.vals2[tex0] > 0), start).astype(np.int64))
+
+    def partition(self, keep: np.ndarray, n_new: list) -> None:
+        """Stable partition of every angle's order (kd-tree style presorted lists): the kept
+        left children, then the kept right children, each in its parent's order (``keep``
+        (G, 2) per segment and side, ``n_new`` their texel totals)."""
+        order, seg, w = self.order, self.seg, self.work
+        right = w.get("right", order.shape, bool)
+        np.take(self.side_tex, order, out=right, mode="clip")
+        sel = w.get("sel", order.shape, bool)
+        new = w.get(self.spare, (order.shape[0], n_new[0] + n_new[1]), np.intp)
+        np.greater(keep[seg, 0][None, :], right, out=sel)  # kept left children
+        for i in range(order.shape[0]):
+            np.compress(sel[i], order[i], out=new[i, :n_new[0]])
+        np.logical_and(right, keep[seg, 1][None, :], out=sel)  # kept right children
+        for i in range(order.shape[0]):
+            np.compress(sel[i], order[i], out=new[i, n_new[0]:])
+        self.spare = "order0" if self.spare == "order1" else "order1"
+        self.order = new
+
+
+class _DrOps:
+    """:class:`_NpOps` in Dr.Jit (LLVM on the CPU, CUDA on the GPU; the same trees, see
+    tests/test_bspvt_build.py): the orders of all angles in one flat ``UInt32`` array (row
+    ``a`` at ``a N``), segment sums from global prefix sums (differences are exact in 32-bit
+    integers), per-segment minima / maxima / counts by ``dr.scatter_reduce`` and the
+    partition by prefix counts and one scatter. Only per-cluster arrays (angles x clusters
+    for eq. 3) come back to the host each level."""
+
+    def __init__(self, vals2: np.ndarray, ang: _Angles, m: int):
+        r2 = ang.r * ang.r
+        self.ang, self.a_count, self.n = ang, len(ang.theta), m * r2
+        self.vals2 = owned(mi.Int32, vals2.astype(np.int32))
+        perm = owned(mi.UInt32, ang.perm.astype(np.uint32).ravel())
+        e = dr.arange(mi.UInt32, self.a_count * self.n)
+        a = e // self.n
+        t = e - a * self.n
+        self.order = dr.gather(mi.UInt32, perm, a * r2 + t % r2) + (t // r2) * r2
+        dr.eval(self.order)
+
+    def _segments(self, length: np.ndarray):
+        start = np.cumsum(length) - length
+        self.seg = owned(mi.UInt32, _segment_ids(length).astype(np.uint32))
+        self.start = owned(mi.UInt32, start.astype(np.uint32))
+        return start
+
+    def best_splits(self, start, length, ones):
+        """:func:`_best_splits` (without ``nontrivial``) on the device."""
+        self._segments(length)
+        n, a_count, g_count = self.n, self.a_count, len(start)
+        e = dr.arange(mi.UInt32, a_count * n)
+        a = e // n
+        col = e - a * n
+        g = dr.gather(mi.UInt32, self.seg, col)
+        s = dr.gather(mi.UInt32, self.start, g)
+        v = dr.gather(mi.Int32, self.vals2, self.order)
+        incl = dr.cumsum(v)
+        dr.eval(v, incl)
+        base = a * n + s
+        before = dr.gather(mi.Int32, incl, base) - dr.gather(mi.Int32, v, base)
+        # x = 2 O_k - k over each segment's first k = col - start + 1 texels (_best_splits)
+        x = incl - before - mi.Int32(col - s + 1)
+        cell = a * g_count + g
+        lo = dr.full(mi.Int32, np.iinfo(np.int32).max, a_count * g_count)
+        hi = dr.full(mi.Int32, np.iinfo(np.int32).min, a_count * g_count)
+        # long segments (the first levels: thousands of texels per cell) contend for the same
+        # cells: LLVM gets per-thread copies of the targets, CUDA warp-local pre-reduction;
+        # short ones (deep levels, many cells: copies would cost more) plain atomics
+        if n < 32 * g_count:
+            mode = dr.ReduceMode.Direct
+        elif dr.backend_v(lo) == dr.JitBackend.LLVM:
+            mode = dr.ReduceMode.Expand
+        else:
+            mode = dr.ReduceMode.Local
+        dr.scatter_reduce(dr.ReduceOp.Min, lo, x, cell, mode=mode)
+        dr.scatter_reduce(dr.ReduceOp.Max, hi, x, cell, mode=mode)
+        lo = np.array(lo, np.int64).reshape(a_count, g_count)
+        hi = np.array(hi, np.int64).reshape(a_count, g_count)
+        gi = np.arange(g_count)
+        zeros_tot = (length - ones)[None, :]
+        e_plus = lo + zeros_tot
+        e_minus = ones[None, :] - hi
+        a_p, a_m = np.argmin(e_plus, 0), np.argmin(e_minus, 0)
+        vp, vm = e_plus[a_p, gi], e_minus[a_m, gi]
+        flip = vm < vp
+        best_a = np.where(flip, a_m, a_p)
+        best_e = np.where(flip, vm, vp)
+        # the first column of the chosen angle where x reaches its extreme
+        target = np.where(flip, ones - vm, vp - zeros_tot[0])
+        c = dr.arange(mi.UInt32, n)
+        gc = dr.gather(mi.UInt32, self.seg, c)
+        ac = dr.gather(mi.UInt32, owned(mi.UInt32, best_a), gc)
+        sc = dr.gather(mi.UInt32, self.start, gc)
+        ec = ac * n + c
+        xc = dr.gather(mi.Int32, incl, ec) - (
+            dr.gather(mi.Int32, incl, ac * n + sc) - dr.gather(mi.Int32, v, ac * n + sc)) - \
+            mi.Int32(c - sc + 1)
+        hit = xc == dr.gather(mi.Int32, owned(mi.Int32, target), gc)
+        first = dr.full(mi.UInt32, n, g_count)
+        dr.scatter_reduce(dr.ReduceOp.Min, first, c, gc, hit)
+        return best_e, best_a, np.array(first, np.int64), flip
+
+    def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        idx = (rows[:, None].astype(np.int64) * self.n + cols[None, :]).ravel()
+        return np.array(dr.gather(mi.UInt32, self.order, owned(mi.UInt32, idx)),
+                        np.int64).reshape(len(rows), len(cols))
+
+    def at(self, a: np.ndarray, col: np.ndarray) -> np.ndarray:
+        return np.array(dr.gather(mi.UInt32, self.order, owned(mi.UInt32, a * self.n + col)),
+                        np.int64)
+
+    def sides(self, length, seg_line: np.ndarray, split: np.ndarray):
+        r, r2 = self.ang.r, self.ang.r * self.ang.r
+        g_count = len(length)
+        self._segments(length)
+        cs = owned(mi.Float64, texel_centres(r))
+        c = dr.arange(mi.UInt32, self.n)
+        gc = dr.gather(mi.UInt32, self.seg, c)
+        tex0 = dr.gather(mi.UInt32, self.order, c)
+        tau = tex0 % r2
+        ln = [dr.gather(mi.Float64, owned(mi.Float64, seg_line[:, k]), gc) for k in range(3)]
+        # float64, as NumPy and BSPVT.leaf_map evaluate the stored float32 line (no FMA
+        # contraction matters: every texel centre is >= TIE_TOL texels from every line)
+        right0 = (ln[0] * dr.gather(mi.Float64, cs, tau % r)
+                  + ln[1] * dr.gather(mi.Float64, cs, tau // r) + ln[2] >= 0.0)
+        right0 &= dr.gather(mi.Bool, owned(mi.UInt32, split.astype(np.uint32)) != 0, gc)
+        self.side_tex = dr.zeros(mi.UInt32, dr.width(self.vals2))
+        dr.scatter(self.side_tex, mi.UInt32(right0), tex0)
+        n_r = dr.zeros(mi.UInt32, g_count)
+        ones_r = dr.zeros(mi.UInt32, g_count)
+        dr.scatter_reduce(dr.ReduceOp.Add, n_r, mi.UInt32(right0), gc)
+        lit = right0 & (dr.gather(mi.Int32, self.vals2, tex0) > 0)
+        dr.scatter_reduce(dr.ReduceOp.Add, ones_r, mi.UInt32(lit), gc)
+        dr.eval(self.side_tex)
+        return np.array(n_r, np.int64), np.array(ones_r, np.int64)
+
+    def partition(self, keep: np.ndarray, n_new: list) -> None:
+        n, a_count = self.n, self.a_count
+        n_out = n_new[0] + n_new[1]
+        e = dr.arange(mi.UInt32, a_count * n)
+        a = e // n
+        col = e - a * n
+        g = dr.gather(mi.UInt32, self.seg, col)
+        right = dr.gather(mi.UInt32, self.side_tex, self.order) != 0
+        keep_l = dr.gather(mi.Bool, owned(mi.UInt32, keep[:, 0].astype(np.uint32)) != 0, g)
+        keep_r = dr.gather(mi.Bool, owned(mi.UInt32, keep[:, 1].astype(np.uint32)) != 0, g)
+        sel_l, sel_r = keep_l & ~right, keep_r & right
+        # rank within the row: exclusive prefix counts minus the count at the row's start
+        pl = dr.prefix_sum(mi.UInt32(sel_l))
+        pr = dr.prefix_sum(mi.UInt32(sel_r))
+        dr.eval(pl, pr)
+        row = a * n
+        pos = dr.select(sel_l, pl - dr.gather(mi.UInt32, pl, row),
+                        n_new[0] + pr - dr.gather(mi.UInt32, pr, row))
+        new = dr.zeros(mi.UInt32, a_count * n_out)
+        dr.scatter(new, self.order, a * n_out + pos, sel_l | sel_r)
+        dr.eval(new)
+        self.order, self.n = new, n_out
+
+
 def _build_chunk(vals, ang: _Angles, map_ids, root_ones, eps: float, max_depth: int,
-                 stalled: str) -> tuple[dict, np.ndarray, np.ndarray, int]:
+                 stalled: str, engine: str = "numpy") -> tuple[dict, np.ndarray, np.ndarray, int]:
     """The batched build of a chunk of faces (``vals`` (M, R^2) 0/1, global face indices
-    ``map_ids``), all clusters of a level at once. Returns the new clusters (ids local to the
-    chunk: 0..M-1 are the faces' roots, the rest follow), the ids and lines of the split
-    clusters, and the number of stalled splits."""
-    r, r2 = ang.r, ang.r * ang.r
+    ``map_ids``), all clusters of a level at once, the array work by ``engine``
+    (:class:`_NpOps` or :class:`_DrOps`). Returns the new clusters (ids local to the chunk:
+    0..M-1 are the faces' roots, the rest follow), the ids and lines of the split clusters,
+    and the number of stalled splits."""
+    r2 = ang.r * ang.r
     m = len(map_ids)
     a_count = len(ang.theta)
     vals2 = (2 * vals).astype(np.int32).reshape(-1)
-    cs = texel_centres(r)
+    ops = (_NpOps if engine == "numpy" else _DrOps)(vals2, ang, m)
     clusters = _Clusters(first_id=m)
     split_ids, split_lines, stalled_splits = [], [], 0
-    work = _Work()
-    order = work.get("order0", (a_count, m * r2), np.intp)
-    np.add(ang.perm[:, None, :], (np.arange(m, dtype=np.intp) * r2)[None, :, None],
-           out=order.reshape(a_count, m, r2))
-    spare = "order1"
     start = np.arange(m, dtype=np.int64) * r2
     length = np.full(m, r2, np.int64)
     seg_id = np.arange(m, dtype=np.int64)
@@ -960,13 +1162,13 @@ def _build_chunk(vals, ang: _Angles, map_ids, root_ones, eps: float, max_depth: 
     seg_map = np.asarray(map_ids, np.int64)
     depth = 0
     while len(start):
-        e_best, a, col, flip = _best_splits(vals2, order, start, length, seg_ones, work=work)
+        e_best, a, col, flip = ops.best_splits(start, length, seg_ones)
         do = e_best < _err(length, seg_ones)  # the split reduces eq. 3
         if stalled == "split" and not do.all():
             sub = np.nonzero(~do)[0]
             cols = _ranges(start[sub], length[sub])
             rows = np.arange(0, a_count, FALLBACK_STRIDE)
-            key, fa, fcol = _fallback_splits(vals2, order[rows[:, None], cols[None, :]],
+            key, fa, fcol = _fallback_splits(vals2, ops.block(rows, cols),
                                              np.cumsum(length[sub]) - length[sub],
                                              length[sub], seg_ones[sub])
             fa = rows[fa]
@@ -979,23 +1181,16 @@ def _build_chunk(vals, ang: _Angles, map_ids, root_ones, eps: float, max_depth: 
         g = np.nonzero(do)[0]
         if len(g) == 0:
             break
-        lo = order[a[g], col[g]] % r2
-        hi = order[a[g], col[g] + 1] % r2
+        lo = ops.at(a[g], col[g]) % r2
+        hi = ops.at(a[g], col[g] + 1) % r2
         line = ang.line(a[g], lo, hi, flip[g]).astype(np.float32)
         split_ids.append(seg_id[g])
         split_lines.append(line)
         # the side of every texel of the split clusters by the stored (float32) line, as
         # BSPVT.leaf_map evaluates it
-        which = np.full(len(start), -1, np.int64)
-        which[g] = np.arange(len(g))
-        seg = _segment_ids(length)
-        tex0 = order[0]
-        tau = tex0 % r2
-        ln = line.astype(np.float64)[which[seg]]
-        right0 = (ln[:, 0] * cs[tau % r] + ln[:, 1] * cs[tau // r] + ln[:, 2] >= 0)
-        right0 &= which[seg] >= 0
-        n_r = np.add.reduceat(right0, start).astype(np.int64)
-        ones_r = np.add.reduceat(right0 & (vals2[tex0] > 0), start).astype(np.int64)
+        seg_line = np.zeros((len(start), 3))
+        seg_line[g] = line
+        n_r, ones_r = ops.sides(length, seg_line, do)
         n_l, ones_l = length - n_r, seg_ones - ones_r
         depth += 1
         ch_n = np.stack([n_l[g], n_r[g]], 1)
@@ -1009,23 +1204,7 @@ def _build_chunk(vals, ang: _Angles, map_ids, root_ones, eps: float, max_depth: 
         keep[g] = (_err(ch_n, ch_ones) > eps) & (depth < max_depth)
         if not keep.any():
             break
-        # stable partition of every angle's order (kd-tree style presorted lists): the kept
-        # left children, then the kept right children, each in its parent's order
-        side_tex = np.zeros(len(vals2), bool)
-        side_tex[tex0] = right0
-        right = work.get("right", order.shape, bool)
-        np.take(side_tex, order, out=right, mode="clip")
-        sel = work.get("sel", order.shape, bool)
-        n_new = [int(n_l[keep[:, 0]].sum()), int(n_r[keep[:, 1]].sum())]
-        new = work.get(spare, (a_count, n_new[0] + n_new[1]), np.intp)
-        np.greater(keep[seg, 0][None, :], right, out=sel)  # kept left children
-        for i in range(a_count):
-            np.compress(sel[i], order[i], out=new[i, :n_new[0]])
-        np.logical_and(right, keep[seg, 1][None, :], out=sel)  # kept right children
-        for i in range(a_count):
-            np.compress(sel[i], order[i], out=new[i, n_new[0]:])
-        spare = "order0" if spare == "order1" else "order1"
-        order = new
+        ops.partition(keep, [int(n_l[keep[:, 0]].sum()), int(n_r[keep[:, 1]].sum())])
         kept = [np.nonzero(keep[:, 0])[0], np.nonzero(keep[:, 1])[0]]
         length = np.concatenate([n_l[kept[0]], n_r[kept[1]]])
         start = np.cumsum(length) - length
@@ -1098,8 +1277,8 @@ def _check_vis(vis) -> np.ndarray:
 def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAULT_ANGLES,
                 max_leaves: int | None = None, max_depth: int = DEFAULT_MAX_DEPTH,
                 stalled: str = "split", positions=None, normals=None,
-                progress: bool = True, chunk_work: int = CHUNK_WORK,
-                threads: int | None = None) -> BSPVT:
+                progress: bool = True, chunk_work: int | None = None,
+                threads: int | None = None, engine: str = "numpy") -> BSPVT:
     """BSPVTs of visibility cube maps ``vis`` ``(V, 6, R, R)`` (0/1, ``[vertex, face, j, i]``)
     by Okuno & Iwasaki's Algorithm 1 (see the module docstring).
 
@@ -1109,9 +1288,13 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
     (priority queue by error); ``max_depth``: depth cap; ``stalled``: ``"split"`` or
     ``"leaf"``, what to do with a cluster no line improves; ``positions``/``normals``
     ``(V, 3)`` are stored with the trees (zeros if not given); ``chunk_work`` bounds the
-    batched build's memory (texels x angles per step, per thread); ``threads``: worker
-    threads of the batched build (default: one per CPU core, at most :data:`MAX_THREADS`;
-    NumPy releases the GIL in its array loops: 1.5-1.9x with 2 threads on 2 cores)."""
+    batched build's memory (texels x angles per step, per thread; default
+    :data:`CHUNK_WORK`, :data:`CHUNK_WORK_DRJIT` for the Dr.Jit engine); ``threads``: worker
+    threads of the NumPy engine (default: one per CPU core, at most :data:`MAX_THREADS`;
+    NumPy releases the GIL in its array loops: 1.5-1.9x with 2 threads on 2 cores).
+    ``engine``: the batched build's array work in ``"numpy"`` or ``"drjit"`` (the current
+    Mitsuba variant: LLVM on the CPU, CUDA on a GPU; one chunk at a time, Dr.Jit uses every
+    core itself); both give the same trees."""
     t0 = time.perf_counter()
     v = _check_vis(vis)
     nv, r = v.shape[0], v.shape[2]
@@ -1138,18 +1321,23 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
     active = np.nonzero((_err(r2, ones) > eps) & (max_depth > 0))[0]
     splits = {"id": [], "line": []}
     stats = {"stalled_splits": 0}
+    if engine not in ENGINES:
+        raise GlossrtError(f"unknown engine {engine!r}; choose one of {ENGINES}")
     if method == "batched":
         ang = _Angles.get(r, angles)
+        if chunk_work is None:
+            chunk_work = CHUNK_WORK if engine == "numpy" else CHUNK_WORK_DRJIT
         per = max(1, int(chunk_work) // (len(ang.theta) * r2))
         chunks = [active[i:i + per] for i in range(0, len(active), per)]
         if threads is None:
-            threads = min(os.cpu_count() or 1, MAX_THREADS)
+            threads = min(os.cpu_count() or 1, MAX_THREADS) if engine == "numpy" else 1
         if int(threads) != threads or threads < 1:
             raise GlossrtError(f"threads must be a positive integer, got {threads}")
         workers = max(1, min(int(threads), len(chunks)))
 
         def run(chunk):
-            return _build_chunk(maps[chunk], ang, chunk, ones[chunk], eps, max_depth, stalled)
+            return _build_chunk(maps[chunk], ang, chunk, ones[chunk], eps, max_depth, stalled,
+                                engine)
 
         with Progress(len(active), f"BSPVT build {r}x{r}", enabled=progress) as bar, \
                 ThreadPoolExecutor(workers) as pool:
@@ -1191,6 +1379,7 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
         if method == "batched" else None,
         "max_leaves": None if max_leaves is None else int(max_leaves),
         "max_depth": int(max_depth), "stalled": stalled,
+        "engine": engine if method == "batched" else None,
         "build_seconds": time.perf_counter() - t0,
         "leaves_over_epsilon": int(np.count_nonzero(leaf_e > eps)),
         "depth": int(leaf_code.max()).bit_length() - 1 if len(leaf_code) else 0,
