@@ -160,8 +160,11 @@ DEFAULT_MAX_DEPTH = 32
 CHUNK_RAYS = 1 << 22
 #: texels x angles per batched level step and thread (bounds memory: ~22 bytes each, ~90 MB)
 CHUNK_WORK = 1 << 22
-#: texels x angles per step of the Dr.Jit engine (~20 bytes each on the device, ~340 MB)
+#: texels x angles per step of the Dr.Jit engine on the CPU (~20 bytes each, ~340 MB) and on
+#: a GPU (~5 GB: fewer chunks, so fewer of the ~30 kernel launches per level and chunk;
+#: chosen without a GPU to measure on)
 CHUNK_WORK_DRJIT = 1 << 24
+CHUNK_WORK_DRJIT_CUDA = 1 << 28
 #: most worker threads of the batched build by default
 MAX_THREADS = 8
 #: array engines of the batched build
@@ -1289,7 +1292,8 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
     ``"leaf"``, what to do with a cluster no line improves; ``positions``/``normals``
     ``(V, 3)`` are stored with the trees (zeros if not given); ``chunk_work`` bounds the
     batched build's memory (texels x angles per step, per thread; default
-    :data:`CHUNK_WORK`, :data:`CHUNK_WORK_DRJIT` for the Dr.Jit engine); ``threads``: worker
+    :data:`CHUNK_WORK`; the Dr.Jit engine :data:`CHUNK_WORK_DRJIT`, on CUDA
+    :data:`CHUNK_WORK_DRJIT_CUDA`); ``threads``: worker
     threads of the NumPy engine (default: one per CPU core, at most :data:`MAX_THREADS`;
     NumPy releases the GIL in its array loops: 1.5-1.9x with 2 threads on 2 cores).
     ``engine``: the batched build's array work in ``"numpy"`` or ``"drjit"`` (the current
@@ -1326,7 +1330,8 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
     if method == "batched":
         ang = _Angles.get(r, angles)
         if chunk_work is None:
-            chunk_work = CHUNK_WORK if engine == "numpy" else CHUNK_WORK_DRJIT
+            chunk_work = CHUNK_WORK if engine == "numpy" else (
+                CHUNK_WORK_DRJIT_CUDA if mi.variant().startswith("cuda") else CHUNK_WORK_DRJIT)
         per = max(1, int(chunk_work) // (len(ang.theta) * r2))
         chunks = [active[i:i + per] for i in range(0, len(active), per)]
         if threads is None:
