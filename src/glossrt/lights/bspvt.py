@@ -964,8 +964,9 @@ class _NpOps:
     def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         return self.order[rows[:, None], cols[None, :]]
 
-    def at(self, a: np.ndarray, col: np.ndarray) -> np.ndarray:
-        return self.order[a, col]
+    def pairs(self, a: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The texels at columns ``col`` and ``col + 1`` of rows ``a``."""
+        return self.order[a, col], self.order[a, col + 1]
 
     def sides(self, length, seg_line: np.ndarray, split: np.ndarray):
         """Per segment ``(right, ones on the right)``: the texels on the right (``d >= 0``) of
@@ -1021,13 +1022,18 @@ class _DrOps:
         a = e // self.n
         t = e - a * self.n
         self.order = dr.gather(mi.UInt32, perm, a * r2 + t % r2) + (t // r2) * r2
+        self.cs = owned(mi.Float64, texel_centres(ang.r))
+        self._length = None
         dr.eval(self.order)
 
-    def _segments(self, length: np.ndarray):
-        start = np.cumsum(length) - length
-        self.seg = owned(mi.UInt32, _segment_ids(length).astype(np.uint32))
-        self.start = owned(mi.UInt32, start.astype(np.uint32))
-        return start
+    def _segments(self, length: np.ndarray) -> None:
+        """Each column's segment and each segment's first column, uploaded once per level
+        (``length`` is the same object for a level's calls)."""
+        if length is self._length:
+            return
+        self._length = length
+        self.seg = owned(mi.UInt32, _segment_ids(length))
+        self.start = owned(mi.UInt32, np.cumsum(length) - length)
 
     def best_splits(self, start, length, ones):
         """:func:`_best_splits` (without ``nontrivial``) on the device."""
@@ -1059,6 +1065,7 @@ class _DrOps:
             mode = dr.ReduceMode.Local
         dr.scatter_reduce(dr.ReduceOp.Min, lo, x, cell, mode=mode)
         dr.scatter_reduce(dr.ReduceOp.Max, hi, x, cell, mode=mode)
+        dr.eval(lo, hi)  # one kernel for both
         lo = np.array(lo, np.int64).reshape(a_count, g_count)
         hi = np.array(hi, np.int64).reshape(a_count, g_count)
         gi = np.arange(g_count)
@@ -1074,13 +1081,15 @@ class _DrOps:
         target = np.where(flip, ones - vm, vp - zeros_tot[0])
         c = dr.arange(mi.UInt32, n)
         gc = dr.gather(mi.UInt32, self.seg, c)
-        ac = dr.gather(mi.UInt32, owned(mi.UInt32, best_a), gc)
+        # (angle, target) per segment in one upload
+        at = owned(mi.Int32, np.stack([best_a, target], -1))
+        ac = mi.UInt32(dr.gather(mi.Int32, at, gc * 2))
         sc = dr.gather(mi.UInt32, self.start, gc)
         ec = ac * n + c
         xc = dr.gather(mi.Int32, incl, ec) - (
             dr.gather(mi.Int32, incl, ac * n + sc) - dr.gather(mi.Int32, v, ac * n + sc)) - \
             mi.Int32(c - sc + 1)
-        hit = xc == dr.gather(mi.Int32, owned(mi.Int32, target), gc)
+        hit = xc == dr.gather(mi.Int32, at, gc * 2 + 1)
         first = dr.full(mi.UInt32, n, g_count)
         dr.scatter_reduce(dr.ReduceOp.Min, first, c, gc, hit)
         return best_e, best_a, np.array(first, np.int64), flip
@@ -1090,25 +1099,28 @@ class _DrOps:
         return np.array(dr.gather(mi.UInt32, self.order, owned(mi.UInt32, idx)),
                         np.int64).reshape(len(rows), len(cols))
 
-    def at(self, a: np.ndarray, col: np.ndarray) -> np.ndarray:
-        return np.array(dr.gather(mi.UInt32, self.order, owned(mi.UInt32, a * self.n + col)),
-                        np.int64)
+    def pairs(self, a: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx = owned(mi.UInt32, np.stack([a * self.n + col, a * self.n + col + 1], -1))
+        got = np.array(dr.gather(mi.UInt32, self.order, idx), np.int64).reshape(-1, 2)
+        return got[:, 0], got[:, 1]
 
     def sides(self, length, seg_line: np.ndarray, split: np.ndarray):
         r, r2 = self.ang.r, self.ang.r * self.ang.r
         g_count = len(length)
         self._segments(length)
-        cs = owned(mi.Float64, texel_centres(r))
+        cs = self.cs
         c = dr.arange(mi.UInt32, self.n)
         gc = dr.gather(mi.UInt32, self.seg, c)
         tex0 = dr.gather(mi.UInt32, self.order, c)
         tau = tex0 % r2
-        ln = [dr.gather(mi.Float64, owned(mi.Float64, seg_line[:, k]), gc) for k in range(3)]
+        # (a, b, c, split) per segment in one upload
+        lines = owned(mi.Float64, np.concatenate([seg_line, split[:, None]], 1))
+        ln = [dr.gather(mi.Float64, lines, gc * 4 + k) for k in range(4)]
         # float64, as NumPy and BSPVT.leaf_map evaluate the stored float32 line (no FMA
         # contraction matters: every texel centre is >= TIE_TOL texels from every line)
         right0 = (ln[0] * dr.gather(mi.Float64, cs, tau % r)
                   + ln[1] * dr.gather(mi.Float64, cs, tau // r) + ln[2] >= 0.0)
-        right0 &= dr.gather(mi.Bool, owned(mi.UInt32, split.astype(np.uint32)) != 0, gc)
+        right0 &= ln[3] != 0.0
         self.side_tex = dr.zeros(mi.UInt32, dr.width(self.vals2))
         dr.scatter(self.side_tex, mi.UInt32(right0), tex0)
         n_r = dr.zeros(mi.UInt32, g_count)
@@ -1116,7 +1128,7 @@ class _DrOps:
         dr.scatter_reduce(dr.ReduceOp.Add, n_r, mi.UInt32(right0), gc)
         lit = right0 & (dr.gather(mi.Int32, self.vals2, tex0) > 0)
         dr.scatter_reduce(dr.ReduceOp.Add, ones_r, mi.UInt32(lit), gc)
-        dr.eval(self.side_tex)
+        dr.eval(self.side_tex, n_r, ones_r)
         return np.array(n_r, np.int64), np.array(ones_r, np.int64)
 
     def partition(self, keep: np.ndarray, n_new: list) -> None:
@@ -1127,8 +1139,9 @@ class _DrOps:
         col = e - a * n
         g = dr.gather(mi.UInt32, self.seg, col)
         right = dr.gather(mi.UInt32, self.side_tex, self.order) != 0
-        keep_l = dr.gather(mi.Bool, owned(mi.UInt32, keep[:, 0].astype(np.uint32)) != 0, g)
-        keep_r = dr.gather(mi.Bool, owned(mi.UInt32, keep[:, 1].astype(np.uint32)) != 0, g)
+        k2 = owned(mi.UInt32, keep)  # (left, right) per segment
+        keep_l = dr.gather(mi.UInt32, k2, g * 2) != 0
+        keep_r = dr.gather(mi.UInt32, k2, g * 2 + 1) != 0
         sel_l, sel_r = keep_l & ~right, keep_r & right
         # rank within the row: exclusive prefix counts minus the count at the row's start
         pl = dr.prefix_sum(mi.UInt32(sel_l))
@@ -1184,8 +1197,7 @@ def _build_chunk(vals, ang: _Angles, map_ids, root_ones, eps: float, max_depth: 
         g = np.nonzero(do)[0]
         if len(g) == 0:
             break
-        lo = ops.at(a[g], col[g]) % r2
-        hi = ops.at(a[g], col[g] + 1) % r2
+        lo, hi = (t % r2 for t in ops.pairs(a[g], col[g]))
         line = ang.line(a[g], lo, hi, flip[g]).astype(np.float32)
         split_ids.append(seg_id[g])
         split_lines.append(line)
