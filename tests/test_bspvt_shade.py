@@ -453,8 +453,8 @@ def test_traversals_agree(monkeypatch):
     to float32 summation order (the pieces are summed in another order), on deep random trees
     (60 leaves per face, values in {0, 1, uniform}) and random lights straddling faces,
     including lanes redone with KMAX slots (a 7-gon clipped to a face has up to 11 vertices).
-    With the output capacity forced to 1 piece, the traversal reruns with the exact capacity
-    and gives the same result."""
+    With the output capacity forced to 1 piece and the root items cut into chunks of 100, the
+    traversal reruns with the exact capacity and gives the same result."""
     rng = np.random.default_rng(9)
     tr = bs.DeviceTrees.of(make_trees([[random_face_tree(rng, 60) for _ in range(6)]
                                        for _ in range(3)]))
@@ -488,9 +488,13 @@ def test_traversals_agree(monkeypatch):
         runs.append((qs, light, two, got["kernel"]))
     assert any(k == bs.KMAX for k, _ in passes)  # lanes with pieces of more than 8 vertices
     monkeypatch.setattr(bs, "_capacity", lambda n: 1)
+    monkeypatch.setattr(bs, "_TRAVERSE_CHUNK", 100)  # root items in chunks of 100
+    before = len(passes)
     for qs, light, two, want in runs:
         for a, b in zip(integrals(tr, qs, light, two), want, strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    chunked = [w for k, w in passes[before:] if k == bs._K_FIRST]
+    assert len(chunked) > len(runs) and max(chunked) <= 100
     with pytest.raises(GlossrtError, match="traversal"):
         integrals(tr, qs, light, True, traversal="breadth")
 
@@ -654,12 +658,14 @@ def test_textured_lights():
         assert lit.sum() > 10
     with pytest.raises(GlossrtError, match="textured"):
         integrals(shadow, qs, QUAD_DOWN, False, texture=(light, tex), traversal="fused")
-    # frozen shading takes textured lights traced anew: the same colours as not frozen
+    # shade_points: a textured light is traced anew when frozen, and walked by the kernel
+    # traversal under traversal="fused": the same colours as the default
     sp = bs._points(qs.p, qs.n, qs.wo, qs.alpha, np.ones((len(qs.p), 3)), None, len(qs.p))
     tex_light = _light(QUAD_DOWN, texture=img, uv=light.uv)
-    shaded = [bs._np_color(bs.shade_points(shadow, [tex_light], sp, [qs.dr()[0]],
-                                           frozen=fz)[0]) for fz in (False, True)]
-    np.testing.assert_array_equal(shaded[0], shaded[1])
+    shaded = [bs._np_color(bs.shade_points(shadow, [tex_light], sp, [qs.dr()[0]], **kw)[0])
+              for kw in ({}, {"frozen": True}, {"traversal": "fused"})]
+    for other in shaded[1:]:
+        np.testing.assert_array_equal(other, shaded[0])
     assert shaded[0].max() > 0
 
 

@@ -1038,8 +1038,10 @@ class _DrOps:
     def best_splits(self, start, length, ones):
         """:func:`_best_splits` (without ``nontrivial``) on the device."""
         self._segments(length)
-        n, a_count, g_count = self.n, self.a_count, len(start)
-        e = dr.arange(mi.UInt32, a_count * n)
+        a_count, g_count = self.a_count, len(start)
+        # sizes change every level: opaque, or every level would compile new kernels
+        n, gn = dr.opaque(mi.UInt32, self.n), dr.opaque(mi.UInt32, g_count)
+        e = dr.arange(mi.UInt32, a_count * self.n)
         a = e // n
         col = e - a * n
         g = dr.gather(mi.UInt32, self.seg, col)
@@ -1051,7 +1053,7 @@ class _DrOps:
         before = dr.gather(mi.Int32, incl, base) - dr.gather(mi.Int32, v, base)
         # x = 2 O_k - k over each segment's first k = col - start + 1 texels (_best_splits)
         x = incl - before - mi.Int32(col - s + 1)
-        cell = a * g_count + g
+        cell = a * gn + g
         lo = dr.full(mi.Int32, np.iinfo(np.int32).max, a_count * g_count)
         hi = dr.full(mi.Int32, np.iinfo(np.int32).min, a_count * g_count)
         # LLVM: long segments (the first levels: thousands of texels per cell) contend for
@@ -1060,7 +1062,7 @@ class _DrOps:
         # Dr.Jit's default (warp-local pre-reduction)
         if dr.backend_v(lo) != dr.JitBackend.LLVM:
             mode = dr.ReduceMode.Auto
-        elif n < 32 * g_count:
+        elif self.n < 32 * g_count:
             mode = dr.ReduceMode.Direct
         else:
             mode = dr.ReduceMode.Expand
@@ -1080,7 +1082,7 @@ class _DrOps:
         best_e = np.where(flip, vm, vp)
         # the first column of the chosen angle where x reaches its extreme
         target = np.where(flip, ones - vm, vp - zeros_tot[0])
-        c = dr.arange(mi.UInt32, n)
+        c = dr.arange(mi.UInt32, self.n)
         gc = dr.gather(mi.UInt32, self.seg, c)
         # (angle, target) per segment in one upload
         at = owned(mi.Int32, np.stack([best_a, target], -1))
@@ -1091,7 +1093,7 @@ class _DrOps:
             dr.gather(mi.Int32, incl, ac * n + sc) - dr.gather(mi.Int32, v, ac * n + sc)) - \
             mi.Int32(c - sc + 1)
         hit = xc == dr.gather(mi.Int32, at, gc * 2 + 1)
-        first = dr.full(mi.UInt32, n, g_count)
+        first = dr.zeros(mi.UInt32, g_count) + n  # "no hit" (n: opaque)
         dr.scatter_reduce(dr.ReduceOp.Min, first, c, gc, hit)
         return best_e, best_a, np.array(first, np.int64), flip
 
@@ -1133,9 +1135,10 @@ class _DrOps:
         return np.array(n_r, np.int64), np.array(ones_r, np.int64)
 
     def partition(self, keep: np.ndarray, n_new: list) -> None:
-        n, a_count = self.n, self.a_count
+        a_count = self.a_count
         n_out = n_new[0] + n_new[1]
-        e = dr.arange(mi.UInt32, a_count * n)
+        n, n_o, n_l = (dr.opaque(mi.UInt32, x) for x in (self.n, n_out, n_new[0]))
+        e = dr.arange(mi.UInt32, a_count * self.n)
         a = e // n
         col = e - a * n
         g = dr.gather(mi.UInt32, self.seg, col)
@@ -1150,9 +1153,9 @@ class _DrOps:
         dr.eval(pl, pr)
         row = a * n
         pos = dr.select(sel_l, pl - dr.gather(mi.UInt32, pl, row),
-                        n_new[0] + pr - dr.gather(mi.UInt32, pr, row))
+                        n_l + pr - dr.gather(mi.UInt32, pr, row))
         new = dr.zeros(mi.UInt32, a_count * n_out)
-        dr.scatter(new, self.order, a * n_out + pos, sel_l | sel_r)
+        dr.scatter(new, self.order, a * n_o + pos, sel_l | sel_r)
         dr.eval(new)
         self.order, self.n = new, n_out
 

@@ -568,6 +568,9 @@ def _capacity(n_items: int) -> int:
     return 4 * n_items + 64
 
 
+#: Root items per kernel traversal: bounds its piece buffers (4 pieces per item and side at
+#: first, 19 values each with 8 slots: ~600 bytes per item) and keeps slot indices in 32 bits.
+_TRAVERSE_CHUNK = 1 << 20
 #: Vertex slots of the traversal's first pass (pieces rarely have more; lanes whose pieces
 #: would are redone with :data:`KMAX`).
 _K_FIRST = 8
@@ -585,6 +588,13 @@ def _traverse(dev: DeviceTrees, items: _Items, stats: dict | None) -> list:
     does). Returns the lists of leaf pieces (evaluated, in no particular order).
     ``stats``: ``items`` += the internal items split (as the wavefront counts them),
     ``levels`` = the most iterations of one lane."""
+    width = dr.width(items.n)
+    if width > _TRAVERSE_CHUNK:  # bounded output buffers (32-bit slot indices, memory)
+        out = []
+        for lo in range(0, width, _TRAVERSE_CHUNK):
+            idx = dr.arange(mi.UInt32, lo, min(lo + _TRAVERSE_CHUNK, width))
+            out += _traverse(dev, items.take(idx), stats)
+        return out
     out = []
     lanes = None
     for k in (_K_FIRST, KMAX):
@@ -888,8 +898,8 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     """Shadowed LTC integrals ``(i_d, i_s)`` of one polygon light, one lane per query
     (Okuno & Iwasaki, eq. 2; the algorithm in the module docstring).
 
-    ``trees``: a :class:`DeviceTrees` or any object with the BSPVT attributes (uploaded on
-    each call: pass a :class:`DeviceTrees` to reuse it); ``tree_index``: the vertex whose tree
+    ``trees``: a :class:`DeviceTrees` or any object with the BSPVT attributes (uploaded once
+    and cached on it, :meth:`DeviceTrees.of`); ``tree_index``: the vertex whose tree
     each query reads; ``p``, ``n``, ``wo``: shading point, unit normal, unit view (towards the
     viewer; the visibility is looked up for directions from ``p`` even where ``p`` is not the
     tree's vertex); ``coeffs``: the LTC ``M^-1`` coefficients of each query
@@ -1053,8 +1063,10 @@ def _shade_core(dev: DeviceTrees, lights: list, sp: ShadingPoints, idx: list, w:
         if direct:
             i_d, i_s = _fused_integrals(dev, *args, world, two_sided, m * width)
         else:
+            # the fused traversal takes no textured light: those go through the kernel one
+            trav = "kernel" if traversal == "fused" and tex is not None else traversal
             i_d, i_s = visible_integrals(dev, *args, lv, two_sided, texture=tex,
-                                         traversal=traversal)
+                                         traversal=trav)
         if m == 1:
             b_d, b_s = w[0] * i_d, w[0] * i_s
         else:
@@ -1101,8 +1113,10 @@ def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
     ``frozen=True``: the real-time path. The ``"fused"`` traversal (whatever ``traversal``
     says) is recorded once with ``dr.freeze`` and replayed for later calls with the same
     trees, number of lights and lanes (new views, materials and light positions replay;
-    ~10 K traced operations and the host synchronisations of the other traversals are gone).
-    Textured lights are always traced anew."""
+    ~10 K traced operations and the other traversals' per-call host synchronisations are
+    gone; one remains, the check of the tree indices and inputs). A call with a textured
+    light is traced anew, all its lights (``traversal="fused"`` then walks textured lights
+    with the kernel traversal)."""
     _check_traversal(traversal)
     dev = DeviceTrees.of(trees)
     width = dr.width(sp.p)
