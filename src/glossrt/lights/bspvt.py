@@ -1068,34 +1068,43 @@ class _DrOps:
             mode = dr.ReduceMode.Expand
         dr.scatter_reduce(dr.ReduceOp.Min, lo, x, cell, mode=mode)
         dr.scatter_reduce(dr.ReduceOp.Max, hi, x, cell, mode=mode)
-        dr.eval(lo, hi)  # one kernel for both
-        lo = np.array(lo, np.int64).reshape(a_count, g_count)
-        hi = np.array(hi, np.int64).reshape(a_count, g_count)
-        gi = np.arange(g_count)
-        zeros_tot = (length - ones)[None, :]
-        e_plus = lo + zeros_tot
-        e_minus = ones[None, :] - hi
-        a_p, a_m = np.argmin(e_plus, 0), np.argmin(e_minus, 0)
-        vp, vm = e_plus[a_p, gi], e_minus[a_m, gi]
+        # eq. 3's minimum over the angles per segment, on the device (only per-segment values
+        # come back): keys e A + angle, so the minimum takes the first angle on ties as
+        # np.argmin does (e >= 0: misclassified texels)
+        og = owned(mi.Int32, np.stack([ones, length - ones], -1))  # (ones, zeros) per segment
+        cells = dr.arange(mi.UInt32, a_count * g_count)
+        ca = cells // gn
+        cg = cells - ca * gn
+        o_g, z_g = dr.gather(mi.Int32, og, cg * 2), dr.gather(mi.Int32, og, cg * 2 + 1)
+        best = []
+        for e_a in (lo + z_g, o_g - hi):  # E+ (high side right), E- (high side left)
+            key = dr.zeros(mi.Int32, g_count) + np.iinfo(np.int32).max
+            dr.scatter_reduce(dr.ReduceOp.Min, key, e_a * a_count + mi.Int32(ca), cg)
+            best.append((key // a_count, key % a_count))
+        (vp, a_p), (vm, a_m) = best
         flip = vm < vp
-        best_a = np.where(flip, a_m, a_p)
-        best_e = np.where(flip, vm, vp)
+        best_a = dr.select(flip, a_m, a_p)
+        best_e = dr.select(flip, vm, vp)
+        gi = dr.arange(mi.UInt32, g_count)
+        o_s, z_s = dr.gather(mi.Int32, og, gi * 2), dr.gather(mi.Int32, og, gi * 2 + 1)
         # the first column of the chosen angle where x reaches its extreme
-        target = np.where(flip, ones - vm, vp - zeros_tot[0])
+        target = dr.select(flip, o_s - vm, vp - z_s)
+        dr.eval(best_a, target)
         c = dr.arange(mi.UInt32, self.n)
         gc = dr.gather(mi.UInt32, self.seg, c)
-        # (angle, target) per segment in one upload
-        at = owned(mi.Int32, np.stack([best_a, target], -1))
-        ac = mi.UInt32(dr.gather(mi.Int32, at, gc * 2))
+        ac = mi.UInt32(dr.gather(mi.Int32, best_a, gc))
         sc = dr.gather(mi.UInt32, self.start, gc)
         ec = ac * n + c
         xc = dr.gather(mi.Int32, incl, ec) - (
             dr.gather(mi.Int32, incl, ac * n + sc) - dr.gather(mi.Int32, v, ac * n + sc)) - \
             mi.Int32(c - sc + 1)
-        hit = xc == dr.gather(mi.Int32, at, gc * 2 + 1)
+        hit = xc == dr.gather(mi.Int32, target, gc)
         first = dr.zeros(mi.UInt32, g_count) + n  # "no hit" (n: opaque)
         dr.scatter_reduce(dr.ReduceOp.Min, first, c, gc, hit)
-        return best_e, best_a, np.array(first, np.int64), flip
+        res = np.array(dr.ravel(mi.Vector4i(best_e, best_a, mi.Int32(first),
+                                            mi.Int32(flip))), np.int64).reshape(g_count, 4)
+        best_e, best_a, first, flip = res[:, 0], res[:, 1], res[:, 2], res[:, 3] != 0
+        return best_e, best_a, first, flip
 
     def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         idx = (rows[:, None].astype(np.int64) * self.n + cols[None, :]).ravel()
