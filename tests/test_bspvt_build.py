@@ -478,6 +478,12 @@ def test_drjit_engine_builds_the_same_trees(maps16):
         assert a.info["stalled_splits"] == b.info["stalled_splits"]
         assert b.info["engine"] == "drjit" and a.info["depth"] >= 4
     assert stalled[0] > 0  # the fallback split of stalled clusters ran on the device too
+    # one face per chunk (chunks of a single cluster at the root)
+    a = bspvt.build_trees(maps16[:2], progress=False, angles=16)
+    b = bspvt.build_trees(maps16[:2], progress=False, angles=16, engine="drjit",
+                          chunk_work=len(_angles({"angles": 16})) * 256)
+    for k in ("lines", "children", "leaf_value", "roots"):
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
     with pytest.raises(GlossrtError, match="engine"):
         bspvt.build_trees(maps16, engine="torch", progress=False)
 

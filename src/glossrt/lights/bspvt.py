@@ -1032,8 +1032,14 @@ class _DrOps:
         if length is self._length:
             return
         self._length = length
-        self.seg = owned(mi.UInt32, _segment_ids(length))
         self.start = owned(mi.UInt32, np.cumsum(length) - length)
+        # segment ids from a 1 at each segment's start but the first (no N-long upload)
+        marks = dr.zeros(mi.UInt32, self.n)
+        if len(length) > 1:
+            g = dr.arange(mi.UInt32, 1, len(length))
+            dr.scatter(marks, mi.UInt32(1), dr.gather(mi.UInt32, self.start, g))
+        self.seg = dr.cumsum(marks)
+        dr.eval(self.seg)
 
     def best_splits(self, start, length, ones):
         """:func:`_best_splits` (without ``nontrivial``) on the device."""
