@@ -545,6 +545,30 @@ def test_shade_vertices_against_unshadowed_formulas():
     np.testing.assert_allclose(s4, 0.4 * spec, rtol=1e-5, atol=1e-7)
 
 
+def test_deep_chain_tree():
+    """A chain of 21 vertical lines on the +Z face, each with a lit leaf on its left and the
+    rest of the chain on its right: the fused traversal holds 21 leaf pieces on its stack at
+    once (its deepest use; the stack is sized from the tree depth). All traversals == the
+    brute-force reference."""
+    depth = 21
+    node = 0.5
+    for i in reversed(range(depth)):
+        c = -0.75 + 1.5 * i / (depth - 1)
+        node = ((1.0, 0.0, -c), 0.3 if i % 2 else 0.9, node)
+    tr = make_trees([[0.0, 0.0, 0.0, 0.0, node, 0.0]])
+    assert bs.DeviceTrees.of(tr).depth == depth
+    light = np.array([[-1.2, -1.2, 1.5], [1.2, -1.2, 1.5], [1.2, 1.2, 1.5], [-1.2, 1.2, 1.5]])
+    qs = Queries([[0.0, 0.0, 0.0]], [unit([0.1, 0.2, 1.0])], [unit([0.3, 0.1, 1.0])], 0.5)
+    got = {}
+    for traversal in bs.TRAVERSALS:
+        st = {}
+        got[traversal] = integrals(tr, qs, light, True, stats=st, traversal=traversal)
+        assert st["pieces"] == depth + 1
+    for traversal in ("kernel", "fused"):
+        np.testing.assert_allclose(got[traversal], got["wavefront"], rtol=1e-5, atol=1e-7)
+    check_against_reference(tr, qs, light, True, "chain")
+
+
 def test_frozen_shading_replays_the_traced_result():
     """``frozen=True`` (the fused traversal recorded by dr.freeze) == the traced kernel
     traversal for three views and a moved light, per vertex and per pixel, with one recording
