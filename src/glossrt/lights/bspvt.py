@@ -961,8 +961,11 @@ class _NpOps:
     def best_splits(self, start, length, ones):
         return _best_splits(self.vals2, self.order, start, length, ones, work=self.work)
 
-    def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        return self.order[rows[:, None], cols[None, :]]
+    def fallback(self, start, length, ones, sub, rows, cols):
+        """:func:`_fallback_splits` of the stalled segments ``sub`` over the angles
+        ``rows`` (their columns ``cols``): ``(key, row index, block column)``."""
+        return _fallback_splits(self.vals2, self.order[rows[:, None], cols[None, :]],
+                                np.cumsum(length[sub]) - length[sub], length[sub], ones[sub])
 
     def pairs(self, a: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The texels at columns ``col`` and ``col + 1`` of rows ``a``."""
@@ -1055,6 +1058,7 @@ class _DrOps:
         v = dr.gather(mi.Int32, self.vals2, self.order)
         incl = dr.cumsum(v)
         dr.eval(v, incl)
+        self._v, self._incl = v, incl  # also for fallback()
         base = a * n + s
         before = dr.gather(mi.Int32, incl, base) - dr.gather(mi.Int32, v, base)
         # x = 2 O_k - k over each segment's first k = col - start + 1 texels (_best_splits)
@@ -1112,10 +1116,57 @@ class _DrOps:
         best_e, best_a, first, flip = res[:, 0], res[:, 1], res[:, 2], res[:, 3] != 0
         return best_e, best_a, first, flip
 
-    def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        idx = (rows[:, None].astype(np.int64) * self.n + cols[None, :]).ravel()
-        return np.array(dr.gather(mi.UInt32, self.order, owned(mi.UInt32, idx)),
-                        np.int64).reshape(len(rows), len(cols))
+    def fallback(self, start, length, ones, sub, rows, cols):
+        """:func:`_fallback_splits` on the device, from this level's prefix sums of
+        :meth:`best_splits` (the same rows, so the same segment-relative sums): only the
+        per-segment results come back."""
+        s_count, r_count, c_count = len(sub), len(rows), len(cols)
+        seg_b = _segment_ids(length[sub])
+        per_col = owned(mi.UInt32, np.stack([cols, seg_b], -1))  # (global column, segment)
+        per_seg = owned(mi.Int32, np.stack([start[sub], length[sub], ones[sub]], -1))
+        row_a = owned(mi.UInt32, rows)
+        n, cn, sn = (dr.opaque(mi.UInt32, x) for x in (self.n, c_count, s_count))
+        e = dr.arange(mi.UInt32, r_count * c_count)
+        r = e // cn
+        j = e - r * cn
+        col = dr.gather(mi.UInt32, per_col, j * 2)
+        sb = dr.gather(mi.UInt32, per_col, j * 2 + 1)
+        gs = mi.UInt32(dr.gather(mi.Int32, per_seg, sb * 3))
+        ln = dr.gather(mi.Int32, per_seg, sb * 3 + 1)
+        on = dr.gather(mi.Int32, per_seg, sb * 3 + 2)
+        row = dr.gather(mi.UInt32, row_a, r) * n
+        # ones among the segment's first k texels (inclusive), from the sums of 2 V
+        o = (dr.gather(mi.Int32, self._incl, row + col) - dr.gather(mi.Int32, self._incl, row + gs)
+             + dr.gather(mi.Int32, self._v, row + gs)) >> 1
+        k = mi.Int32(col - gs) + 1
+        z_l = k - o
+        e_l = dr.minimum(o, z_l)
+        e_r = dr.minimum(on - o, (ln - on) - z_l)
+        # as _fallback_splits: the summed error first, then the texels in impure children
+        key = (e_l + e_r) * (2 * int(length[sub].max()) + 1) + dr.select(e_l > 0, k, 0) + \
+            dr.select(e_r > 0, ln - k, 0)
+        big = np.iinfo(np.int32).max
+        key = dr.select(k == ln, big, key)  # everything on one side: no cut
+        cell = r * sn + sb
+        best = dr.zeros(mi.Int32, r_count * s_count) + big
+        dr.scatter_reduce(dr.ReduceOp.Min, best, key, cell)
+        cells = dr.arange(mi.UInt32, r_count * s_count)
+        c_r = cells // sn
+        c_s = cells - c_r * sn
+        val = dr.zeros(mi.Int32, s_count) + big
+        dr.scatter_reduce(dr.ReduceOp.Min, val, best, c_s)
+        # the first angle (row) reaching it, then the first column of that row
+        first_r = dr.zeros(mi.UInt32, s_count) + r_count
+        dr.scatter_reduce(dr.ReduceOp.Min, first_r, c_r, c_s,
+                          best == dr.gather(mi.Int32, val, c_s))
+        fcol = dr.zeros(mi.UInt32, s_count) + cn
+        dr.scatter_reduce(dr.ReduceOp.Min, fcol, j, sb,
+                          (r == dr.gather(mi.UInt32, first_r, sb))
+                          & (key == dr.gather(mi.Int32, val, sb)))
+        res = np.array(dr.ravel(mi.Vector3i(val, mi.Int32(first_r), mi.Int32(fcol))),
+                       np.int64).reshape(s_count, 3)
+        key_out = np.where(res[:, 0] == big, _NO_CUT, res[:, 0])
+        return key_out, res[:, 1], res[:, 2]
 
     def pairs(self, a: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         idx = owned(mi.UInt32, np.stack([a * self.n + col, a * self.n + col + 1], -1))
@@ -1203,9 +1254,7 @@ def _build_chunk(vals, ang: _Angles, map_ids, root_ones, eps: float, max_depth: 
             sub = np.nonzero(~do)[0]
             cols = _ranges(start[sub], length[sub])
             rows = np.arange(0, a_count, FALLBACK_STRIDE)
-            key, fa, fcol = _fallback_splits(vals2, ops.block(rows, cols),
-                                             np.cumsum(length[sub]) - length[sub],
-                                             length[sub], seg_ones[sub])
+            key, fa, fcol = ops.fallback(start, length, seg_ones, sub, rows, cols)
             fa = rows[fa]
             ok = key < _NO_CUT
             a[sub[ok]] = fa[ok]
