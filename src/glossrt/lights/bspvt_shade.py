@@ -197,9 +197,11 @@ class DeviceTrees:
         for attr in _TREE_ATTRS:
             if not hasattr(trees, attr):
                 raise GlossrtError(f"BSPVT trees need the attribute {attr!r}")
-        arrays = tuple(getattr(trees, a) for a in _TREE_ATTRS)
+        # the arrays themselves (held: no id reuse) and the variant (the device) key the cache
+        arrays = (mi.variant(), *(getattr(trees, a) for a in _TREE_ATTRS))
         cached = getattr(trees, "_glossrt_device", None)
-        if cached is not None and all(a is b for a, b in zip(cached[0], arrays, strict=True)):
+        if cached is not None and cached[0][0] == arrays[0] and all(
+                a is b for a, b in zip(cached[0][1:], arrays[1:], strict=True)):
             return cached[1]
         dev = cls._upload(trees)
         try:  # kept with the arrays it was made from (replaced arrays upload anew)
