@@ -915,16 +915,19 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     ``(light, PrefilteredTexture)`` for a textured light (``light.uv`` (K, 2)): then colours
     ``(col_d, col_s)`` (``mi.Color3f``), each piece weighted by the prefiltered texture (module
     docstring). ``stats``: a dict to receive ``levels`` (tree levels of the wavefront; the
-    most loop iterations of one lane in the kernel), ``items`` (split work items) and
-    ``pieces`` (integrated leaf pieces); both traversals split the same items into the same
-    pieces.
+    most loop iterations of one lane in the kernel and fused traversals), ``items`` (split
+    work items), ``pieces`` (integrated leaf pieces) and ``live`` (queries the whole light
+    reaches); all traversals split the same items into the same pieces.
 
     ``traversal`` (:data:`TRAVERSALS`): ``"kernel"`` (default) walks every item's subtree in
     one kernel (:func:`_traverse`), then integrates the pieces: about ten kernels and four host
     synchronisations whatever the trees' depth. ``"wavefront"`` runs a few kernels and host
     synchronisations per tree level (compaction), plus Python tracing of ~1-2 ms per level
     whatever the number of lanes (the 640x360 bench frame: 15 levels, 41 ms against 15 ms for
-    the kernel, same pieces). On the CPU, pass inputs in
+    the kernel, same pieces). ``"fused"`` (:func:`_fused_integrals`) splits and integrates in
+    one loop over every query and face, with no host synchronisation (what ``dr.freeze``
+    records: :func:`shade_points` with ``frozen=True``); it takes no textured light. On the
+    CPU, pass inputs in
     Dr.Jit-owned memory (not arrays built straight from NumPy, whose buffer alignment varies
     between calls and makes the LLVM backend compile new kernels; see ``glossrt.jit.owned``)."""
     dev = DeviceTrees.of(trees)
