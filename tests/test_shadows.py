@@ -23,7 +23,7 @@ import mitsuba as mi  # noqa: E402
 from glossrt import render, scenes  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
 from glossrt.lights.bspvt import scene_vertices  # noqa: E402
-from glossrt.lights.bspvt_shade import shade_vertices  # noqa: E402
+from glossrt.lights.bspvt_shade import shade_pixels, shade_vertices  # noqa: E402
 from glossrt.lights.ltc import shade_frame  # noqa: E402
 from glossrt.lights.mc import render_mc  # noqa: E402
 from glossrt.lights.scene import polygon_lights  # noqa: E402
@@ -130,6 +130,18 @@ def test_bspvt_against_shadowed_reference():
     want = np.zeros((pt.valid.size, 3))
     want[pt.valid] = np.einsum("pk,pkc->pc", pt.bary[pt.valid], (d + s)[pt.vertices[pt.valid]])
     np.testing.assert_allclose(imgs["vertex"].reshape(-1, 3), want, rtol=1e-5, atol=1e-6)
+    # the device per-pixel path == shade_pixels on the pixels with a triangle (NumPy inputs)
+    sel = np.flatnonzero(pt.valid)
+    p = gb.numpy("position").reshape(-1, 3)[sel]
+    wo = np.asarray(gb.camera.position, np.float64) - p
+    d, s = shade_pixels(trees, lights, p, gb.numpy("normal").reshape(-1, 3)[sel],
+                        wo / np.linalg.norm(wo, axis=1, keepdims=True),
+                        gb.numpy("roughness").reshape(-1)[sel],
+                        gb.numpy("albedo_diffuse").reshape(-1, 3)[sel], f0.reshape(-1, 3)[sel],
+                        pt.vertices[sel], pt.bary[sel])
+    want = np.zeros((pt.valid.size, 3))
+    want[sel] = d + s
+    np.testing.assert_allclose(imgs["pixel"].reshape(-1, 3), want, rtol=1e-4, atol=1e-5)
 
 
 def test_vertex_materials_follow_the_bsdfs():

@@ -761,7 +761,8 @@ def _clip_into(s: list, t: list, n: mi.UInt32, dist: list, ls, lt, dst, mask) ->
 
 def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Vector3f,
                      wo: mi.Vector3f, coeffs: mi.Vector4f, world: list, two_sided,
-                     width: int, stats: dict | None = None) -> tuple[mi.Float, mi.Float]:
+                     width: int, stats: dict | None = None,
+                     active: mi.Bool | None = None) -> tuple[mi.Float, mi.Float]:
     """Shadowed integrals ``(i_d, i_s)`` with no data-dependent array size and no host
     synchronisation (what ``dr.freeze`` can record): one lane per query and cube face
     (``width`` queries, an explicit int), the root items of :func:`_root_items` for every
@@ -778,6 +779,8 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
     whole_d = cosine_integral(local, None, two_sided)
     whole_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
     live = (whole_d > 0.0) | (whole_s > 0.0)
+    if active is not None:
+        live &= active
     rel = [mi.Vector3f(v - p) for v in world]
     lanes = dr.arange(mi.UInt32, 6 * width)
     nq = dr.opaque(mi.UInt32, width)
@@ -896,7 +899,8 @@ def _check_lanes(tree_index: mi.UInt32, dev: DeviceTrees, *vecs) -> None:
 def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Vector3f,
                       wo: mi.Vector3f, coeffs: mi.Vector4f, light_vertices: np.ndarray,
                       two_sided: bool, texture: tuple | None = None,
-                      stats: dict | None = None, traversal: str = "kernel") -> tuple:
+                      stats: dict | None = None, traversal: str = "kernel",
+                      active: mi.Bool | None = None) -> tuple:
     """Shadowed LTC integrals ``(i_d, i_s)`` of one polygon light, one lane per query
     (Okuno & Iwasaki, eq. 2; the algorithm in the module docstring).
 
@@ -917,7 +921,8 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     docstring). ``stats``: a dict to receive ``levels`` (tree levels of the wavefront; the
     most loop iterations of one lane in the kernel and fused traversals), ``items`` (split
     work items), ``pieces`` (integrated leaf pieces) and ``live`` (queries the whole light
-    reaches); all traversals split the same items into the same pieces.
+    reaches); all traversals split the same items into the same pieces. ``active``: optional
+    per-lane mask; lanes where it is False are not traversed and get 0.
 
     ``traversal`` (:data:`TRAVERSALS`): ``"kernel"`` (default) walks every item's subtree in
     one kernel (:func:`_traverse`), then integrates the pieces: about ten kernels and four host
@@ -964,7 +969,7 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
             raise GlossrtError("the fused BSPVT traversal does not take textured lights")
         st = {} if stats is not None else None
         i_d, i_s = _fused_integrals(dev, tree_index, p, n, wo, coeffs, world, two_sided,
-                                    width, st)
+                                    width, st, active)
         dr.eval(i_d, i_s)
         if stats is not None:
             stats.update(st, queries=width)
@@ -980,7 +985,8 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     if tex_arg is not None:
         qd.plane_d, qd.plane_s = _tex_plane(local), _tex_plane(local_s)
     dr.eval(qd.t1, qd.t2, qd.n, qd.coeffs, whole_d, whole_s, rel, qd.plane_d, qd.plane_s)
-    live = dr.compress((whole_d > 0.0) | (whole_s > 0.0))
+    lit = (whole_d > 0.0) | (whole_s > 0.0)
+    live = dr.compress(lit if active is None else lit & active)
     zero = mi.Color3f(0.0) if tex_arg is not None else mi.Float(0.0)
     acc = {"d": dr.zeros(type(zero), width), "s": dr.zeros(type(zero), width), "pieces": 0}
     st = {"levels": 0, "items": 0}
@@ -1062,16 +1068,18 @@ def _shade_core(dev: DeviceTrees, lights: list, sp: ShadingPoints, idx: list, w:
             tree = dr.select(j == jj, dr.gather(mi.UInt32, idx[jj], lane_q), tree)
     g = (lambda x: x) if m == 1 else (lambda x: dr.gather(type(x), x, lane_q))
     args = (tree, g(sp.p), g(sp.n), g(sp.wo), g(coeffs))
+    active = g(sp.hit)  # lanes without a surface are not traversed
     total_d = dr.zeros(mi.Color3f, width)
     total_s = dr.zeros(mi.Color3f, width)
     for world, le, two_sided, lv, tex in lights:
         if direct:
-            i_d, i_s = _fused_integrals(dev, *args, world, two_sided, m * width)
+            i_d, i_s = _fused_integrals(dev, *args, world, two_sided, m * width,
+                                        active=active)
         else:
             # the fused traversal takes no textured light: those go through the kernel one
             trav = "kernel" if traversal == "fused" and tex is not None else traversal
             i_d, i_s = visible_integrals(dev, *args, lv, two_sided, texture=tex,
-                                         traversal=trav)
+                                         traversal=trav, active=active)
         if m == 1:
             b_d, b_s = w[0] * i_d, w[0] * i_s
         else:

@@ -25,10 +25,10 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..denoise.common import check_frame, merge, split, view_directions  # noqa: E402
+from ..denoise.common import check_frame, merge, split  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
 from ..jit import opaque, owned  # noqa: E402
-from .shading import ShadingPoints  # noqa: E402
+from .shading import ShadingPoints, _take  # noqa: E402
 
 MODES = ("vertex", "pixel")
 
@@ -158,6 +158,37 @@ def _pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets) -> tuple:
     return verts, [dr.select(valid, 1.0 - b1 - b2, 0.0), b1, b2], valid
 
 
+def _shade_pixel_mode(scene: mi.Scene, frame, dev, lights: list, meshes: list, offsets, f0,
+                      textures, traversal: str, frozen: bool) -> mi.TensorXf:
+    """Per-pixel mode on the device: each pixel evaluates its triangle's three vertex trees
+    with its own G-buffer point, normal, view and material
+    (:func:`glossrt.lights.bspvt_shade.shade_points`, barycentric weights); pixels without a
+    triangle (background, lights, analytic shapes) are not traversed and get 0."""
+    from . import bspvt_shade
+
+    verts, bary, valid = _pixel_triangles(scene, frame, meshes, offsets)
+    sp = ShadingPoints.of(frame, f0)
+    hit = sp.hit & valid
+    up = mi.Vector3f(0.0, 0.0, 1.0)  # placeholders where nothing is shaded (finite inputs)
+    sp = ShadingPoints(dr.select(hit, sp.p, mi.Point3f(0.0)),
+                       dr.select(hit, dr.normalize(sp.n), up), dr.select(hit, sp.wo, up),
+                       sp.alpha, sp.albedo, sp.f0, hit)
+    if frozen:  # every pixel a lane (a fixed size: the recording replays frame after frame)
+        d, s = bspvt_shade.shade_points(dev, lights, sp, verts, bary, textures=textures,
+                                        traversal=traversal, frozen=True)
+        out = d + s
+    else:  # only the shaded pixels (compacted): fewer lanes for the whole-light integrals
+        idx = dr.compress(hit)
+        out = dr.zeros(mi.Color3f, dr.width(hit))
+        if dr.width(idx):
+            d, s = bspvt_shade.shade_points(
+                dev, lights, _take(sp, idx), [dr.gather(mi.UInt32, v, idx) for v in verts],
+                [dr.gather(mi.Float, b, idx) for b in bary], textures=textures,
+                traversal=traversal)
+            dr.scatter(out, d + s, idx)
+    return merge([out[0], out[1], out[2]], frame.height, frame.width)
+
+
 def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, meshes: list, offsets,
                        textures, traversal: str, frozen: bool) -> mi.TensorXf:
     """Per-vertex mode on the device: every tree vertex shaded at its own position and normal
@@ -208,29 +239,11 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
         raise GlossrtError(f"the trees hold {trees.vertex_count} vertices but the scene's "
                            f"meshes have {int(offsets[-1])}: built for another scene?")
     check_frame(frame, NEEDS)
-    h, w = frame.height, frame.width
+    dev = bspvt_shade.DeviceTrees.of(trees)
     if mode == "vertex":
-        dev = bspvt_shade.DeviceTrees.of(trees)
         img = _shade_vertex_mode(scene, frame, dev, lights, meshes, offsets[:-1], textures,
                                  traversal, frozen)
-        return np.array(img, np.float32).reshape(h, w, 3)
-    pt = pixel_triangles(scene, frame, meshes, offsets[:-1])
-    out = np.zeros((h * w, 3), np.float32)
-    if not pt.valid.any():
-        return out.reshape(h, w, 3)
-    sel = np.flatnonzero(pt.valid)
-
-    def chan(name):
-        return frame.numpy(name).reshape(h * w, -1)[sel]
-
-    p = chan("position")
-    wo_all = view_directions(frame, mi.Point3f(*split(frame["position"])))
-    wo = np.stack([np.asarray(wo_all[c]) for c in range(3)], -1)[sel]
-    f0p = np.zeros((len(sel), 3)) if f0 is None else np.asarray(f0, np.float64).reshape(
-        h * w, 3)[sel]
-    d, s = bspvt_shade.shade_pixels(trees, lights, p, chan("normal"), wo,
-                                    chan("roughness")[:, 0], chan("albedo_diffuse"), f0p,
-                                    pt.vertices[sel], pt.bary[sel], textures=textures,
-                                    traversal=traversal, frozen=frozen)
-    out[sel] = d + s
-    return out.reshape(h, w, 3)
+    else:
+        img = _shade_pixel_mode(scene, frame, dev, lights, meshes, offsets[:-1], f0, textures,
+                                traversal, frozen)
+    return np.array(img, np.float32).reshape(frame.height, frame.width, 3)
