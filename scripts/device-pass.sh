@@ -4,6 +4,8 @@
 # tool brings back; default ./device-out):
 #   info.txt        glossrt info (variant, device)
 #   bench.json      glossrt bench at $SIZE (default 1920x1080) for $BENCHES (default: all)
+#   bench-bspvt-512.json  the bspvt bench at 512x512 (issue 6's per-vertex target size),
+#                   when $BENCHES is unset or names bspvt
 #   pytest.txt      the test suite on this device when pytest is importable (else skipped)
 # Run it after installing the wheels printed by ../shared/tools/device-wheels, e.g.
 #   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
@@ -39,6 +41,14 @@ fi
 run --device "$DEVICE" bench --size "$SIZE" --repeats "$REPEATS" --json "$OUT/bench.json" \
     "${only[@]}" > "$OUT/bench.txt" 2>&1
 echo "device-pass: bench exit $? ($OUT/bench.json)"
+case " ${BENCHES:-bspvt} " in
+    *" bspvt "*)
+        # issue 6's target is per-vertex shading of a 512x512 view (bspvt-vertex-frozen)
+        run --device "$DEVICE" bench --only bspvt --size 512x512 --repeats "$REPEATS" \
+            --json "$OUT/bench-bspvt-512.json" > "$OUT/bench-bspvt-512.txt" 2>&1
+        echo "device-pass: bspvt 512x512 exit $? ($OUT/bench-bspvt-512.json)"
+        ;;
+esac
 
 if [ "$TESTS" != "skip" ] && "$PYTHON" -c 'import pytest' 2>/dev/null; then
     # shellcheck disable=SC2086
