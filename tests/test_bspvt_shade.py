@@ -733,6 +733,16 @@ def test_errors():
         integrals(dev, Queries(qs.p, qs.n, qs.wo, qs.alpha, tree=[0, 0, 0, 5]), QUAD_DOWN, True)
     with pytest.raises(GlossrtError, match="NaN"):
         integrals(dev, Queries(qs.p * np.nan, qs.n, qs.wo, qs.alpha), QUAD_DOWN, True)
+    # the frozen path checks its inputs too (one synchronisation for all tree indices)
+    sp = bs._points(qs.p, qs.n, qs.wo, qs.alpha, np.ones((4, 3)), None, 4)
+    sp.p = mi.Point3f(sp.p.x * np.nan, sp.p.y, sp.p.z)
+    ok_idx, half = owned(mi.UInt32, [0, 0, 0, 0]), [mi.Float(0.5)] * 2
+    with pytest.raises(GlossrtError, match="NaN"):
+        bs.shade_points(dev, [_light(QUAD_DOWN)], sp, [ok_idx, ok_idx], half, frozen=True)
+    sp = bs._points(qs.p, qs.n, qs.wo, qs.alpha, np.ones((4, 3)), None, 4)
+    with pytest.raises(GlossrtError, match="out of range"):
+        bs.shade_points(dev, [_light(QUAD_DOWN)], sp, [ok_idx, owned(mi.UInt32, [0, 0, 0, 9])],
+                        half, frozen=True)
     with pytest.raises(GlossrtError, match="shape"):
         bs.shade_vertices(dev, [_light(QUAD_DOWN)], np.zeros((2, 3)), 0.5, np.zeros((1, 3)))
     with pytest.raises(GlossrtError, match="out of range"):

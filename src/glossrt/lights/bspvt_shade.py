@@ -883,8 +883,13 @@ def _light_array(vertices: Any) -> np.ndarray:
     return light_vertices(types.SimpleNamespace(vertices=vertices))
 
 
-def _check_lanes(tree_index: mi.UInt32, dev: DeviceTrees, *vecs) -> None:
-    ok = dr.all(tree_index < dev.n_vertices)
+def _check_lanes(tree_index, dev: DeviceTrees, *vecs) -> None:
+    """GlossrtError unless every tree index (one ``mi.UInt32`` or a list of them) is in
+    range and every vector is finite: one host synchronisation."""
+    ok = None
+    for t in tree_index if isinstance(tree_index, list) else [tree_index]:
+        ok_t = dr.all(t < dev.n_vertices)
+        ok = ok_t if ok is None else ok & ok_t
     fin = dr.all(dr.all(dr.isfinite(mi.Vector3f(vecs[0]))))
     for v in vecs[1:]:
         fin = fin & dr.all(dr.all(dr.isfinite(v)))
@@ -1147,8 +1152,7 @@ def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
     lv = [light_vertices(light) for light in lights]
     tex = [prefiltered(light, cache) for light in lights]
     if frozen and width and all(t is None for t in tex):
-        for t in idx:
-            _check_lanes(t, dev, sp.p, sp.n, sp.wo)
+        _check_lanes(idx, dev, sp.p, sp.n, sp.wo)
         with no_gc():
             total_d, total_s = _shade_frozen(
                 dev, [(world, le, tw) for (world, le), tw in zip(dev_lights, two, strict=True)],
