@@ -1013,8 +1013,8 @@ class _DrOps:
     tests/test_bspvt_build.py): the orders of all angles in one flat ``UInt32`` array (row
     ``a`` at ``a N``), segment sums from global prefix sums (differences are exact in 32-bit
     integers), per-segment minima / maxima / counts by ``dr.scatter_reduce`` and the
-    partition by prefix counts and one scatter. Only per-cluster arrays (angles x clusters
-    for eq. 3) come back to the host each level."""
+    partition by prefix counts and one scatter. Only per-cluster values (the best split, the
+    stalled clusters' fallback, the children's counts) come back to the host each level."""
 
     def __init__(self, vals2: np.ndarray, ang: _Angles, m: int):
         r2 = ang.r * ang.r
