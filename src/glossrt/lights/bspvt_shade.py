@@ -775,9 +775,16 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
     traversals; no textured lights."""
     k = KMAX
     t1, t2 = ltc_frame(n, wo)
-    local = _local(world, p, t1, t2, n)
-    whole_d = cosine_integral(local, None, two_sided)
-    whole_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
+
+    def whole():
+        local = _local(world, p, t1, t2, n)
+        return (cosine_integral(local, None, two_sided),
+                cosine_integral(_apply_minv(coeffs, local), None, two_sided))
+
+    # dr.if_stmt: packets without an active lane (background pixels) skip the work (LLVM)
+    nothing = dr.zeros(mi.Float, width)
+    whole_d, whole_s = whole() if active is None else dr.if_stmt(
+        (), active, whole, lambda: (nothing, mi.Float(nothing)))
     live = (whole_d > 0.0) | (whole_s > 0.0)
     if active is not None:
         live &= active
@@ -786,8 +793,21 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
     nq = dr.opaque(mi.UInt32, width)
     f = lanes // nq
     q = lanes - f * nq
-    roots, keep = _root_items(dev, tree_index, rel, q, f)
-    keep &= dr.gather(mi.Bool, live, q)
+    lane_live = dr.gather(mi.Bool, live, q)
+    slots = len(world) + 4  # the light clipped by a face's four frustum planes
+
+    def clip_roots():
+        roots, keep = _root_items(dev, tree_index, rel, q, f)
+        return (roots.code, roots.n, keep, *roots.s, *roots.t)
+
+    def no_roots():
+        z = dr.zeros(mi.Float, 6 * width)
+        return (dr.zeros(mi.Int32, 6 * width), dr.zeros(mi.UInt32, 6 * width),
+                dr.zeros(mi.Bool, 6 * width), *[mi.Float(z) for _ in range(2 * slots)])
+
+    code0, cnt0, keep, *st0 = dr.if_stmt((), lane_live, clip_roots, no_roots)
+    roots = _Items(q, f, code0, cnt0, st0[:slots], st0[slots:])
+    keep &= lane_live
     code0 = roots.code
     leaf0 = code0 < 0
     val0 = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code0), leaf0)
