@@ -473,8 +473,7 @@ def test_drjit_engine_builds_the_same_trees(maps16):
         stalled.append(a.info["stalled_splits"])
         chunk = 8 * len(_angles(kw)) * 256 if kw else None  # 8 faces per chunk
         b = bspvt.build_trees(maps16, progress=False, engine="drjit", chunk_work=chunk, **kw)
-        for k in ("lines", "children", "leaf_value", "roots"):
-            assert np.array_equal(getattr(a, k), getattr(b, k)), (kw, k)
+        assert_same_trees(a, b)
         assert a.info["stalled_splits"] == b.info["stalled_splits"]
         assert b.info["engine"] == "drjit" and a.info["depth"] >= 4
     assert stalled[0] > 0  # the fallback split of stalled clusters ran on the device too
@@ -482,10 +481,14 @@ def test_drjit_engine_builds_the_same_trees(maps16):
     a = bspvt.build_trees(maps16[:2], progress=False, angles=16)
     b = bspvt.build_trees(maps16[:2], progress=False, angles=16, engine="drjit",
                           chunk_work=len(_angles({"angles": 16})) * 256)
-    for k in ("lines", "children", "leaf_value", "roots"):
-        assert np.array_equal(getattr(a, k), getattr(b, k)), k
+    assert_same_trees(a, b)
     with pytest.raises(GlossrtError, match="engine"):
         bspvt.build_trees(maps16, engine="torch", progress=False)
+
+
+def assert_same_trees(a, b):
+    for k in ("lines", "children", "leaf_value", "roots"):
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
 
 
 def _angles(kw: dict):

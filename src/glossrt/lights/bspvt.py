@@ -1044,6 +1044,11 @@ class _DrOps:
         self.seg = dr.cumsum(marks)
         dr.eval(self.seg)
 
+    def _before(self, first: mi.UInt32) -> mi.Int32:
+        """The sum of ``2 V`` along the row before element ``first`` (a segment's first
+        column: ``a N + start``), from this level's inclusive prefix sums."""
+        return dr.gather(mi.Int32, self._incl, first) - dr.gather(mi.Int32, self._v, first)
+
     def best_splits(self, start, length, ones):
         """:func:`_best_splits` (without ``nontrivial``) on the device."""
         self._segments(length)
@@ -1059,10 +1064,8 @@ class _DrOps:
         incl = dr.cumsum(v)
         dr.eval(v, incl)
         self._v, self._incl = v, incl  # also for fallback()
-        base = a * n + s
-        before = dr.gather(mi.Int32, incl, base) - dr.gather(mi.Int32, v, base)
         # x = 2 O_k - k over each segment's first k = col - start + 1 texels (_best_splits)
-        x = incl - before - mi.Int32(col - s + 1)
+        x = incl - self._before(a * n + s) - mi.Int32(col - s + 1)
         cell = a * gn + g
         lo = dr.full(mi.Int32, np.iinfo(np.int32).max, a_count * g_count)
         hi = dr.full(mi.Int32, np.iinfo(np.int32).min, a_count * g_count)
@@ -1105,9 +1108,7 @@ class _DrOps:
         ac = mi.UInt32(dr.gather(mi.Int32, best_a, gc))
         sc = dr.gather(mi.UInt32, self.start, gc)
         ec = ac * n + c
-        xc = dr.gather(mi.Int32, incl, ec) - (
-            dr.gather(mi.Int32, incl, ac * n + sc) - dr.gather(mi.Int32, v, ac * n + sc)) - \
-            mi.Int32(c - sc + 1)
+        xc = dr.gather(mi.Int32, incl, ec) - self._before(ac * n + sc) - mi.Int32(c - sc + 1)
         hit = xc == dr.gather(mi.Int32, target, gc)
         first = dr.zeros(mi.UInt32, g_count) + n  # "no hit" (n: opaque)
         dr.scatter_reduce(dr.ReduceOp.Min, first, c, gc, hit)
@@ -1136,8 +1137,7 @@ class _DrOps:
         on = dr.gather(mi.Int32, per_seg, sb * 3 + 2)
         row = dr.gather(mi.UInt32, row_a, r) * n
         # ones among the segment's first k texels (inclusive), from the sums of 2 V
-        o = (dr.gather(mi.Int32, self._incl, row + col) - dr.gather(mi.Int32, self._incl, row + gs)
-             + dr.gather(mi.Int32, self._v, row + gs)) >> 1
+        o = (dr.gather(mi.Int32, self._incl, row + col) - self._before(row + gs)) >> 1
         k = mi.Int32(col - gs) + 1
         z_l = k - o
         e_l = dr.minimum(o, z_l)

@@ -276,21 +276,12 @@ def _lift(f: mi.UInt32, s: mi.Float, t: mi.Float) -> mi.Vector3f:
                        dr.select(k == 0, t, dr.select(k == 1, s, sg)))
 
 
-def _clip(comps: list, n: mi.UInt32, dist: list, kout: int,
-          raw: bool = False) -> tuple[list, mi.UInt32]:
-    """Sutherland and Hodgman (1974): the convex polygon ``comps`` (a list over coordinates of
-    lists over vertex slots; the first ``n`` slots used) clipped to ``{dist >= 0}`` (``dist``: a
-    value per slot, affine in the coordinates). Returns the clipped polygon with ``kout``
-    slots and its count (emissions beyond ``kout`` are dropped). Vertex order is kept, so the
-    winding is too. Each edge ``a -> b`` emits ``a`` if ``d_a >= 0`` and, if exactly one end is
-    inside, the crossing ``a + (b - a) d_a / (d_a - d_b)``; emitted values go to slot ``c``
-    (the running count) through ``dr.select``."""
+def _clip_emissions(comps: list, n: mi.UInt32, dist: list):
+    """Sutherland and Hodgman's emissions, in order, for :func:`_clip` and
+    :func:`_clip_into`: per edge ``a -> b`` of the polygon ``comps`` (``n`` slots used),
+    ``(a, a inside)`` and ``(crossing, exactly one end inside)``; values are lists over the
+    coordinates."""
     k = len(dist)
-    width = dr.width(n)
-    zero = dr.zeros(mi.Float, width)
-    out = [[zero] * kout for _ in comps]
-    c = dr.zeros(mi.UInt32, width)
-    j = 0
     for i in range(k):
         active = n > i
         if i + 1 < k:
@@ -302,17 +293,31 @@ def _clip(comps: list, n: mi.UInt32, dist: list, kout: int,
             db = dist[0]
         a, da = [comp[i] for comp in comps], dist[i]
         a_in, b_in = da >= 0.0, db >= 0.0
-        emit_a = active & a_in
         crosses = active & (a_in ^ b_in)
         t = da / dr.select(crosses, da - db, 1.0)
-        p = [ac + (bc - ac) * t for ac, bc in zip(a, b, strict=True)]
-        for value, emit in ((a, emit_a), (p, crosses)):
-            for s in range(min(j, kout - 1) + 1):
-                hit = emit & (c == s)
-                for ci in range(len(comps)):
-                    out[ci][s] = dr.select(hit, value[ci], out[ci][s])
-            c = c + dr.select(emit, mi.UInt32(1), mi.UInt32(0))
-            j += 1
+        yield a, active & a_in
+        yield [ac + (bc - ac) * t for ac, bc in zip(a, b, strict=True)], crosses
+
+
+def _clip(comps: list, n: mi.UInt32, dist: list, kout: int,
+          raw: bool = False) -> tuple[list, mi.UInt32]:
+    """Sutherland and Hodgman (1974): the convex polygon ``comps`` (a list over coordinates of
+    lists over vertex slots; the first ``n`` slots used) clipped to ``{dist >= 0}`` (``dist``: a
+    value per slot, affine in the coordinates). Returns the clipped polygon with ``kout``
+    slots and its count (emissions beyond ``kout`` are dropped). Vertex order is kept, so the
+    winding is too. Each edge ``a -> b`` emits ``a`` if ``d_a >= 0`` and, if exactly one end is
+    inside, the crossing ``a + (b - a) d_a / (d_a - d_b)``; emitted values go to slot ``c``
+    (the running count) through ``dr.select``."""
+    width = dr.width(n)
+    zero = dr.zeros(mi.Float, width)
+    out = [[zero] * kout for _ in comps]
+    c = dr.zeros(mi.UInt32, width)
+    for j, (value, emit) in enumerate(_clip_emissions(comps, n, dist)):
+        for s in range(min(j, kout - 1) + 1):
+            hit = emit & (c == s)
+            for ci in range(len(comps)):
+                out[ci][s] = dr.select(hit, value[ci], out[ci][s])
+        c = c + dr.select(emit, mi.UInt32(1), mi.UInt32(0))
     return out, (c if raw else dr.minimum(c, kout))
 
 
@@ -435,6 +440,25 @@ def _cut(dev: DeviceTrees, node: mi.UInt32, side, s: list, t: list, n: mi.UInt32
     leaf = child < 0
     val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~child), leaf)
     return dist, some, child, leaf, val
+
+
+def _stack(entries: int, k: int, code, n, s: list, t: list) -> tuple:
+    """A traversal's stack in local memory, ``(codes, counts, s, t)`` with ``k`` vertex slots
+    per entry and at least ``entries`` entries (rounded up to a multiple of 8, so that trees
+    of similar depth share the compiled kernel), its entry 0 the pieces ``(code, n, s, t)``
+    (slots past ``len(s)`` zero, past ``k`` dropped)."""
+    depth = -(-entries // 8) * 8
+    codes = dr.alloc_local(mi.Int32, depth)
+    counts = dr.alloc_local(mi.UInt32, depth)
+    ls = dr.alloc_local(mi.Float, depth * k)
+    lt = dr.alloc_local(mi.Float, depth * k)
+    codes.write(code, 0)
+    counts.write(n, 0)
+    zero = dr.zeros(mi.Float, dr.width(n))
+    for j in range(k):
+        ls.write(s[j] if j < len(s) else zero, j)
+        lt.write(t[j] if j < len(t) else zero, j)
+    return codes, counts, ls, lt
 
 
 def _pop(top: mi.UInt32, codes, counts, ls, lt, k: int) -> tuple:
@@ -660,21 +684,9 @@ def _traverse_kernel(dev: DeviceTrees, items: _Items, k: int, cap: int):
     leaves with visibility 0 are dropped. The stack holds at most ``depth + 1`` entries (one
     pending sibling per level)."""
     truncate = k >= KMAX
-    # stack entries, rounded up so that trees of similar depth share the compiled kernel
-    depth = -(-(dev.depth + 2) // 8) * 8
     width = dr.width(items.n)
-    zero = dr.zeros(mi.Float, width)
-    s0 = (items.s + [zero] * k)[:k]
-    t0 = (items.t + [zero] * k)[:k]
-    codes = dr.alloc_local(mi.Int32, depth)
-    counts = dr.alloc_local(mi.UInt32, depth)
-    ls = dr.alloc_local(mi.Float, depth * k)
-    lt = dr.alloc_local(mi.Float, depth * k)
-    codes.write(items.code, 0)
-    counts.write(items.n, 0)
-    for j in range(k):
-        ls.write(s0[j], j)
-        lt.write(t0[j], j)
+    # at most depth + 1 entries: one pending sibling per level
+    codes, counts, ls, lt = _stack(dev.depth + 2, k, items.code, items.n, items.s, items.t)
     size = 2 * cap
     o_lane, o_n = dr.zeros(mi.UInt32, size), dr.zeros(mi.UInt32, size)
     o_code = dr.zeros(mi.Int32, size)
@@ -736,26 +748,11 @@ def _clip_into(s: list, t: list, n: mi.UInt32, dist: list, ls, lt, dst, mask) ->
     k = len(s)
     one, none = mi.UInt32(1), mi.UInt32(0)
     cnt = dr.zeros(mi.UInt32, dr.width(n))
-    for i in range(k):
-        active = n > i
-        if i + 1 < k:
-            wrap = n > i + 1
-            sb = dr.select(wrap, s[i + 1], s[0])
-            tb = dr.select(wrap, t[i + 1], t[0])
-            db = dr.select(wrap, dist[i + 1], dist[0])
-        else:
-            sb, tb, db = s[0], t[0], dist[0]
-        da = dist[i]
-        a_in, b_in = da >= 0.0, db >= 0.0
-        emit_a = active & a_in
-        crosses = active & (a_in ^ b_in)
-        u = da / dr.select(crosses, da - db, 1.0)
-        for (vs, vt), e in (((s[i], t[i]), emit_a),
-                            ((s[i] + (sb - s[i]) * u, t[i] + (tb - t[i]) * u), crosses)):
-            w = mask & e & (cnt < k)
-            ls.write(vs, dst + cnt, w)
-            lt.write(vt, dst + cnt, w)
-            cnt = cnt + dr.select(e, one, none)
+    for (vs, vt), e in _clip_emissions([s, t], n, dist):
+        w = mask & e & (cnt < k)
+        ls.write(vs, dst + cnt, w)
+        lt.write(vt, dst + cnt, w)
+        cnt = cnt + dr.select(e, one, none)
     return cnt
 
 
@@ -806,28 +803,15 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
                 dr.zeros(mi.Bool, 6 * width), *[mi.Float(z) for _ in range(2 * slots)])
 
     code0, cnt0, keep, *st0 = dr.if_stmt((), lane_live, clip_roots, no_roots)
-    roots = _Items(q, f, code0, cnt0, st0[:slots], st0[slots:])
     keep &= lane_live
-    code0 = roots.code
     leaf0 = code0 < 0
     val0 = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code0), leaf0)
     start = keep & (~leaf0 | (val0 > 0.0))
     frame = (dr.gather(mi.Vector3f, t1, q), dr.gather(mi.Vector3f, t2, q),
              dr.gather(mi.Vector3f, n, q))
     lane_coeffs = dr.gather(mi.Vector4f, coeffs, q)
-    # stack entries: internal nodes and leaf pieces waiting to be integrated (at most
-    # depth + 2), rounded up so that trees of similar depth share the compiled kernel
-    depth = -(-(dev.depth + 3) // 8) * 8
-    codes = dr.alloc_local(mi.Int32, depth)
-    counts = dr.alloc_local(mi.UInt32, depth)
-    ls = dr.alloc_local(mi.Float, depth * k)
-    lt = dr.alloc_local(mi.Float, depth * k)
-    codes.write(code0, 0)
-    counts.write(roots.n, 0)
-    zero = dr.zeros(mi.Float, 6 * width)
-    for j in range(k):
-        ls.write(roots.s[j] if j < len(roots.s) else zero, j)
-        lt.write(roots.t[j] if j < len(roots.t) else zero, j)
+    # internal nodes and leaf pieces waiting to be integrated: at most depth + 2 entries
+    codes, counts, ls, lt = _stack(dev.depth + 3, k, code0, cnt0, st0[:slots], st0[slots:])
     one, none = mi.UInt32(1), mi.UInt32(0)
 
     def cond(sp, acc_d, acc_s, n_split, n_piece, codes, counts, ls, lt):
