@@ -689,7 +689,10 @@ def test_textured_lights():
     shaded = [bs._np_color(bs.shade_points(shadow, [tex_light], sp, [qs.dr()[0]], **kw)[0])
               for kw in ({}, {"frozen": True}, {"traversal": "fused"})]
     for other in shaded[1:]:
-        np.testing.assert_array_equal(other, shaded[0])
+        # equal to float32 rounding, not bit for bit: the kernel traversal appends pieces
+        # (dr.scatter_inc) and sums them per query (dr.scatter_reduce) in the order the CPU
+        # threads reach them, which changes with the load (seen 1e-7 apart under pytest-xdist)
+        np.testing.assert_allclose(other, shaded[0], rtol=1e-6, atol=1e-9)
     assert shaded[0].max() > 0
 
 
