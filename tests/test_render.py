@@ -994,3 +994,23 @@ def test_scene_without_emitters_renders_black():
         assert hits(f).sum() > 0
         for name in RADIANCE + ("color",):
             assert not np.any(f.numpy(name)), name
+
+
+def test_frozen_trace_is_not_shared_between_scenes():
+    """Each Renderer records its own frozen trace: a module-wide one replayed a recording made
+    with another scene object of the same layout (wrong G-buffers, now and then a segfault
+    once that scene was freed). A second scene of the same layout renders frozen exactly as
+    traced."""
+    import gc
+
+    first = Renderer(scenes.load("glossy-cornell", size=(16, 12)))
+    first.render(0)
+    second_setup = scenes.load("glossy-cornell", size=(16, 12))
+    second = Renderer(second_setup)
+    assert second._trace_frozen is not first._trace_frozen
+    del first
+    gc.collect()
+    frozen = second.render(0)
+    traced = Renderer(second_setup, frozen=False).render(0)
+    for name in ("normal", "position", "color"):
+        np.testing.assert_array_equal(frozen.numpy(name), traced.numpy(name))

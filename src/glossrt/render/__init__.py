@@ -75,8 +75,15 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
     return {k: _flat(v) for k, v in out.items()}
 
 
-# one recording per scene and image size; a session may well use dozens (experiments)
-_trace_frozen = dr.freeze(_trace, warn_after=64)
+def _new_frozen_trace():
+    """A frozen :func:`_trace` of its own for each :class:`Renderer`. A module-wide one
+    replayed a recording made with *another* scene object of the same layout (an equal
+    ``dr.freeze`` key): wrong G-buffers and, now and then, a segfault once the first scene
+    had been freed (measured 2026-11-23: a second ``coarse_polygon_light`` scene rendered
+    frozen differed from its traced render; the crash of test_shadows that
+    scripts/run-tests.sh reran). A Renderer keeps one scene, so its recordings only ever
+    replay with that scene."""
+    return dr.freeze(_trace, warn_after=64)
 
 
 def _warm_emitters(scene: mi.Scene) -> None:
@@ -117,6 +124,7 @@ class Renderer:
             raise GlossrtError(str(e)) from None
         self.seed = seed
         self.frozen = frozen
+        self._trace_frozen = _new_frozen_trace()  # recordings never shared across scenes
         self.shapes = ShapeTable(setup.scene)
         #: emitters in a load-independent order for next-event estimation (reproducible noise)
         self.emitters = EmitterTable(setup.scene)
@@ -138,7 +146,7 @@ class Renderer:
         pixel centre + ``jitter`` (pixels)."""
         self.setup.set_frame(frame)
         frozen = self.frozen if frozen is None else frozen
-        fn = _trace_frozen if frozen else _trace
+        fn = self._trace_frozen if frozen else _trace
         jx, jy = _check_jitter(jitter)
         offset = mi.Point2f(dr.opaque(mi.Float, jx), dr.opaque(mi.Float, jy))
         with no_gc():
