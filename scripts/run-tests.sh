@@ -3,10 +3,10 @@
 #
 # Default: the whole suite in one pytest process. If that process is killed by a signal (exit
 # status >= 128, e.g. 139 for SIGSEGV), the test file it was in and every file after it are
-# run once more, loudly: Dr.Jit 1.5 has crashed inside a dr.freeze call at random, about once
-# in several full runs (seen 2026-11-23 in Renderer.trace on a cold kernel cache; the same
-# tests pass on rerun). A failed test (before or after a crash) or a second crash fails the
-# run. tests/conftest.py writes the progress file.
+# run once more, loudly. The crashes seen (about once in several full runs, in Renderer.trace)
+# came from the renderer's frozen trace being shared by all scenes (fixed 2026-11-23: one per
+# Renderer); the rerun stays as a safety net. A failed test (before or after a crash) or a
+# second crash fails the run. tests/conftest.py writes the progress file.
 #
 # GLOSSRT_TEST_WORKERS=N (N >= 2, at most 4; needs pytest-xdist, in the `test` extra) runs the
 # suite on N worker processes instead, each test file on one worker (`--dist loadfile`: a
@@ -14,7 +14,8 @@
 # fresh worker (tests/conftest.py, pytest_handlecrashitem). Measured on the 2-core VM with a
 # cold kernel cache: 5m17-5m20 with 2 workers against 8m06 in one process (a cold run is
 # bound by Dr.Jit's single-threaded kernel compilation). Not the default: in 2 of 2 such
-# runs one test failed that passes in one process (docs/ARCHITECTURE.md, under scripts/run-tests.sh).
+# runs (before the frozen-trace fix) one test failed that passes in one process
+# (docs/ARCHITECTURE.md, under scripts/run-tests.sh).
 # Usage: scripts/run-tests.sh PYTHON [pytest args...]
 set -uo pipefail
 py=${1:?usage: run-tests.sh PYTHON [pytest args]}

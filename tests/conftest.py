@@ -27,8 +27,7 @@ _PROGRESS = os.environ.get("GLOSSRT_TEST_PROGRESS")
 
 
 def pytest_runtest_logreport(report):
-    # under pytest-xdist the controller receives every worker's reports: write them once, there
-    if not _PROGRESS or os.environ.get("PYTEST_XDIST_WORKER"):
+    if not _PROGRESS:
         return
     lines = []
     if report.failed:
@@ -47,9 +46,8 @@ _CRASHED: set[str] = set()
 @pytest.hookimpl(optionalhook=True)
 def pytest_handlecrashitem(crashitem, report, sched):
     """pytest-xdist (``GLOSSRT_TEST_WORKERS=2 make test``): a test whose worker process
-    died (Dr.Jit 1.5 has crashed inside a ``dr.freeze`` call at random, about once in several
-    full runs; the same tests pass on rerun) is run once more on a fresh worker, loudly. A
-    second crash of the same test fails it."""
+    died is run once more on a fresh worker, loudly; a second crash of the same test fails
+    it (the safety net of scripts/run-tests.sh, per test)."""
     if crashitem in _CRASHED:
         return
     _CRASHED.add(crashitem)

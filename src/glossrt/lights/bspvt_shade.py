@@ -87,6 +87,7 @@ from .ltc import (  # noqa: E402
     PrefilteredTexture,
     _apply_minv,
     _device_lights,
+    _integrals,
     _local,
     _table,
     _tex_eval,
@@ -774,9 +775,7 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
     t1, t2 = ltc_frame(n, wo)
 
     def whole():
-        local = _local(world, p, t1, t2, n)
-        return (cosine_integral(local, None, two_sided),
-                cosine_integral(_apply_minv(coeffs, local), None, two_sided))
+        return _integrals(_local(world, p, t1, t2, n), coeffs, two_sided)
 
     # dr.if_stmt: packets without an active lane (background pixels) skip the work (LLVM)
     nothing = dr.zeros(mi.Float, width)

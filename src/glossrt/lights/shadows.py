@@ -158,15 +158,15 @@ def _pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets) -> tuple:
     return verts, [dr.select(valid, 1.0 - b1 - b2, 0.0), b1, b2], valid
 
 
-def _shade_pixel_mode(scene: mi.Scene, frame, dev, lights: list, meshes: list, offsets, f0,
-                      textures, traversal: str, frozen: bool) -> mi.TensorXf:
+def _shade_pixel_mode(frame, dev, lights: list, triangles: tuple, f0, textures,
+                      traversal: str, frozen: bool) -> mi.TensorXf:
     """Per-pixel mode on the device: each pixel evaluates its triangle's three vertex trees
     with its own G-buffer point, normal, view and material
     (:func:`glossrt.lights.bspvt_shade.shade_points`, barycentric weights); pixels without a
     triangle (background, lights, analytic shapes) are not traversed and get 0."""
     from . import bspvt_shade
 
-    verts, bary, valid = _pixel_triangles(scene, frame, meshes, offsets)
+    verts, bary, valid = triangles
     sp = ShadingPoints.of(frame, f0)
     hit = sp.hit & valid
     up = mi.Vector3f(0.0, 0.0, 1.0)  # placeholders where nothing is shaded (finite inputs)
@@ -189,14 +189,14 @@ def _shade_pixel_mode(scene: mi.Scene, frame, dev, lights: list, meshes: list, o
     return merge([out[0], out[1], out[2]], frame.height, frame.width)
 
 
-def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, meshes: list, offsets,
+def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, triangles: tuple,
                        textures, traversal: str, frozen: bool) -> mi.TensorXf:
     """Per-vertex mode on the device: every tree vertex shaded at its own position and normal
     towards the camera (:func:`glossrt.lights.bspvt_shade.shade_points`), then blended per
     pixel by the barycentrics of the triangle it sees."""
     from . import bspvt_shade
 
-    verts, bary, valid = _pixel_triangles(scene, frame, meshes, offsets)
+    verts, bary, valid = triangles
     nv = dev.n_vertices
     cam = mi.Point3f(*opaque(frame.camera.position))
     to_cam = cam - dev.positions
@@ -240,10 +240,10 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
                            f"meshes have {int(offsets[-1])}: built for another scene?")
     check_frame(frame, NEEDS)
     dev = bspvt_shade.DeviceTrees.of(trees)
+    # (vertex indices, barycentrics, valid) of the triangle each pixel sees
+    tri = _pixel_triangles(scene, frame, meshes, offsets[:-1])
     if mode == "vertex":
-        img = _shade_vertex_mode(scene, frame, dev, lights, meshes, offsets[:-1], textures,
-                                 traversal, frozen)
+        img = _shade_vertex_mode(scene, frame, dev, lights, tri, textures, traversal, frozen)
     else:
-        img = _shade_pixel_mode(scene, frame, dev, lights, meshes, offsets[:-1], f0, textures,
-                                traversal, frozen)
+        img = _shade_pixel_mode(frame, dev, lights, tri, f0, textures, traversal, frozen)
     return np.array(img, np.float32).reshape(frame.height, frame.width, 3)
