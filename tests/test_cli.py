@@ -84,7 +84,7 @@ def test_unsupported_plugin_exit_code(tmp_path, capsys):
 def test_bench_json(tmp_path, capsys):
     js = tmp_path / "b.json"
     assert main(["bench", "--json", str(js), "--size", "32x24", "--repeats", "1",
-                 "--warmup", "1"]) == 0
+                 "--warmup", "1", "--min-sample", "0"]) == 0
     res = json.loads(js.read_text())
     r = res["results"]["render-vs-mitsuba-path"]
     assert res["variant"] and res["device"]
@@ -127,6 +127,31 @@ def test_round_robin_pairs_samples():
     assert len(times["a"]) == len(times["b"]) == 3
     # the median of per-repeat ratios, not the ratio of medians (2 here, 1.5 otherwise)
     assert paired_ratio([2.0, 4.0, 3.0], [1.0, 2.0, 3.0]) == 2.0
+
+
+def test_round_robin_batches_short_calls():
+    """With ``min_sample``, a call shorter than it is repeated back to back within a sample
+    and the sample is the time per call; a long call stays single."""
+    import time
+
+    from glossrt.bench import round_robin
+
+    calls = {"short": 0, "long": 0}
+
+    def short():
+        calls["short"] += 1
+        time.sleep(0.002)
+
+    def long():
+        calls["long"] += 1
+        time.sleep(0.03)
+
+    times = round_robin({"short": short, "long": long}, warmup=1, repeats=3, min_sample=0.02)
+    # warm-up 1 + calibration 1 + 3 samples of ceil(0.02 / ~0.002) <= 10 calls each
+    assert 1 + 1 + 3 * 3 <= calls["short"] <= 1 + 1 + 3 * 10
+    assert calls["long"] == 1 + 1 + 3
+    assert all(0.0015 < t < 0.015 for t in times["short"])  # per call (a batch is >= 0.02)
+    assert all(t >= 0.03 for t in times["long"])
 
 
 def test_demo_writes_report(tmp_path):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import platform
 import statistics
 import time
@@ -17,6 +18,9 @@ from dataclasses import dataclass, field
 from . import backend
 
 BENCHMARKS: dict[str, Callable[[BenchContext], dict]] = {}
+#: default shortest sample (s): calls of a few ms are timed in batches this long, because on a
+#: shared machine a single short call moves by tens of percent from one sample to the next
+MIN_SAMPLE = 0.05
 
 
 @dataclass
@@ -24,6 +28,8 @@ class BenchContext:
     size: tuple[int, int] = (640, 360)
     warmup: int = 3
     repeats: int = 9
+    #: shortest time of one sample (s): faster calls are repeated within it (see round_robin)
+    min_sample: float = MIN_SAMPLE
     extra: dict = field(default_factory=dict)
 
     @property
@@ -43,24 +49,41 @@ def benchmark(name: str):
 
 
 def round_robin(cases: dict[str, Callable[[], object]], warmup: int,
-                repeats: int) -> dict[str, list[float]]:
-    """Wall times (s) of every case, called in turn: repeat i times each case once, so the
-    i-th samples of all cases are taken within moments of each other and a slow spell of the
-    machine hits them alike (ratios: :func:`paired_ratio`)."""
+                repeats: int, min_sample: float = 0.0) -> dict[str, list[float]]:
+    """Wall times (s) per call of every case, called in turn: repeat i times each case once, so
+    the i-th samples of all cases are taken within moments of each other and a slow spell of
+    the machine hits them alike (ratios: :func:`paired_ratio`).
+
+    ``min_sample > 0``: a case whose call (timed once after the warm-up) is shorter is called
+    ``ceil(min_sample / t)`` times back to back per sample, and the sample is the batch's time
+    divided by its count, as ``timeit`` does; one preempted call then moves a sample by a
+    fraction of itself instead of doubling it."""
     import drjit as dr
 
     for fn in cases.values():
         for _ in range(warmup):
             fn()
     dr.sync_thread()
+    batch = dict.fromkeys(cases, 1)
+    if min_sample > 0:
+        for name, fn in cases.items():
+            batch[name] = max(1, math.ceil(min_sample / max(_timed(fn, 1), 1e-9)))
     times: dict[str, list[float]] = {k: [] for k in cases}
     for _ in range(repeats):
         for name, fn in cases.items():
-            t0 = time.perf_counter()
-            fn()
-            dr.sync_thread()
-            times[name].append(time.perf_counter() - t0)
+            times[name].append(_timed(fn, batch[name]))
     return times
+
+
+def _timed(fn: Callable[[], object], count: int) -> float:
+    """Seconds per call of ``count`` calls of ``fn`` back to back (the device synchronised)."""
+    import drjit as dr
+
+    t0 = time.perf_counter()
+    for _ in range(count):
+        fn()
+    dr.sync_thread()
+    return (time.perf_counter() - t0) / count
 
 
 def paired_ratio(num: list[float], den: list[float]) -> float:
@@ -98,7 +121,8 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
         dr.eval(img)
 
     times = round_robin({"glossrt_kernels": ours, "glossrt_frame": ours_frame,
-                         "mitsuba_path": theirs}, ctx.warmup, ctx.turns)
+                         "mitsuba_path": theirs}, ctx.warmup, ctx.turns,
+                       ctx.min_sample)
     med = {k: statistics.median(v) for k, v in times.items()}
     return {
         "scene": "glossy-cornell",
@@ -157,7 +181,7 @@ def denoisers(ctx: BenchContext) -> dict:
             dr.eval(d(frames[counter["i"] % 4]))
 
         runners[name] = step
-    times = round_robin(runners, 1, ctx.turns)
+    times = round_robin(runners, 1, ctx.turns, ctx.min_sample)
     med = {k: statistics.median(v) for k, v in times.items()}
     out = {"scene": "glossy-cornell (static camera)", "size": list(ctx.size),
            "seconds": med, "repeats": ctx.turns}
@@ -233,7 +257,7 @@ def lobe_weights(ctx: BenchContext) -> dict:
                 cases[f"{op}-{cname}-traced-{weight}"] = (
                     lambda fn=fn, frames=frames: dr.eval(fn(*frames)))
                 cases[f"{op}-{cname}-frozen-{weight}"] = frozen_on_frames(fn, *frames)
-    times = round_robin(cases, 2, ctx.turns)
+    times = round_robin(cases, 2, ctx.turns, ctx.min_sample)
     med = {k: statistics.median(v) for k, v in times.items()}
     ratios = {k.replace("-normal", ""): paired_ratio(times[k.replace("-normal", "-lobe")], v)
               for k, v in times.items() if k.endswith("-normal")}
@@ -274,7 +298,7 @@ def ltc(ctx: BenchContext) -> dict:
     gb0, lights0, f00 = inputs[0]
     cases = {"ltc-traced": lambda: step(False), "ltc-frozen": lambda: step(True),
              "mc-1spp": lambda: render_mc(gb0, lights0, 1, f0=f00)}
-    times = round_robin(cases, 1, ctx.turns)
+    times = round_robin(cases, 1, ctx.turns, ctx.min_sample)
     med = {k: statistics.median(v) for k, v in times.items()}
     return {"scene": "polygon-light", "size": [w, h], "lights": 1, "seconds": med,
             "frozen_vs_traced": paired_ratio(times["ltc-frozen"], times["ltc-traced"]),
@@ -288,7 +312,7 @@ def specaa(ctx: BenchContext) -> dict:
     one run; ratios to unfiltered shading. Target (issue 8): filtering adds at most 10%."""
     from . import specaa_experiments as se
 
-    t = se.timing(size=ctx.size, repeats=ctx.turns)
+    t = se.timing(size=ctx.size, repeats=ctx.turns, min_sample=ctx.min_sample)
     return {"scene": se.SCENE, **t, "target_ratio": 1.10}
 
 
@@ -319,7 +343,7 @@ def highlights(ctx: BenchContext) -> dict:
             dr.eval(r.shade_tensor(gb, maps, f0, state["k"]))
 
         cases[f"{dist}-4-frozen"] = replay
-    times = round_robin(cases, 2, ctx.turns)
+    times = round_robin(cases, 2, ctx.turns, ctx.min_sample)
     return {"scene": "light-shapes", "size": list(ctx.size),
             "seconds": {k: statistics.median(v) for k, v in times.items()},
             "ratio_to_plain": {k: paired_ratio(v, times["plain"]) for k, v in times.items()},
@@ -363,7 +387,7 @@ def bspvt(ctx: BenchContext) -> dict:
                 f0=f0 if mode == "pixel" else None, **kw)
     cases |= {"ltc": lambda: shade_frame(gb, lights, f0=f0),
               "ratio-1spp": lambda: render_ratio(gb, lights, setup.scene, spp=1, f0=f0)}
-    times = round_robin(cases, 1, ctx.turns)
+    times = round_robin(cases, 1, ctx.turns, ctx.min_sample)
     med = {k: statistics.median(v) for k, v in times.items()}
     st = trees.stats()
     return {"scene": "polygon-light", "size": [w, h], "vertices": st["vertices"],
@@ -402,15 +426,18 @@ def _bspvt_engines(scene, res: int, count: int) -> dict:
 
 
 def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,
-        repeats: int = 9, log: Callable[[str], None] = print) -> dict:
+        repeats: int = 9, log: Callable[[str], None] = print,
+        min_sample: float = MIN_SAMPLE) -> dict:
     """Run the named (default: all) benchmarks and return a JSON-able dict."""
     info = backend.info()
-    ctx = BenchContext(size=size, warmup=warmup, repeats=repeats)
+    ctx = BenchContext(size=size, warmup=warmup, repeats=repeats, min_sample=min_sample)
+    from .errors import GlossrtError
+
     unknown = [n for n in names or [] if n not in BENCHMARKS]
     if unknown:
-        from .errors import GlossrtError
-
         raise GlossrtError(f"unknown benchmark(s) {unknown}; available: {sorted(BENCHMARKS)}")
+    if not min_sample >= 0:
+        raise GlossrtError(f"bench: min_sample must be >= 0 seconds, got {min_sample}")
     results = {}
     for name in names or list(BENCHMARKS):
         log(f"bench {name} ...")
@@ -422,5 +449,6 @@ def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warm
         "versions": {k: info[k] for k in ("glossrt", "mitsuba", "drjit")},
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "size": list(size),
+        "min_sample_s": min_sample,
         "results": results,
     }

@@ -457,7 +457,8 @@ def cmd_bench(args) -> int:
     from .scenes import parse_size
 
     res = bench.run(args.only or None, size=parse_size(args.size), repeats=args.repeats,
-                    warmup=args.warmup, log=lambda s: print(s, file=sys.stderr))
+                    warmup=args.warmup, log=lambda s: print(s, file=sys.stderr),
+                    min_sample=args.min_sample)
     text = json.dumps(res, indent=2)
     if args.json:
         Path(args.json).write_text(text + "\n")
@@ -618,6 +619,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", default="640x360")
     p.add_argument("--repeats", type=int, default=9)
     p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--min-sample", type=float, default=0.05, metavar="SECONDS",
+                   help="time calls shorter than this in back-to-back batches (0: one call "
+                        "per sample)")
     p.add_argument("--only", nargs="*", help="benchmark names")
     return ap
 

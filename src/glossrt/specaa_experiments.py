@@ -196,9 +196,11 @@ def timing_markdown(t: dict) -> str:
     return "\n".join(rows)
 
 
-def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE) -> dict:
+def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE,
+           min_sample: float = 0.05) -> dict:
     """Shading time per method and its ratio to unfiltered shading (median of per-repeat
-    ratios), the methods called in turn (frozen kernels, the real-time path)."""
+    ratios), the methods called in turn (frozen kernels, the real-time path; calls shorter
+    than ``min_sample`` seconds timed in batches, :func:`glossrt.bench.round_robin`)."""
     import statistics
 
     from . import render, scenes, specaa
@@ -214,7 +216,7 @@ def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE) 
     f0 = f0_image(setup, gb)
     cases = {m: (lambda m=m: specaa.shade_tensor(gb, lights, polys, m, f0, frozen=True))
              for m in methods}
-    times = round_robin(cases, 2, repeats)  # warm-up: record + compile
+    times = round_robin(cases, 2, repeats, min_sample)  # warm-up: record + compile
     med = {k: statistics.median(v) for k, v in times.items()}
     return {"size": list(size), "seconds": med,
             "ratio_to_none": {k: paired_ratio(v, times["none"]) for k, v in times.items()}}
