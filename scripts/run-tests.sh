@@ -1,31 +1,31 @@
 #!/usr/bin/env bash
 # The test command behind `make test`.
 #
-# Default: the whole suite in one pytest process. If that process is killed by a signal (exit
-# status >= 128, e.g. 139 for SIGSEGV), the test file it was in and every file after it are
-# run once more, loudly. The crashes seen (about once in several full runs, in Renderer.trace)
-# came from the renderer's frozen trace being shared by all scenes (fixed 2026-11-23: one per
-# Renderer); the rerun stays as a safety net. A failed test (before or after a crash) or a
-# second crash fails the run. tests/conftest.py writes the progress file.
+# Default: the suite on two pytest-xdist worker processes (fewer on a 1-core machine), each
+# test file on one worker (`--dist loadfile`: a file's module fixtures are built once); a test
+# whose worker crashes is run once more on a fresh worker (tests/conftest.py,
+# pytest_handlecrashitem). A cold run is bound by Dr.Jit's single-threaded kernel compilation,
+# so two workers nearly halve it: on the 2-core VM with an empty HOME, `bash .ci/run` took
+# 5m41-6m10 in all with 2 workers (two runs) against 8m08 in one process (2026-11-23).
 #
-# GLOSSRT_TEST_WORKERS=N (N >= 2, at most 4; needs pytest-xdist, in the `test` extra) runs the
-# suite on N worker processes instead, each test file on one worker (`--dist loadfile`: a
-# file's module fixtures are built once); a test whose worker crashes is run once more on a
-# fresh worker (tests/conftest.py, pytest_handlecrashitem). Measured on the 2-core VM with a
-# cold kernel cache: 5m17-5m20 with 2 workers against 8m06 in one process (a cold run is
-# bound by Dr.Jit's single-threaded kernel compilation). Not the default: in 2 of 2 such
-# runs (before the frozen-trace fix) one test failed that passes in one process
-# (docs/ARCHITECTURE.md, under scripts/run-tests.sh).
+# GLOSSRT_TEST_WORKERS=1 (or pytest-xdist missing): one pytest process. If it is killed by a
+# signal (exit status >= 128, e.g. 139 for SIGSEGV), the test file it was in and every file
+# after it are run once more, loudly. A failed test (before or after a crash) or a second crash
+# fails the run. tests/conftest.py writes the progress file. The crashes once seen (Renderer
+# traces) came from the renderer's frozen trace being shared by all scenes (fixed 2026-11-23:
+# one per Renderer), most likely as did the one 2-worker failure never explained (NaN normals
+# in test_shadows, before that fix); the reruns stay as a safety net. GLOSSRT_TEST_WORKERS is capped at 4.
 # Usage: scripts/run-tests.sh PYTHON [pytest args...]
 set -uo pipefail
 py=${1:?usage: run-tests.sh PYTHON [pytest args]}
 shift
-workers=${GLOSSRT_TEST_WORKERS:-1}
+cores=$(nproc 2>/dev/null || echo 1)
+workers=${GLOSSRT_TEST_WORKERS:-$(( cores < 2 ? 1 : 2 ))}
 [ "$workers" -gt 4 ] && workers=4
 if [ "$workers" -gt 1 ] && "$py" -c "import xdist" 2>/dev/null; then
     exec "$py" -m pytest -q -n "$workers" --dist loadfile --max-worker-restart 3 "$@"
 elif [ "$workers" -gt 1 ]; then
-    echo "!! GLOSSRT_TEST_WORKERS=$workers, but pytest-xdist is not installed: one process" >&2
+    echo "!! $workers test workers wanted, but pytest-xdist is not installed: one process" >&2
 fi
 progress=$(mktemp)
 trap 'rm -f "$progress"' EXIT

@@ -45,7 +45,7 @@ _CRASHED: set[str] = set()
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_handlecrashitem(crashitem, report, sched):
-    """pytest-xdist (``GLOSSRT_TEST_WORKERS=2 make test``): a test whose worker process
+    """pytest-xdist (``make test``'s default, two workers): a test whose worker process
     died is run once more on a fresh worker, loudly; a second crash of the same test fails
     it (the safety net of scripts/run-tests.sh, per test)."""
     if crashitem in _CRASHED:
