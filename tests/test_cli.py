@@ -60,6 +60,24 @@ def test_render_mitsuba_reference(tmp_path):
         (["render", "glossy-cornell", "--out", "{tmp}/o", "--max-depth", "0"], ["max_depth"]),
         (["compare", "{tmp}/nope", "{tmp}"], ["not a folder", "nope"]),
         (["bench", "--only", "nope", "--size", "8x8"], ["unknown benchmark", "nope"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--every", "0"], ["--every"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--start", "-3"], ["--start"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--size", "99999x99999"],
+         ["16384"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/o", "--orbit", "nan"], ["orbit"]),
+        (["render", "{tmp}", "--out", "{tmp}/o"], ["is a folder"]),
+        (["render", "glossy-cornell", "--out", "{tmp}/file"], ["exists and is not a folder"]),
+        (["render", "glossy-cornell", "--out", ""], ["empty path"]),
+        (["experiment", "--out", "{tmp}/o", "--spp", "0"], ["--spp"]),
+        (["experiment", "--out", "{tmp}/o", "--frames", "0"], ["--frames"]),
+        (["experiment", "--out", "{tmp}/o", "--ref-every", "0"], ["--ref-every"]),
+        (["experiment", "--out", "{tmp}/o", "--which", "ltc", "--published", "{tmp}/x.js"],
+         ["--published", "x.js"]),
+        (["bspvt", "build", "polygon-light", "--out", "{tmp}"], ["is a folder"]),
+        (["bspvt", "build", "polygon-light", "--out", ""], ["empty path"]),
+        (["compare", "{tmp}", "{tmp}", "--json", "{tmp}"], ["is a folder"]),
+        (["compare", "{tmp}", "{tmp}", "--json", "{tmp}/file"], ["refusing to overwrite"]),
+        (["bench", "--only", "ltc", "--json", "{tmp}"], ["is a folder"]),
     ],
 )
 def test_bad_input_is_a_clear_error(tmp_path, capsys, argv, words):
@@ -71,6 +89,83 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys, argv, words):
     for w in words:
         assert w in err
     assert not (tmp_path / "o").exists() or not os.listdir(tmp_path / "o")
+    assert (tmp_path / "file").read_text() == "not a folder"  # inputs are kept
+
+
+def _digests(folder) -> dict:
+    import hashlib
+
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def tiny_sequence(tmp_path_factory):
+    seq = tmp_path_factory.mktemp("seq") / "in"
+    assert main(["render", "glossy-cornell", "--out", str(seq), "--frames", "2",
+                 "--size", "16x12"]) == 0
+    return seq
+
+
+def test_denoise_refuses_its_input_folder(tiny_sequence, capsys):
+    before = _digests(tiny_sequence)
+    for out in (str(tiny_sequence), str(tiny_sequence) + "/", ""):
+        assert main(["denoise", str(tiny_sequence), "--method", "atrous", "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert "is the input folder" in err and "empty path" in err
+    assert _digests(tiny_sequence) == before
+
+
+def test_failed_denoise_leaves_the_output_folder_as_it_was(tiny_sequence, tmp_path, capsys,
+                                                            monkeypatch):
+    """Frames are written to --out only when every frame is done: a denoiser failing on the
+    second frame leaves the first run's frames (not a mix) and no temporary folder."""
+    from glossrt import denoise
+    from glossrt.errors import FrameError
+
+    out = tmp_path / "out"
+    assert main(["denoise", str(tiny_sequence), "--method", "atrous", "--out", str(out)]) == 0
+    before = _digests(out)
+    real = denoise.make
+
+    def failing(method, **kw):
+        d, calls = real(method, **kw), []
+
+        def run(frame):
+            calls.append(frame)
+            if len(calls) == 2:
+                raise FrameError(f"{frame.where}: bad frame")
+            return d(frame)
+        return run
+
+    monkeypatch.setattr(denoise, "make", failing)
+    assert main(["denoise", str(tiny_sequence), "--method", "atrous", "--out", str(out)]) == 2
+    assert "bad frame" in capsys.readouterr().err
+    assert _digests(out) == before
+    assert sorted(os.listdir(out)) == sorted(before)  # no hidden leftovers
+
+
+def test_render_warns_about_frames_of_an_earlier_run(tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["render", "glossy-cornell", "--out", str(out), "--frames", "3",
+                 "--size", "16x12"]) == 0
+    assert "earlier run" not in capsys.readouterr().err
+    assert main(["render", "glossy-cornell", "--out", str(out), "--frames", "2",
+                 "--size", "16x12"]) == 0
+    err = capsys.readouterr().err
+    assert "1 frame(s) from an earlier run" in err and "frame_0002.exr" in err
+
+
+def test_compare_json_never_overwrites_a_frame(tiny_sequence, tmp_path, capsys):
+    before = _digests(tiny_sequence)
+    target = tiny_sequence / "frame_0001.exr"
+    assert main(["compare", str(tiny_sequence), str(tiny_sequence), "--json",
+                 str(target)]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert _digests(tiny_sequence) == before
+    js = tmp_path / "new" / "m.json"  # a missing folder is created
+    assert main(["compare", str(tiny_sequence), str(tiny_sequence), "--json", str(js)]) == 0
+    assert json.loads(js.read_text())["mean"]["rmse"] == 0.0
 
 
 def test_unsupported_plugin_exit_code(tmp_path, capsys):

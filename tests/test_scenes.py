@@ -206,7 +206,8 @@ def test_orbit_rotates_about_the_look_at_point(tmp_path):
 
 
 def test_orbit_does_not_replace_a_builtin_camera_path():
-    a = scenes.load("glossy-cornell", size=SIZE, orbit=90.0, frames=4)
+    with pytest.warns(UserWarning, match="animates its own camera: orbit 90.0 is ignored"):
+        a = scenes.load("glossy-cornell", size=SIZE, orbit=90.0, frames=4)
     b = scenes.load("glossy-cornell", size=SIZE)
     for k in range(4):
         np.testing.assert_array_equal(a.camera(k).to_world, b.camera(k).to_world)

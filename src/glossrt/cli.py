@@ -9,6 +9,7 @@ import os
 import sys
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 from .errors import GlossrtError
@@ -26,8 +27,19 @@ EXAMPLES = """examples:
 """
 
 
-def _writable_dir(path: str) -> Path:
+def _writable_dir(path: str, inputs: tuple[str, ...] = ()) -> Path:
+    """The output folder ``path``, created if missing and probed for writing; refused when it
+    is empty, an existing file, or one of the ``inputs`` folders (writing there would replace
+    the inputs)."""
+    if not path:
+        raise GlossrtError("the output folder is an empty path")
     p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise GlossrtError(f"output folder {path!r} exists and is not a folder")
+    for src in inputs:
+        if p.exists() and os.path.samefile(p, src):
+            raise GlossrtError(f"output folder {path!r} is the input folder {src!r}: its frames "
+                               "would be overwritten; choose another --out")
     try:
         p.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=p, prefix=".glossrt-probe-"):
@@ -35,6 +47,55 @@ def _writable_dir(path: str) -> Path:
     except OSError as e:
         raise GlossrtError(f"output folder {path!r} is not writable: {e.strerror or e}") from None
     return p
+
+
+def _output_file(path: str, what: str, keep: tuple[Path, ...] = ()) -> Path:
+    """An output file ``path`` checked before any work: not empty, not a folder, not one of
+    the files ``keep`` (inputs), never an existing EXR; its folder is created."""
+    if not path:
+        raise GlossrtError(f"{what}: the output file is an empty path")
+    p = Path(path)
+    if p.is_dir():
+        raise GlossrtError(f"{what}: {path!r} is a folder, not a file")
+    if p.exists() and (p.suffix.lower() == ".exr"
+                       or any(k.exists() and os.path.samefile(p, k) for k in keep)):
+        raise GlossrtError(f"{what}: {path!r} is an input or an image; refusing to overwrite it")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise GlossrtError(f"{what}: cannot create the folder of {path!r}: "
+                           f"{e.strerror or e}") from None
+    if not p.parent.is_dir():
+        raise GlossrtError(f"{what}: {str(p.parent)!r} is not a folder")
+    return p
+
+
+def _write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same folder (an interrupted
+    write leaves the old file, never half of a new one)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _stale_frames(out: Path, written: list[str]) -> list[str]:
+    """Frame files in ``out`` that this run does not write (left from an earlier run)."""
+    new = set(written)
+    return sorted(p.name for p in out.glob("frame_*.exr") if p.name not in new)
+
+
+def _warn_stale(out: Path, written: list[str]) -> None:
+    stale = _stale_frames(out, written)
+    if stale:
+        shown = ", ".join(stale[:4]) + (", ..." if len(stale) > 4 else "")
+        print(f"warning: {out} also holds {len(stale)} frame(s) from an earlier run that this "
+              f"run did not write ({shown}); a sequence read from it mixes both",
+              file=sys.stderr)
 
 
 def cmd_info(args) -> int:
@@ -54,6 +115,10 @@ def cmd_render(args) -> int:
         raise GlossrtError(f"--frames must be >= 1, got {args.frames}")
     if args.spp < 1:
         raise GlossrtError(f"--spp must be >= 1, got {args.spp}")
+    if args.every < 1:
+        raise GlossrtError(f"--every must be >= 1, got {args.every}")
+    if args.start < 0:
+        raise GlossrtError(f"--start must be >= 0, got {args.start}")
     size = scenes.parse_size(args.size) if args.size else None
     reference = args.reference or args.mitsuba or args.spp > 1
     if args.specaa is not None:
@@ -93,6 +158,7 @@ def cmd_render(args) -> int:
             bad += int(f.meta.get("nonfinite_samples", 0))
             f.save(out / frame_filename(i))
     print(f"wrote {len(todo)} frame(s) to {out}")
+    _warn_stale(out, [frame_filename(i) for i in todo])
     if bad:
         print(f"warning: {bad} non-finite radiance value(s) were replaced by 0 "
               "(counts per frame in the EXR header, meta.nonfinite_samples)", file=sys.stderr)
@@ -120,6 +186,7 @@ def _add_specaa(setup, frame, index: int, method: str, textures: dict) -> None:
 
 
 def cmd_denoise(args) -> int:
+    import shutil
     import time
 
     import drjit as dr
@@ -132,25 +199,35 @@ def cmd_denoise(args) -> int:
         raise GlossrtError(f"not a folder: {args.in_dir}")
     d = denoise.make(args.method)
     frames = load_sequence(args.in_dir, require=getattr(d, "needs", ()) or ("color",))
-    out = _writable_dir(args.out)
+    out = _writable_dir(args.out, inputs=(args.in_dir,))
+    # frames go to a hidden folder first and into --out only when every frame is done, so a
+    # failure part-way (bad input in a later frame) leaves --out as it was
+    tmp = Path(tempfile.mkdtemp(dir=out, prefix=".glossrt-denoise-"))
     seconds = []
-    with Progress(len(frames), f"{args.method} {frames[0].width}x{frames[0].height}") as p:
-        for k, f in enumerate(frames):
-            t0 = time.perf_counter()
-            img = d(f)
-            dr.eval(img)
-            dr.sync_thread()
-            seconds.append(time.perf_counter() - t0)
-            channels = dict(f.channels)
-            channels["color"] = img
-            meta = dict(f.meta, denoiser=args.method, denoise_seconds=seconds[-1])
-            g = Frame(channels=channels, camera=f.camera, prev_camera=f.prev_camera,
-                      index=f.index, meta=meta)
-            g.save(out / Path(f.source).name)
-            p.update(k + 1)
+    try:
+        with Progress(len(frames), f"{args.method} {frames[0].width}x{frames[0].height}") as p:
+            for k, f in enumerate(frames):
+                t0 = time.perf_counter()
+                img = d(f)
+                dr.eval(img)
+                dr.sync_thread()
+                seconds.append(time.perf_counter() - t0)
+                channels = dict(f.channels)
+                channels["color"] = img
+                meta = dict(f.meta, denoiser=args.method, denoise_seconds=seconds[-1])
+                g = Frame(channels=channels, camera=f.camera, prev_camera=f.prev_camera,
+                          index=f.index, meta=meta)
+                g.save(tmp / Path(f.source).name)
+                p.update(k + 1)
+        names = [Path(f.source).name for f in frames]
+        for name in names:
+            os.replace(tmp / name, out / name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     steady = seconds[1:] or seconds
     print(f"wrote {len(frames)} frame(s) to {out}; {args.method}: "
           f"{1000 * sorted(steady)[len(steady) // 2]:.1f} ms per frame (median, after the first)")
+    _warn_stale(out, names)
     return 0
 
 
@@ -159,8 +236,13 @@ def cmd_experiment(args) -> int:
     from .report import Report
     from .scenes import parse_size
 
-    out = _writable_dir(args.out)
+    for opt in ("frames", "spp", "ref_every", "static_frames"):
+        if getattr(args, opt) < 1:
+            raise GlossrtError(f"--{opt.replace('_', '-')} must be >= 1, got {getattr(args, opt)}")
+    if args.published is not None and not os.path.isfile(args.published):
+        raise GlossrtError(f"--published: no such file: {args.published}")
     size = parse_size(args.size)
+    out = _writable_dir(args.out)
     if args.which == "lobes":
         return _experiment_lobes(out, size, args.spp)
     if args.which == "ltc":
@@ -398,6 +480,7 @@ def cmd_light(args) -> int:
     later = times[1:] or times
     print(f"wrote {args.frames} frame(s) to {out}; {args.method}: "
           f"{1000 * sorted(later)[len(later) // 2]:.1f} ms per frame (median)")
+    _warn_stale(out, [frame_filename(i) for i in range(args.frames)])
     return 0
 
 
@@ -406,12 +489,10 @@ def cmd_bspvt(args) -> int:
     from . import scenes
     from .lights.shadows import build_scene_trees
 
+    out = _output_file(args.out, "bspvt build --out")
     setup = scenes.load(args.scene)
     trees = build_scene_trees(setup.scene, resolution=args.resolution, epsilon=args.epsilon,
                               method=args.method, progress=True, engine=args.engine)
-    out = Path(args.out)
-    if out.parent and not out.parent.exists():
-        out.parent.mkdir(parents=True)
     trees.save(str(out))
     st = trees.stats()
     st["visibility_seconds"] = trees.info.get("visibility_seconds")
@@ -434,10 +515,14 @@ def cmd_compare(args) -> int:
     for d in (args.out_dir, args.ref_dir):
         if not os.path.isdir(d):
             raise GlossrtError(f"not a folder: {d}")
+    js = None
+    if args.json is not None:
+        inputs = tuple(p for d in (args.out_dir, args.ref_dir) for p in Path(d).iterdir())
+        js = _output_file(args.json, "compare --json", keep=inputs)
     res = compare_dirs(args.out_dir, args.ref_dir, channel=args.channel)
     print(format_table(res))
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=2))
+    if js is not None:
+        _write_text(js, json.dumps(res, indent=2))
     return 0
 
 
@@ -456,12 +541,13 @@ def cmd_bench(args) -> int:
     from . import bench
     from .scenes import parse_size
 
+    js = _output_file(args.json, "bench --json") if args.json is not None else None
     res = bench.run(args.only or None, size=parse_size(args.size), repeats=args.repeats,
                     warmup=args.warmup, log=lambda s: print(s, file=sys.stderr),
                     min_sample=args.min_sample)
     text = json.dumps(res, indent=2)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
+    if js is not None:
+        _write_text(js, text + "\n")
     print(text)
     return 0
 
@@ -626,8 +712,13 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    return f"glossrt: warning: {message}\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    warnings.formatwarning = _one_line_warning  # library warnings as one line, no source
     try:
         from . import backend
 

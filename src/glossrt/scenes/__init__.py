@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -340,6 +341,10 @@ def load(
     ``frames``) adds a camera orbit to a scene without its own animation."""
     if size is not None and (size[0] <= 0 or size[1] <= 0):
         raise SceneError(f"image size must be positive, got {size[0]}x{size[1]}")
+    if size is not None and max(size) > MAX_SIDE:
+        raise SceneError(f"image size {size[0]}x{size[1]}: at most {MAX_SIDE} pixels a side")
+    if orbit is not None and not math.isfinite(float(orbit)):
+        raise SceneError(f"orbit must be a finite number of degrees, got {orbit}")
     from . import library  # noqa: F401  (registers the built-in scenes)
 
     if name_or_path in BUILTIN:
@@ -351,6 +356,8 @@ def load(
                 f"unknown scene {path!r}: not a built-in scene ({', '.join(sorted(BUILTIN))}) "
                 "and no such file"
             )
+        if os.path.isdir(path):
+            raise SceneError(f"{path} is a folder, not a scene file")
         if not os.path.isfile(path):
             raise SceneError(f"scene file not found: {path}")
         max_depth = _check_xml_plugins(path)
@@ -367,6 +374,9 @@ def load(
             source=path,
         )
     if orbit:
+        if setup.camera_path is not None:
+            warnings.warn(f"scene {setup.name!r} animates its own camera: orbit {orbit} "
+                          "is ignored", stacklevel=2)
         setup.set_orbit(float(orbit), frames)
     return setup
 
@@ -383,6 +393,11 @@ def from_spec(name: str, spec: SceneSpec, *, size: tuple[int, int] | None = None
                       object_paths=spec.object_paths, max_depth=spec.max_depth)
 
 
+#: the largest image side: a G-buffer channel of 16384^2 RGB pixels still fits Dr.Jit's 2^32
+#: array entries
+MAX_SIDE = 16384
+
+
 def parse_size(text: str) -> tuple[int, int]:
     """'640x360' -> (640, 360), with a clear error for anything else."""
     try:
@@ -391,6 +406,8 @@ def parse_size(text: str) -> tuple[int, int]:
         raise SceneError(f"--size must look like 640x360, got {text!r}") from None
     if w <= 0 or h <= 0:
         raise SceneError(f"--size must be positive, got {text!r}")
+    if max(w, h) > MAX_SIDE:
+        raise SceneError(f"--size {text!r}: at most {MAX_SIDE} pixels a side")
     return w, h
 
 
