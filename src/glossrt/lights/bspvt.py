@@ -400,7 +400,8 @@ def _bad(msg: str) -> GlossrtError:
 class BSPVT:
     """Per-vertex, per-face visibility trees in flat arrays (format in the module docstring).
 
-    ``info`` holds build details (method, angles, build seconds, ...) for :meth:`stats`."""
+    ``info`` holds build details (method, angles, build seconds, ...) for :meth:`stats`;
+    ``source`` the file the trees were loaded from (not saved)."""
 
     lines: np.ndarray
     children: np.ndarray
@@ -411,6 +412,8 @@ class BSPVT:
     positions: np.ndarray
     normals: np.ndarray
     info: dict = field(default_factory=dict)
+    #: the file :meth:`load` read the trees from ("" for trees built in memory); for messages
+    source: str = field(default="", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         self.lines = np.ascontiguousarray(self.lines, np.float32).reshape(-1, 3)
@@ -537,31 +540,66 @@ class BSPVT:
 
     # -- files -------------------------------------------------------------------------------
     def save(self, path: str) -> None:
-        """Write a compressed ``.npz`` (format version :data:`FORMAT_VERSION`)."""
-        with open(path, "wb") as f:
-            np.savez_compressed(
-                f, version=np.int32(FORMAT_VERSION), lines=self.lines, children=self.children,
-                leaf_value=self.leaf_value, roots=self.roots,
-                resolution=np.int32(self.resolution), epsilon=np.float64(self.epsilon),
-                positions=self.positions, normals=self.normals,
-                info=np.array(json.dumps(self.info)))
+        """Write a compressed ``.npz`` (format version :data:`FORMAT_VERSION`) atomically: into
+        a temporary file in the same folder, then renamed over ``path`` (an interrupted save
+        leaves ``path`` as it was; the temporary file is removed)."""
+        path = os.fspath(path)
+        folder, name = os.path.split(os.path.abspath(path))
+        tmp = os.path.join(folder, f".{name}.{os.getpid()}.{os.urandom(4).hex()}.tmp")
+        try:
+            with open(tmp, "xb") as f:
+                np.savez_compressed(
+                    f, version=np.int32(FORMAT_VERSION), lines=self.lines,
+                    children=self.children, leaf_value=self.leaf_value, roots=self.roots,
+                    resolution=np.int32(self.resolution), epsilon=np.float64(self.epsilon),
+                    positions=self.positions, normals=self.normals,
+                    info=np.array(json.dumps(self.info)))
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
 
     @classmethod
     def load(cls, path: str) -> BSPVT:
-        """Read a file written by :meth:`save`; :class:`GlossrtError` if it is missing,
-        unreadable, of another version or not valid trees."""
+        """Read a file written by :meth:`save`; :class:`GlossrtError` (one line naming the
+        file) if it is missing, unreadable, not a tree file, of another version or not valid
+        trees."""
+        path = os.fspath(path)
+        not_trees = f"{path}: not a BSPVT tree file written by `glossrt bspvt build`"
+        try:
+            with open(path, "rb") as f:
+                head = f.read(8)
+        except FileNotFoundError:
+            raise GlossrtError(f"BSPVT file not found: {path}") from None
+        except IsADirectoryError:
+            raise GlossrtError(f"{not_trees} (it is a directory)") from None
+        except OSError as e:
+            raise GlossrtError(f"{path}: cannot read the BSPVT file ({e.strerror or e})") \
+                from None
+        if not head.startswith(b"PK"):  # .npz files are zip archives
+            what = ("an OpenEXR image" if head.startswith(b"\x76\x2f\x31\x01")
+                    else "a single NumPy array (.npy)" if head.startswith(b"\x93NUMPY")
+                    else "empty" if not head else "not an .npz archive")
+            raise GlossrtError(f"{not_trees} (it is {what})")
         try:
             with np.load(path, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
-        except FileNotFoundError:
-            raise GlossrtError(f"BSPVT file not found: {path}") from None
+        except ValueError as e:
+            if "pickle" in str(e):
+                raise GlossrtError(f"{not_trees} (it holds pickled Python objects)") from None
+            raise GlossrtError(f"{not_trees} (unreadable .npz: {_one_line(e)})") from None
         except Exception as e:
-            raise GlossrtError(f"{path}: not a readable BSPVT file ({e})") from None
+            raise GlossrtError(f"{not_trees} (unreadable .npz: {_one_line(e)})") from None
         need = ("version", "lines", "children", "leaf_value", "roots", "resolution", "epsilon",
                 "positions", "normals")
         missing = [k for k in need if k not in data]
         if missing:
-            raise GlossrtError(f"{path}: not a BSPVT file (missing {', '.join(missing)})")
+            raise GlossrtError(f"{not_trees} (missing {', '.join(missing)})")
         if data["version"].shape != () or int(data["version"]) != FORMAT_VERSION:
             raise GlossrtError(f"{path}: BSPVT format version {data['version']}, "
                                f"expected {FORMAT_VERSION}")
@@ -579,11 +617,17 @@ class BSPVT:
             return cls(lines=data["lines"], children=data["children"],
                        leaf_value=data["leaf_value"], roots=data["roots"],
                        resolution=int(data["resolution"]), epsilon=float(data["epsilon"]),
-                       positions=data["positions"], normals=data["normals"], info=info)
+                       positions=data["positions"], normals=data["normals"], info=info,
+                       source=path)
         except GlossrtError as e:
             raise GlossrtError(f"{path}: {e}") from None
         except (ValueError, TypeError) as e:
             raise GlossrtError(f"{path}: invalid BSPVT arrays ({e})") from None
+
+
+def _one_line(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return text or type(e).__name__
 
 
 # -- batched split search --------------------------------------------------------------------

@@ -138,7 +138,8 @@ def _rectangle_polygon(shape) -> tuple[np.ndarray, np.ndarray]:
     return verts, _RECT_UV.copy()
 
 
-def _mesh_polygon(shape, textured: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _mesh_polygon(shape, textured: bool,
+                  where: str = "") -> tuple[np.ndarray, np.ndarray | None]:
     """Convex outline of a planar triangle mesh (world space, Mitsuba stores it so), with
     the texture coordinates of its corners when ``textured``."""
     from scipy.spatial import ConvexHull, QhullError
@@ -149,6 +150,7 @@ def _mesh_polygon(shape, textured: bool) -> tuple[np.ndarray, np.ndarray | None]
     faces = np.array(params["faces"], dtype=np.int64).reshape(-1, 3)
     used = np.unique(faces)
     pts = pos[used]
+    _check_finite_vertices(f"mesh {name!r}" + (f" ({where})" if where else ""), pts)
     size = float(np.linalg.norm(pts.max(0) - pts.min(0)))
     if not size > 0.0:
         raise GlossrtError(f"area light on mesh {name!r}: the mesh has no extent")
@@ -229,6 +231,31 @@ def _mesh_polygon(shape, textured: bool) -> tuple[np.ndarray, np.ndarray | None]
     return verts, tc[ring]
 
 
+def _check_finite_vertices(what: str, verts: np.ndarray) -> None:
+    """GlossrtError unless every vertex of the light on ``what`` is finite (a NaN or Inf in
+    its transform or its vertex positions)."""
+    bad = ~np.all(np.isfinite(verts), axis=-1)
+    if np.any(bad):
+        raise GlossrtError(
+            f"area light on {what}: {int(bad.sum())} of its {len(verts)} vertices are not "
+            f"finite (e.g. {np.asarray(verts)[np.argmax(bad)].tolist()}): a NaN or Inf in its "
+            "transform (to_world) or vertex positions")
+
+
+def _check_radiance(what: str, radiance: np.ndarray, texture: np.ndarray | None) -> None:
+    """GlossrtError unless the radiance (and a bitmap texture's texels) are finite and >= 0."""
+    r = np.asarray(radiance, dtype=np.float64)
+    if not (np.all(np.isfinite(r)) and np.all(r >= 0)):
+        raise GlossrtError(f"{what} has radiance {r.tolist()}: it must be finite and >= 0")
+    if texture is not None:
+        t = np.asarray(texture)
+        bad = ~np.isfinite(t) | (t < 0)
+        if np.any(bad):
+            raise GlossrtError(
+                f"{what} has a radiance texture with {int(bad.sum())} bad values (e.g. "
+                f"{float(t[bad].ravel()[0])}): they must be finite and >= 0")
+
+
 def _radiance(emitter, shape) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(RGB radiance, texture or None, 3x3 to_uv or None) of an area emitter."""
     params = mi.traverse(emitter)
@@ -258,8 +285,12 @@ def to_matrix3(t) -> np.ndarray:
     return m.reshape(3, 3)
 
 
-def polygon_light(emitter, mesh_id: int = 0) -> PolygonLight:
-    """The :class:`PolygonLight` of one Mitsuba area emitter, in its current pose."""
+def polygon_light(emitter, mesh_id: int = 0, where: str = "") -> PolygonLight:
+    """The :class:`PolygonLight` of one Mitsuba area emitter, in its current pose.
+
+    :class:`GlossrtError` for a shape that is not a polygon, non-finite vertices (a NaN or Inf
+    transform), zero area, or radiance (or texture values) that are not finite and >= 0;
+    ``where`` (e.g. "emitter 2 of scene 'x'") is named in those two messages."""
     shape = emitter.get_shape()
     if shape is None:
         raise GlossrtError(f"emitter {emitter.id() or emitter.class_name()!r} is not an area "
@@ -271,15 +302,18 @@ def polygon_light(emitter, mesh_id: int = 0) -> PolygonLight:
         verts, uv = _rectangle_polygon(shape)
         kind = "rectangle"
     elif isinstance(shape, mi.Mesh):
-        verts, uv = _mesh_polygon(shape, texture is not None)
+        verts, uv = _mesh_polygon(shape, texture is not None, where)
         kind = "mesh"
     else:
         raise GlossrtError(
             f"area light on shape {name!r} ({cls}) is not a polygon light: only rectangles "
             "and planar convex meshes are")
+    what = f"shape {name!r}" + (f" ({where})" if where else "")
+    _check_finite_vertices(what, verts)
     n = _newell(verts)
     if not np.linalg.norm(n) > 0.0:
         raise GlossrtError(f"area light on shape {name!r} has zero area")
+    _check_radiance(f"area light on {what}", radiance, texture)
     emit_n = _emitting_normals(shape, 1)[0]
     if float(n @ emit_n) < 0.0:  # e.g. flip_normals, or a mirroring to_world
         verts = verts[::-1].copy()
@@ -301,11 +335,13 @@ def polygon_lights(setup, frame: int | None = None) -> list[PolygonLight]:
     if frame is not None and hasattr(setup, "set_frame"):
         setup.set_frame(int(frame))
     scene = getattr(setup, "scene", setup)
+    label = getattr(setup, "source", None) or getattr(setup, "name", None) or scene.id()
     rank = {_registry_id(mi.ShapePtr, s): i + 1 for i, s in enumerate(stable_shapes(scene))}
     lights = []
-    for e in stable_emitters(scene):
+    for k, e in enumerate(stable_emitters(scene)):
         shape = e.get_shape()
         if shape is None:
             continue
-        lights.append(polygon_light(e, rank.get(_registry_id(mi.ShapePtr, shape), 0)))
+        where = f"emitter {k}" + (f" of scene {label!r}" if label else "")
+        lights.append(polygon_light(e, rank.get(_registry_id(mi.ShapePtr, shape), 0), where))
     return lights

@@ -31,6 +31,11 @@ from ..jit import opaque, owned  # noqa: E402
 from .shading import ShadingPoints, _take  # noqa: E402
 
 MODES = ("vertex", "pixel")
+#: :func:`check_trees_match` tolerances: stored vertex positions against the scene's, as a
+#: fraction of the scene's bounding-box diagonal (float32 storage rounds the coordinates to
+#: ~6e-8 of their size), and stored unit normals against the scene's (absolute)
+MATCH_POSITION_TOL = 1e-4
+MATCH_NORMAL_TOL = 1e-3
 
 
 def scene_meshes(scene: mi.Scene) -> list:
@@ -227,7 +232,9 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     materials per mesh, :func:`vertex_materials`); ``traversal``: how the trees are walked
     (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result); ``frozen``: replay recorded
     kernels (:func:`glossrt.lights.bspvt_shade.shade_points`). Pixels on shapes without
-    trees (the lights themselves, analytic shapes) and background pixels get 0."""
+    trees (the lights themselves, analytic shapes) and background pixels get 0. Trees of
+    another scene (other vertex count, positions or normals) raise :class:`GlossrtError`
+    (:func:`check_trees_match`, once per trees and scene)."""
     from . import bspvt_shade
     from .shading import NEEDS
 
@@ -236,8 +243,9 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     meshes = scene_meshes(scene)
     offsets = np.cumsum([0] + [m.vertex_count() for m in meshes])
     if int(offsets[-1]) != int(trees.vertex_count):
-        raise GlossrtError(f"the trees hold {trees.vertex_count} vertices but the scene's "
-                           f"meshes have {int(offsets[-1])}: built for another scene?")
+        raise GlossrtError(f"{_trees_name(trees)} hold {trees.vertex_count} vertices but the "
+                           f"scene's meshes have {int(offsets[-1])}: built for another scene?")
+    check_trees_match(scene, trees)
     check_frame(frame, NEEDS)
     dev = bspvt_shade.DeviceTrees.of(trees)
     # (vertex indices, barycentrics, valid) of the triangle each pixel sees
@@ -247,3 +255,61 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     else:
         img = _shade_pixel_mode(frame, dev, lights, tri, f0, textures, traversal, frozen)
     return np.array(img, np.float32).reshape(frame.height, frame.width, 3)
+
+
+def _trees_name(trees) -> str:
+    source = getattr(trees, "source", "")
+    return f"the BSPVT trees in {source}" if source else "the BSPVT trees"
+
+
+def check_trees_match(scene: mi.Scene, trees) -> None:
+    """Raise :class:`GlossrtError` unless ``trees`` were built for ``scene``'s mesh vertices
+    (:func:`glossrt.lights.bspvt.scene_vertices`): the same count, positions within
+    :data:`MATCH_POSITION_TOL` of the scene's bounding-box diagonal and normals within
+    :data:`MATCH_NORMAL_TOL`. The message names the trees' file (``trees.source``) and the
+    largest mismatch. Trees that store no geometry (all-zero positions and normals) are not
+    compared. A pass is remembered on ``trees`` (with the scene and the arrays compared; one
+    scene at a time), so shading frame after frame reads the scene's vertices once: edit the
+    scene's geometry in place and the change is not seen."""
+    from . import bspvt
+
+    pos_t, nrm_t = getattr(trees, "positions", None), getattr(trees, "normals", None)
+    if pos_t is None or nrm_t is None:
+        return
+    cached = getattr(trees, "_glossrt_scene_match", None)
+    if cached is not None and cached[0] is scene and cached[1] is pos_t and cached[2] is nrm_t:
+        return
+    tp = np.asarray(pos_t, np.float64).reshape(-1, 3)
+    tn = np.asarray(nrm_t, np.float64).reshape(-1, 3)
+    if not (np.any(tp) or np.any(tn)):
+        return
+    sp, sn, _ = bspvt.scene_vertices(scene)
+    name = _trees_name(trees)
+    if sp.shape != tp.shape or sn.shape != tn.shape:
+        raise GlossrtError(f"{name} hold {len(tp)} vertices but the scene's meshes have "
+                           f"{len(sp)}: built for another scene?")
+    diag = bspvt._scene_diagonal(scene)
+    edit = "belong to another scene (or to this scene before an edit)"
+    with np.errstate(invalid="ignore"):
+        dp = np.linalg.norm(tp - sp, axis=1)
+        dn = np.linalg.norm(tn - sn, axis=1)
+    dp = np.where(np.isfinite(dp), dp, np.inf)
+    dn = np.where(np.isfinite(dn), dn, np.inf)
+    if len(dp) and dp.max() > MATCH_POSITION_TOL * diag:
+        i = int(np.argmax(dp))
+        raise GlossrtError(
+            f"{name} {edit}: vertex {i} is stored at {np.round(tp[i], 6).tolist()} but the "
+            f"scene has it at {np.round(sp[i], 6).tolist()} ({dp[i]:.3g} apart, "
+            f"{dp[i] / diag:.2g} of the scene's size; {int((dp > MATCH_POSITION_TOL * diag).sum())}"
+            f" of {len(dp)} vertices differ); rebuild them with `glossrt bspvt build`")
+    if len(dn) and dn.max() > MATCH_NORMAL_TOL:
+        i = int(np.argmax(dn))
+        raise GlossrtError(
+            f"{name} {edit}: vertex {i}'s stored normal {np.round(tn[i], 4).tolist()} differs "
+            f"from the scene's {np.round(sn[i], 4).tolist()} by {dn[i]:.3g} "
+            f"({int((dn > MATCH_NORMAL_TOL).sum())} of {len(dn)} normals differ); rebuild "
+            "them with `glossrt bspvt build`")
+    try:  # kept with the scene and the arrays compared (replaced arrays are checked anew)
+        trees._glossrt_scene_match = (scene, pos_t, nrm_t)
+    except AttributeError:  # objects without a __dict__: checked every time
+        pass
