@@ -285,9 +285,10 @@ def test_denoise_cli(tmp_path, method):
         np.testing.assert_array_equal(b.numpy("normal"), a.numpy("normal"))
 
 
-def test_denoise_cli_reads_foreign_exrs(tmp_path):
+def test_denoise_cli_reads_foreign_exrs(tmp_path, capsys):
     """A sequence written without glossrt (plain multi-layer EXRs named as in FORMATS.md,
-    no glossrt header) is denoised too."""
+    no glossrt header) is denoised by the per-frame filters; the reprojecting ones refuse it
+    (no camera: FORMATS.md), naming the frame, and write nothing."""
     import mitsuba as mi
 
     from glossrt.frame import CHANNELS
@@ -306,8 +307,14 @@ def test_denoise_cli_reads_foreign_exrs(tmp_path):
         bmp = mi.Bitmap(np.stack(planes, -1).astype(np.float32), channel_names=names)
         bmp.write(str(foreign / os.path.basename(f.source)))
     assert Frame.load(foreign / "frame_0001.exr").camera is None
-    assert main(["denoise", str(foreign), "--method", "svgf", "--out", str(out)]) == 0
+    assert main(["denoise", str(foreign), "--method", "atrous", "--out", str(out)]) == 0
     assert len(os.listdir(out)) == 2
+    capsys.readouterr()
+    out2 = tmp_path / "out2"
+    assert main(["denoise", str(foreign), "--method", "svgf", "--out", str(out2)]) == 2
+    err = capsys.readouterr().err
+    assert "frame_0000.exr" in err and "no camera" in err
+    assert os.listdir(out2) == []
 
 
 def test_denoise_cli_missing_channel(tmp_path, capsys):

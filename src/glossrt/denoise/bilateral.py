@@ -55,7 +55,9 @@ The paper does not state its screen kernel (sigma_s, radius); the defaults here,
 ``sigma_s = 2`` px and ``radius = 6`` (the Gaussian truncated at 3 sigma_s), are glossrt's.
 
 Background pixels (``mesh_id == 0``) are returned unfiltered and are never used as taps; taps
-outside the image are skipped (no clamping / mirroring).
+outside the image are skipped (no clamping / mirroring). A pixel with a NaN / Inf in a guide
+the filter reads (``normal``, ``depth``; ``position`` and ``roughness`` for the lobes) is
+treated as background.
 
 Reads: the five radiance components, ``albedo_diffuse``, ``albedo_specular``, ``normal``,
 ``depth``, ``mesh_id`` and, for ``weight="lobe"`` or ``"screen"`` (with a specular channel),
@@ -84,6 +86,7 @@ from .common import (
     albedo_channel,
     check_frame,
     demodulate,
+    finite_guides,
     lobe_tap_weight,
     merge,
     remodulate,
@@ -175,13 +178,20 @@ def bilateral(frame, weight: str = "normal",
 
     normal = split(frame["normal"])
     z = split(frame["depth"])[0]
-    hit = (split(frame["mesh_id"])[0] > 0) & dr.isfinite(z) & (z > 0)
+    lobes = use_lobe or use_screen
+    pos = split(frame["position"]) if lobes else None
+    alpha = split(frame["roughness"])[0] if lobes else None
+    # input hygiene: a pixel with a non-finite guide is background (never a tap, returned
+    # unfiltered), its guides those of background (docs/FORMATS.md)
+    hit = ((split(frame["mesh_id"])[0] > 0) & (z > 0) &
+           finite_guides(normal, z, pos, alpha))
+    normal = [dr.select(hit, c, 0.0) for c in normal]
     # z = -1 marks background
     zkey = dr.select(hit, z, -1.0)
     n_p = mi.Vector3f(*normal)
-    if use_lobe or use_screen:
-        pos = split(frame["position"])
-        alpha = split(frame["roughness"])[0]
+    if lobes:
+        pos = [dr.select(hit, c, 0.0) for c in pos]
+        alpha = dr.select(hit, alpha, 0.0)
         wo = view_directions(frame, pos, "weight='lobe' or 'screen'")
         # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
         xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, alpha, ndf_sharpness)

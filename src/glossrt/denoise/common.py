@@ -120,7 +120,7 @@ def depth_gradient(grid: Grid, inv_z: mi.Float) -> tuple[mi.Float, mi.Float]:
 
 @dataclass
 class GBuffer:
-    """What the filters read from a Frame, as flat channels."""
+    """What the filters read from a Frame, as flat channels (:func:`gbuffer`)."""
 
     normal: Img
     inv_z: mi.Float  # 1/depth, 0 on background
@@ -128,19 +128,53 @@ class GBuffer:
     dzdy: mi.Float
     mesh: mi.Float
     position: Img | None = None
+    roughness: mi.Float | None = None
 
     @property
     def hit(self) -> mi.Bool:
         return self.mesh > 0
 
 
-def gbuffer(frame, grid: Grid, with_position: bool = False) -> GBuffer:
+def finite_guides(*guides) -> mi.Bool:
+    """Where every value of ``guides`` (flat channels, or lists of them; None is skipped) is
+    finite: the pixels whose guides a filter may use at all."""
+    ok = mi.Bool(True)
+    for g in guides:
+        if g is None:
+            continue
+        for ch in g if isinstance(g, list | tuple) else (g,):
+            ok &= dr.isfinite(ch)
+    return ok
+
+
+def gbuffer(frame, grid: Grid, with_position: bool = False,
+            with_roughness: bool = False) -> GBuffer:
+    """The frame's G-buffer (normal, 1/z and its gradient, mesh id; ``position`` and
+    ``roughness`` when asked for). Input hygiene: a pixel with a non-finite value in any of
+    the guides read here (or in ``mesh_id`` or ``depth``, where ``+inf`` is the background
+    marker) gets the background's guides (docs/FORMATS.md: mesh id 0, 1/z 0, normal =
+    position = 0, roughness 0), so that every filter treats it as background: it is never a
+    tap nor consistent history, and its own output is its (hygienic) input colour. Selects
+    only: no host synchronisation."""
     normal, depth, mesh = frame.require("normal", "depth", "mesh_id")
     z = split(depth)[0]
-    inv_z = dr.select(dr.isfinite(z) & (z > 0), dr.rcp(z), 0.0)
-    dzdx, dzdy = depth_gradient(grid, inv_z)
+    n, m = split(normal), split(mesh)[0]
     pos = split(frame["position"]) if with_position else None
-    return GBuffer(split(normal), inv_z, dzdx, dzdy, split(mesh)[0], pos)
+    rough = split(frame["roughness"])[0] if with_roughness else None
+    ok = finite_guides(n, z, m, pos, rough)
+    inv_z = dr.select(ok & (z > 0), dr.rcp(z), 0.0)
+    dzdx, dzdy = depth_gradient(grid, inv_z)
+    return GBuffer([dr.select(ok, c, 0.0) for c in n], inv_z, dzdx, dzdy,
+                   dr.select(ok, m, 0.0),
+                   None if pos is None else [dr.select(ok, c, 0.0) for c in pos],
+                   None if rough is None else dr.select(ok, rough, 0.0))
+
+
+def require_camera(frame, who: str) -> None:
+    """docs/FORMATS.md: consumers that reproject refuse frames without a camera."""
+    if frame.camera is None:
+        raise FrameError(f"{frame.where}: {who} reprojects its history with the motion "
+                         "vectors and needs the camera, but the frame has no camera header")
 
 
 def albedo_channel(channel: str, who: str) -> str:

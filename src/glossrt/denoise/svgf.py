@@ -2,7 +2,9 @@
 
 Reads (per frame): ``emission``, ``direct_diffuse``, ``direct_specular``,
 ``indirect_diffuse``, ``indirect_specular``, ``albedo_diffuse``, ``albedo_specular``,
-``normal``, ``depth``, ``mesh_id``, ``motion`` (+ the camera header to detect cuts).
+``normal``, ``depth``, ``mesh_id``, ``motion`` and the camera header (cuts; the temporal
+filters refuse frames without one, docs/FORMATS.md). Pixels with NaN / Inf in a guide are
+background (:func:`~glossrt.denoise.common.gbuffer`).
 Produces: the reconstructed RGB image (H, W, 3).
 
 Stages (functions below, named as in the paper / Falcor's pass): ``demodulate`` ->
@@ -41,6 +43,7 @@ from .common import (
     luminance,
     merge,
     remodulate,
+    require_camera,
     split,
     view_directions,
 )
@@ -114,9 +117,13 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
     for hc, hm in zip(prev.color, prev.moments, strict=True):
         hist += [hc[0], hc[1], hc[2], hm[0], hm[1]]
     packed = Packed(hist)
-    # previous-frame position in pixel-index space (pixel centres at integers)
-    px = mi.Float(grid.x) + motion[0]
-    py = mi.Float(grid.y) + motion[1]
+    # previous-frame position in pixel-index space (pixel centres at integers). Input
+    # hygiene: non-finite motion is a disocclusion, and positions are clamped to 2 pixels off
+    # the image (every tap outside stays outside) so that the integer conversions below
+    # never see NaN or overflow (their result is backend-dependent)
+    moving = dr.isfinite(motion[0]) & dr.isfinite(motion[1])
+    px = dr.clip(dr.select(moving, mi.Float(grid.x) + motion[0], -2.0), -2.0, grid.w + 1.0)
+    py = dr.clip(dr.select(moving, mi.Float(grid.y) + motion[1], -2.0), -2.0, grid.h + 1.0)
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
     rx, ry = mi.Int32(dr.round(px)), mi.Int32(dr.round(py))
@@ -376,24 +383,29 @@ class SVGF:
                     abs(self._camera.fov - frame.prev_camera.fov) < 1e-6)
 
     def _lobes(self, frame, gb: GBuffer) -> dict:
-        """Each pixel's GGX lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009)."""
+        """Each pixel's GGX lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009), from
+        the G-buffer's (hygienic) normal, position and roughness."""
         from ..brdf.sg import ggx_lobe_to_sg
 
-        wo = view_directions(frame, split(frame["position"]), "weights='lobe'")
+        wo = view_directions(frame, gb.position, "weights='lobe'")
         n = mi.Vector3f(*gb.normal)
-        axis, lam = ggx_lobe_to_sg(n, wo, split(frame["roughness"])[0])
+        axis, lam = ggx_lobe_to_sg(n, wo, gb.roughness)
         return {"lobe_axis": [axis[0], axis[1], axis[2]], "lobe_sharpness": lam,
                 "specular": [1.0 if "specular" in rad[0] else 0.0
                              for rad, _ in SIGNAL_SETS[self.params.signals]]}
 
     def __call__(self, frame) -> mi.TensorXf:
         check_frame(frame, self.needs)
+        if self.params.temporal:
+            require_camera(frame, f"temporal filter {type(self).__name__}")
         w, h = frame.width, frame.height
         if self._size != (w, h) or self._is_cut(frame):
             self.reset()
         self._size = (w, h)
         grid = Grid(w, h)
-        gb = gbuffer(frame, grid, with_position=self.params.spatial == "dammertz")
+        dammertz, lobe = self.params.spatial == "dammertz", self.params.weights == "lobe"
+        # input hygiene: pixels with non-finite guides become background (common.gbuffer)
+        gb = gbuffer(frame, grid, with_position=dammertz or lobe, with_roughness=lobe)
         emission, bad_e = finite(split(frame["emission"]))
         ch = {
             "signals": [_signal(frame, rad, alb) for rad, alb in
@@ -402,9 +414,9 @@ class SVGF:
             "normal": gb.normal, "inv_z": gb.inv_z, "dzdx": gb.dzdx, "dzdy": gb.dzdy,
             "mesh": gb.mesh, "motion": split(frame["motion"]),
         }
-        if gb.position is not None:
+        if dammertz:
             ch["position"] = gb.position
-        if self.params.weights == "lobe":
+        if lobe:
             ch.update(self._lobes(frame, gb))
         hist = self.history or _empty_history(len(ch["signals"]), w * h)
         if self.history is None:

@@ -46,7 +46,9 @@ samples at every sub-position, as Herzog's method does.
 Reads: the full frame's radiance components, albedos, ``normal``, ``depth``, ``mesh_id`` (and
 ``position``, ``roughness``, camera for lobes; ``motion`` for the temporal upsampler); the low
 frame's listed components, albedos, ``normal``, ``depth``, ``mesh_id`` (and ``position``,
-``roughness``, camera for lobes) and ``meta["jitter"]`` when present.
+``roughness``, camera for lobes) and ``meta["jitter"]`` when present. A pixel with a NaN / Inf
+in a guide read (``normal``, ``depth``; ``position``, ``roughness`` for lobes) is treated as
+background on either side; the spatio-temporal upsampler refuses frames without a camera.
 """
 
 from __future__ import annotations
@@ -68,9 +70,11 @@ from .common import (
     albedo_channel,
     check_frame,
     demodulate,
+    finite_guides,
     lobe_tap_weight,
     merge,
     remodulate,
+    require_camera,
     split,
     tap_channels,
     tap_sharpness,
@@ -130,13 +134,19 @@ class _Guides:
 
     @staticmethod
     def of(frame, lobes: bool, kappa: float | None = KAPPA) -> _Guides:
-        n = mi.Vector3f(*split(frame["normal"]))
+        normal = split(frame["normal"])
         z = split(frame["depth"])[0]
-        hit = (split(frame["mesh_id"])[0] > 0) & dr.isfinite(z) & (z > 0)
+        pos = split(frame["position"]) if lobes else None
+        alpha = split(frame["roughness"])[0] if lobes else None
+        # input hygiene: a pixel with a non-finite guide is background (never a sample, keeps
+        # its own radiance), its guides those of background (docs/FORMATS.md)
+        hit = ((split(frame["mesh_id"])[0] > 0) & (z > 0) &
+               finite_guides(normal, z, pos, alpha))
+        n = mi.Vector3f(*(dr.select(hit, c, 0.0) for c in normal))
         g = _Guides(hit, dr.select(hit, z, -1.0), n)
         if lobes:
-            pos = split(frame["position"])
-            alpha = split(frame["roughness"])[0]
+            pos = [dr.select(hit, c, 0.0) for c in pos]
+            alpha = dr.select(hit, alpha, 0.0)
             xi, lam = ggx_lobe_to_sg(n, view_directions(frame, pos, "weight='lobe'"), alpha)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
             # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
@@ -336,13 +346,15 @@ class SpatioTemporalUpsampler:
 
         channels, albedo_of, use_lobe = _check(frame, low, self.channels, self.weight)
         check_frame(frame, ["motion"])
+        require_camera(frame, "SpatioTemporalUpsampler")
         p = self.params
         illum, _, hit = _upsample_illum(frame, low, channels, albedo_of, use_lobe,
                                         int(p["radius"]), p["sigma_s"], p["sigma_n2"],
                                         p["beta"], p["kappa"], p["approx"], p["sigma_z2"])
         size = (frame.width, frame.height)
         grid = Grid(*size)
-        gb = gbuffer(frame, grid)
+        # its geometry for the consistency tests: background where _Guides.of says so
+        gb = gbuffer(frame, grid, with_position=use_lobe, with_roughness=use_lobe)
         n = size[0] * size[1]
         if self._history is None or self._size != size:
             zero = dr.zeros(mi.Float, n)
