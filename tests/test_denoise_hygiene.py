@@ -197,3 +197,27 @@ def test_per_frame_filters_need_no_camera(frames):
     assert np.isfinite(np.array(denoise.make("atrous")(g))).all()
     assert np.isfinite(np.array(bilateral(g))).all()
     assert np.isfinite(np.array(upsample(g, lo))).all()
+
+
+@pytest.mark.parametrize("bad", sorted(BAD))
+def test_nonfinite_radiance_does_not_spread_in_bilateral_and_upsample(frames, bad):
+    """NaN / Inf in a filtered radiance channel stays where it is: the bilateral filter and
+    the upsampler zero such illumination before their taps read it, so every pixel outside
+    the patch (bilateral) and every full-resolution pixel (upsampled from a patched low frame)
+    is finite and equals the result with that radiance set to 0."""
+    f, lo = frames
+    for weight in ("normal", "lobe"):
+        got = np.asarray(bilateral(_patched(f[0], "indirect_specular", BAD[bad]),
+                                   weight=weight))
+        want = np.asarray(bilateral(_patched(f[0], "indirect_specular", 0.0), weight=weight))
+        outside = np.ones(got.shape[:2], bool)
+        outside[PATCH] = False
+        assert np.isfinite(got[outside]).all()
+        np.testing.assert_allclose(got[outside], want[outside], **TOL)
+        full = _copy(f[0])
+        up = np.asarray(upsample(full, _patched(lo[0], "indirect_diffuse", BAD[bad], LOW_PATCH),
+                                 weight=weight))
+        up0 = np.asarray(upsample(full, _patched(lo[0], "indirect_diffuse", 0.0, LOW_PATCH),
+                                  weight=weight))
+        assert np.isfinite(up).all()
+        np.testing.assert_allclose(up, up0, **TOL)

@@ -86,6 +86,7 @@ from .common import (
     albedo_channel,
     check_frame,
     demodulate,
+    finite,
     finite_guides,
     lobe_tap_weight,
     merge,
@@ -211,7 +212,8 @@ def bilateral(frame, weight: str = "normal",
     signals, albedos, specular = [], [], []
     for c in channels:
         alb = split(frame[albedo_of[c]])
-        illum = demodulate(split(frame[c]), alb)
+        # input hygiene: NaN / Inf illumination is 0 (never spread to other pixels by taps)
+        illum, _ = finite(demodulate(split(frame[c]), alb))
         signals.append(illum)
         albedos.append(alb)
         specular.append(c.endswith("specular"))

@@ -70,6 +70,7 @@ from .common import (
     albedo_channel,
     check_frame,
     demodulate,
+    finite,
     finite_guides,
     lobe_tap_weight,
     merge,
@@ -200,7 +201,8 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
         lo.normal if need_normal else None,
         [lo.xi[0], lo.xi[1], lo.xi[2], tap_sharpness(lo.lam, beta, approx)] if use_lobe
         else None, lo.z,
-        [demodulate(split(low[c]), split(low[albedo_of[c]])) for c in channels])
+        # input hygiene: NaN / Inf low-resolution illumination is 0 (never spread by taps)
+        [finite(demodulate(split(low[c]), split(low[albedo_of[c]])))[0] for c in channels])
     dr.eval(packed.arrays)
     # window rows per kernel: the default 4x4 window is one kernel for one weight and one
     # channel (the full pixel's guides computed in it); more work per tap is split into
