@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from . import backend
+from .errors import GlossrtError
 
 BENCHMARKS: dict[str, Callable[[BenchContext], dict]] = {}
 #: default shortest sample (s): calls of a few ms are timed in batches this long, because on a
@@ -431,8 +432,6 @@ def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warm
     """Run the named (default: all) benchmarks and return a JSON-able dict."""
     info = backend.info()
     ctx = BenchContext(size=size, warmup=warmup, repeats=repeats, min_sample=min_sample)
-    from .errors import GlossrtError
-
     unknown = [n for n in names or [] if n not in BENCHMARKS]
     if unknown:
         raise GlossrtError(f"unknown benchmark(s) {unknown}; available: {sorted(BENCHMARKS)}")

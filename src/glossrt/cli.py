@@ -12,6 +12,7 @@ import time
 import warnings
 from pathlib import Path
 
+from .bench import MIN_SAMPLE
 from .errors import GlossrtError
 
 EXAMPLES = """examples:
@@ -34,12 +35,13 @@ def _writable_dir(path: str, inputs: tuple[str, ...] = ()) -> Path:
     if not path:
         raise GlossrtError("the output folder is an empty path")
     p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise GlossrtError(f"output folder {path!r} exists and is not a folder")
-    for src in inputs:
-        if p.exists() and os.path.samefile(p, src):
-            raise GlossrtError(f"output folder {path!r} is the input folder {src!r}: its frames "
-                               "would be overwritten; choose another --out")
+    if p.exists():
+        if not p.is_dir():
+            raise GlossrtError(f"output folder {path!r} exists and is not a folder")
+        for src in inputs:
+            if os.path.samefile(p, src):
+                raise GlossrtError(f"output folder {path!r} is the input folder {src!r}: its "
+                                   "frames would be overwritten; choose another --out")
     try:
         p.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=p, prefix=".glossrt-probe-"):
@@ -65,8 +67,6 @@ def _output_file(path: str, what: str, keep: tuple[Path, ...] = ()) -> Path:
     except OSError as e:
         raise GlossrtError(f"{what}: cannot create the folder of {path!r}: "
                            f"{e.strerror or e}") from None
-    if not p.parent.is_dir():
-        raise GlossrtError(f"{what}: {str(p.parent)!r} is not a folder")
     return p
 
 
@@ -83,14 +83,10 @@ def _write_text(path: Path, text: str) -> None:
         raise
 
 
-def _stale_frames(out: Path, written: list[str]) -> list[str]:
-    """Frame files in ``out`` that this run does not write (left from an earlier run)."""
-    new = set(written)
-    return sorted(p.name for p in out.glob("frame_*.exr") if p.name not in new)
-
-
 def _warn_stale(out: Path, written: list[str]) -> None:
-    stale = _stale_frames(out, written)
+    """Warn about frame files in ``out`` that this run did not write (an earlier run's)."""
+    new = set(written)
+    stale = sorted(p.name for p in out.glob("frame_*.exr") if p.name not in new)
     if stale:
         shown = ", ".join(stale[:4]) + (", ..." if len(stale) > 4 else "")
         print(f"warning: {out} also holds {len(stale)} frame(s) from an earlier run that this "
@@ -203,6 +199,7 @@ def cmd_denoise(args) -> int:
     # frames go to a hidden folder first and into --out only when every frame is done, so a
     # failure part-way (bad input in a later frame) leaves --out as it was
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".glossrt-denoise-"))
+    names = [Path(f.source).name for f in frames]
     seconds = []
     try:
         with Progress(len(frames), f"{args.method} {frames[0].width}x{frames[0].height}") as p:
@@ -217,9 +214,8 @@ def cmd_denoise(args) -> int:
                 meta = dict(f.meta, denoiser=args.method, denoise_seconds=seconds[-1])
                 g = Frame(channels=channels, camera=f.camera, prev_camera=f.prev_camera,
                           index=f.index, meta=meta)
-                g.save(tmp / Path(f.source).name)
+                g.save(tmp / names[k])
                 p.update(k + 1)
-        names = [Path(f.source).name for f in frames]
         for name in names:
             os.replace(tmp / name, out / name)
     finally:
@@ -705,7 +701,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", default="640x360")
     p.add_argument("--repeats", type=int, default=9)
     p.add_argument("--warmup", type=int, default=3)
-    p.add_argument("--min-sample", type=float, default=0.05, metavar="SECONDS",
+    p.add_argument("--min-sample", type=float, default=MIN_SAMPLE, metavar="SECONDS",
                    help="time calls shorter than this in back-to-back batches (0: one call "
                         "per sample)")
     p.add_argument("--only", nargs="*", help="benchmark names")

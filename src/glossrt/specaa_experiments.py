@@ -197,14 +197,15 @@ def timing_markdown(t: dict) -> str:
 
 
 def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE,
-           min_sample: float = 0.05) -> dict:
+           min_sample: float | None = None) -> dict:
     """Shading time per method and its ratio to unfiltered shading (median of per-repeat
     ratios), the methods called in turn (frozen kernels, the real-time path; calls shorter
-    than ``min_sample`` seconds timed in batches, :func:`glossrt.bench.round_robin`)."""
+    than ``min_sample`` seconds, default :data:`glossrt.bench.MIN_SAMPLE`, timed in batches,
+    :func:`glossrt.bench.round_robin`)."""
     import statistics
 
     from . import render, scenes, specaa
-    from .bench import paired_ratio, round_robin
+    from .bench import MIN_SAMPLE, paired_ratio, round_robin
     from .lights.analytic import analytic_lights
     from .lights.scene import polygon_lights
     from .lights.shading import f0_image
@@ -216,6 +217,7 @@ def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE,
     f0 = f0_image(setup, gb)
     cases = {m: (lambda m=m: specaa.shade_tensor(gb, lights, polys, m, f0, frozen=True))
              for m in methods}
+    min_sample = MIN_SAMPLE if min_sample is None else min_sample
     times = round_robin(cases, 2, repeats, min_sample)  # warm-up: record + compile
     med = {k: statistics.median(v) for k, v in times.items()}
     return {"size": list(size), "seconds": med,

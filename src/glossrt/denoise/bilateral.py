@@ -87,9 +87,9 @@ from .common import (
     check_frame,
     demodulate,
     finite,
-    finite_guides,
     lobe_tap_weight,
     merge,
+    pixel_guides,
     remodulate,
     split,
     tap_channels,
@@ -177,25 +177,14 @@ def bilateral(frame, weight: str = "normal",
     h, w = frame.height, frame.width
     grid = Grid(w, h)
 
-    normal = split(frame["normal"])
-    z = split(frame["depth"])[0]
-    lobes = use_lobe or use_screen
-    pos = split(frame["position"]) if lobes else None
-    alpha = split(frame["roughness"])[0] if lobes else None
-    # input hygiene: a pixel with a non-finite guide is background (never a tap, returned
-    # unfiltered), its guides those of background (docs/FORMATS.md)
-    hit = ((split(frame["mesh_id"])[0] > 0) & (z > 0) &
-           finite_guides(normal, z, pos, alpha))
-    normal = [dr.select(hit, c, 0.0) for c in normal]
-    # z = -1 marks background
-    zkey = dr.select(hit, z, -1.0)
+    # background (and pixels with non-finite guides) returned unfiltered, never a tap
+    g = pixel_guides(frame, use_lobe or use_screen)
+    hit, zkey, normal = g.hit, g.z, g.normal  # z = -1 marks background
     n_p = mi.Vector3f(*normal)
-    if lobes:
-        pos = [dr.select(hit, c, 0.0) for c in pos]
-        alpha = dr.select(hit, alpha, 0.0)
-        wo = view_directions(frame, pos, "weight='lobe' or 'screen'")
+    if use_lobe or use_screen:
+        wo = view_directions(frame, g.position, "weight='lobe' or 'screen'")
         # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
-        xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, alpha, ndf_sharpness)
+        xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, g.roughness, ndf_sharpness)
         xi_p = dr.select(hit, xi_p, mi.Vector3f(0.0, 0.0, 1.0))
         lam_p = dr.select(hit, lam_p, 1.0)
     if use_lobe:
@@ -225,7 +214,7 @@ def bilateral(frame, weight: str = "normal",
         [xi_p[0], xi_p[1], xi_p[2], lb_p] if use_lobe else None, zkey, signals)
     # the centre pixel's guides once (one kernel), not re-derived in every window-row kernel
     # (and the demodulated signals, the centre tap's values)
-    dr.eval(packed.arrays, hit, z, n_p, signals, *((xi_p, lb_p) if use_lobe else ()))
+    dr.eval(packed.arrays, hit, zkey, n_p, signals, *((xi_p, lb_p) if use_lobe else ()))
 
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
@@ -247,7 +236,7 @@ def bilateral(frame, weight: str = "normal",
                 log_ws = -float(dx * dx + dy * dy) * inv_2si2
             if sigma_z2 is not None:
                 # sec. 2.2: w_z = g(|z_i - z_j|, sigma_z^2), on the depth relative to z_i
-                rel = (z - z_q) / z
+                rel = (zkey - z_q) / zkey  # zkey = z wherever valid
                 log_z = dr.square(rel) / (2.0 * sigma_z2)
                 log_w = log_w - log_z
                 if use_screen:

@@ -170,6 +170,31 @@ def gbuffer(frame, grid: Grid, with_position: bool = False,
                    None if rough is None else dr.select(ok, rough, 0.0))
 
 
+@dataclass
+class PixelGuides:
+    """The guides of the bilateral filter and the upsamplers (:func:`pixel_guides`)."""
+
+    hit: mi.Bool
+    z: mi.Float  # the depth, -1 on background
+    normal: Img
+    position: Img | None = None
+    roughness: mi.Float | None = None
+
+
+def pixel_guides(frame, lobes: bool) -> PixelGuides:
+    """A frame's hit mask, depth, normal and, with ``lobes``, position and roughness. Input
+    hygiene: a pixel with a non-finite guide is background (never a tap or sample, keeps its
+    own radiance), its guides those of background (docs/FORMATS.md)."""
+    normal = split(frame["normal"])
+    z = split(frame["depth"])[0]
+    pos = split(frame["position"]) if lobes else None
+    alpha = split(frame["roughness"])[0] if lobes else None
+    hit = (split(frame["mesh_id"])[0] > 0) & (z > 0) & finite_guides(normal, z, pos, alpha)
+    return PixelGuides(hit, dr.select(hit, z, -1.0), [dr.select(hit, c, 0.0) for c in normal],
+                       None if pos is None else [dr.select(hit, c, 0.0) for c in pos],
+                       None if alpha is None else dr.select(hit, alpha, 0.0))
+
+
 def require_camera(frame, who: str) -> None:
     """docs/FORMATS.md: consumers that reproject refuse frames without a camera."""
     if frame.camera is None:

@@ -71,9 +71,9 @@ from .common import (
     check_frame,
     demodulate,
     finite,
-    finite_guides,
     lobe_tap_weight,
     merge,
+    pixel_guides,
     remodulate,
     require_camera,
     split,
@@ -135,20 +135,12 @@ class _Guides:
 
     @staticmethod
     def of(frame, lobes: bool, kappa: float | None = KAPPA) -> _Guides:
-        normal = split(frame["normal"])
-        z = split(frame["depth"])[0]
-        pos = split(frame["position"]) if lobes else None
-        alpha = split(frame["roughness"])[0] if lobes else None
-        # input hygiene: a pixel with a non-finite guide is background (never a sample, keeps
-        # its own radiance), its guides those of background (docs/FORMATS.md)
-        hit = ((split(frame["mesh_id"])[0] > 0) & (z > 0) &
-               finite_guides(normal, z, pos, alpha))
-        n = mi.Vector3f(*(dr.select(hit, c, 0.0) for c in normal))
-        g = _Guides(hit, dr.select(hit, z, -1.0), n)
+        pg = pixel_guides(frame, lobes)  # non-finite guides: background (never a sample)
+        hit, n = pg.hit, mi.Vector3f(*pg.normal)
+        g = _Guides(hit, pg.z, n)
         if lobes:
-            pos = [dr.select(hit, c, 0.0) for c in pos]
-            alpha = dr.select(hit, alpha, 0.0)
-            xi, lam = ggx_lobe_to_sg(n, view_directions(frame, pos, "weight='lobe'"), alpha)
+            wo = view_directions(frame, pg.position, "weight='lobe'")
+            xi, lam = ggx_lobe_to_sg(n, wo, pg.roughness)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
             # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
             g.lam = smoothed_sharpness(dr.select(hit, lam, 1.0), kappa)

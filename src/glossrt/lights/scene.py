@@ -139,7 +139,7 @@ def _rectangle_polygon(shape) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _mesh_polygon(shape, textured: bool,
-                  where: str = "") -> tuple[np.ndarray, np.ndarray | None]:
+                  what: str = "") -> tuple[np.ndarray, np.ndarray | None]:
     """Convex outline of a planar triangle mesh (world space, Mitsuba stores it so), with
     the texture coordinates of its corners when ``textured``."""
     from scipy.spatial import ConvexHull, QhullError
@@ -150,7 +150,7 @@ def _mesh_polygon(shape, textured: bool,
     faces = np.array(params["faces"], dtype=np.int64).reshape(-1, 3)
     used = np.unique(faces)
     pts = pos[used]
-    _check_finite_vertices(f"mesh {name!r}" + (f" ({where})" if where else ""), pts)
+    _check_finite_vertices(what or f"mesh {name!r}", pts)
     size = float(np.linalg.norm(pts.max(0) - pts.min(0)))
     if not size > 0.0:
         raise GlossrtError(f"area light on mesh {name!r}: the mesh has no extent")
@@ -298,18 +298,18 @@ def polygon_light(emitter, mesh_id: int = 0, where: str = "") -> PolygonLight:
     name = _shape_name(shape)
     radiance, texture, to_uv = _radiance(emitter, shape)
     cls = shape.class_name()
+    what = f"shape {name!r}" + (f" ({where})" if where else "")
     if cls == "Rectangle":
         verts, uv = _rectangle_polygon(shape)
+        _check_finite_vertices(what, verts)
         kind = "rectangle"
     elif isinstance(shape, mi.Mesh):
-        verts, uv = _mesh_polygon(shape, texture is not None, where)
+        verts, uv = _mesh_polygon(shape, texture is not None, what)  # checks its vertices
         kind = "mesh"
     else:
         raise GlossrtError(
             f"area light on shape {name!r} ({cls}) is not a polygon light: only rectangles "
             "and planar convex meshes are")
-    what = f"shape {name!r}" + (f" ({where})" if where else "")
-    _check_finite_vertices(what, verts)
     n = _newell(verts)
     if not np.linalg.norm(n) > 0.0:
         raise GlossrtError(f"area light on shape {name!r} has zero area")

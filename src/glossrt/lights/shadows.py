@@ -243,8 +243,7 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     meshes = scene_meshes(scene)
     offsets = np.cumsum([0] + [m.vertex_count() for m in meshes])
     if int(offsets[-1]) != int(trees.vertex_count):
-        raise GlossrtError(f"{_trees_name(trees)} hold {trees.vertex_count} vertices but the "
-                           f"scene's meshes have {int(offsets[-1])}: built for another scene?")
+        raise _count_mismatch(trees, trees.vertex_count, int(offsets[-1]))
     check_trees_match(scene, trees)
     check_frame(frame, NEEDS)
     dev = bspvt_shade.DeviceTrees.of(trees)
@@ -255,6 +254,11 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     else:
         img = _shade_pixel_mode(frame, dev, lights, tri, f0, textures, traversal, frozen)
     return np.array(img, np.float32).reshape(frame.height, frame.width, 3)
+
+
+def _count_mismatch(trees, stored: int, scene: int) -> GlossrtError:
+    return GlossrtError(f"{_trees_name(trees)} hold {stored} vertices but the scene's meshes "
+                        f"have {scene}: built for another scene?")
 
 
 def _trees_name(trees) -> str:
@@ -286,8 +290,7 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
     sp, sn, _ = bspvt.scene_vertices(scene)
     name = _trees_name(trees)
     if sp.shape != tp.shape or sn.shape != tn.shape:
-        raise GlossrtError(f"{name} hold {len(tp)} vertices but the scene's meshes have "
-                           f"{len(sp)}: built for another scene?")
+        raise _count_mismatch(trees, len(tp), len(sp))
     diag = bspvt._scene_diagonal(scene)
     edit = "belong to another scene (or to this scene before an edit)"
     with np.errstate(invalid="ignore"):
