@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import mitsuba as mi
@@ -156,11 +157,12 @@ def test_bad_dimensions():
 
 
 class FakeFrame:
-    def __init__(self, path: Path, index: int, img: np.ndarray):
+    def __init__(self, path: Path, index: int, img: np.ndarray, channel: str = "color"):
         self.source, self.index, self.meta, self._img = path, index, {}, img
+        self._channel = channel
 
     def numpy(self, name: str) -> np.ndarray:
-        assert name == "color"
+        assert name == self._channel
         return self._img
 
 
@@ -230,3 +232,32 @@ def test_compare_dirs_with_real_exr_frames(tmp_path):
     assert [r["rmse"] for r in res["frames"]] == pytest.approx([0.0, 0.02], abs=1e-6)
     assert res["temporal_error"] == pytest.approx(0.01, rel=1e-4)
     assert res["unmatched"] == 2
+
+
+def test_compare_dirs_depth_background(monkeypatch, tmp_path):
+    """docs/FORMATS.md: depth is +inf on background. Background in both frames scores as
+    equal (it made every depth comparison fail with "NaN/Inf"); background in one frame only
+    is counted per frame and scored against 0; a NaN is still refused."""
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    depth = 1.0 + _rand((8, 8, 1), seed=40)
+    depth[:3] = np.inf  # background: the top three rows
+    moved = depth + 0.5
+    moved[3, :2] = np.inf  # two pixels more of background in the output
+    frames = {d: [FakeFrame(d / f"frame_{i:04d}.exr", i, img, "depth")
+                  for i, img in enumerate(imgs)]
+              for d, imgs in ((out, (depth.copy(), moved)), (ref, (depth, depth)))}
+    monkeypatch.setattr(compare, "_load_sequence", lambda d, channel: frames[Path(d)])
+    res = compare.compare_dirs(out, ref, channel="depth", metrics=("rmse",))
+    assert [r["background_mismatch"] for r in res["frames"]] == [0, 2]
+    assert res["frames"][0]["rmse"] == 0.0
+    # independent: the squared error of the 38 pixels hit in both (0.5 each) and of the two
+    # pixels hit only in the reference (their depth against 0), over all 64 pixels
+    diff = np.where(np.isinf(moved), 0.0, moved) - np.where(np.isinf(depth), 0.0, depth)
+    assert np.count_nonzero(diff) == 40
+    assert res["frames"][1]["rmse"] == pytest.approx(
+        math.sqrt((38 * 0.25 + float(np.sum(depth[3, :2] ** 2))) / 64), rel=1e-6)
+    assert res["temporal_error"] > 0 and math.isfinite(res["temporal_error"])
+    assert "background_mismatch" in compare.format_table(res).splitlines()[0]
+    moved[5, 5] = np.nan
+    with pytest.raises(GlossrtError, match="frame_0001.exr.*NaN"):
+        compare.compare_dirs(out, ref, channel="depth", metrics=("rmse",))

@@ -684,7 +684,10 @@ def build_parser() -> argparse.ArgumentParser:
             "glossrt compare out/cornell out/cornell-ref --json metrics.json")
     p.add_argument("out_dir")
     p.add_argument("ref_dir")
-    p.add_argument("--channel", default="color")
+    p.add_argument("--channel", default="color",
+                   help="the channel to score (default color); depth: background (+inf) "
+                        "scores as equal where both frames have it, and each frame's "
+                        "background_mismatch counts the pixels where only one has it")
     p.add_argument("--json", help="also write the results as JSON")
 
     p = add("demo", cmd_demo, "render a built-in sequence + references and write an HTML report",

@@ -15,6 +15,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from . import metrics as _m
 from .errors import GlossrtError
 
@@ -33,6 +35,16 @@ def _load_sequence(directory: Path, channel: str) -> list[Any]:
     from .frame import load_sequence
 
     return load_sequence(directory, require=(channel,))
+
+
+def _scored(values: np.ndarray, channel: str) -> np.ndarray:
+    """A frame's channel as scored: ``depth``'s background (+inf by docs/FORMATS.md) is 0,
+    so pixels that are background in both frames count as equal instead of failing the
+    metrics' finite check. NaN, -inf and any other channel's non-finite values are still
+    refused by the metrics."""
+    if channel == "depth":
+        return np.where(np.isposinf(values), np.float32(0.0), values)
+    return values
 
 
 def _file_name(frame: Any) -> str:
@@ -57,6 +69,13 @@ def compare_dirs(
          "temporal_error": float or None,   # over all output frames; None if fewer than 2
          "unmatched": int}                  # output frames without a reference
 
+    ``channel="depth"``: background (+inf, docs/FORMATS.md) scores as 0, so pixels that are
+    background in both frames count as equal, and each frame's row also has
+    ``"background_mismatch"``: the pixels that are background in only one of the two (a
+    silhouette difference, scored as the depth against 0). The SSIM and FLIP of a depth
+    channel are those of the values shown as an image; RMSE and relMSE are the meaningful
+    ones there.
+
     Raises :class:`GlossrtError` for an unknown metric, when no file names match (naming both
     directories), or (via the frame loader) when a directory holds no readable frames or
     frames of mismatched size.
@@ -77,8 +96,12 @@ def compare_dirs(
         ref = refs.get(name)
         if ref is None:
             continue
-        img, ref_img = f.numpy(channel), ref.numpy(channel)
+        raw, raw_ref = f.numpy(channel), ref.numpy(channel)
+        img, ref_img = _scored(raw, channel), _scored(raw_ref, channel)
         row: dict[str, Any] = {"file": name, "index": int(f.index)}
+        if channel == "depth":  # background in only one of the two: a silhouette difference
+            row["background_mismatch"] = int(np.count_nonzero(
+                np.isposinf(raw) != np.isposinf(raw_ref)))
         for n in names:
             try:
                 row[n] = float(METRICS[n](img, ref_img))
@@ -90,7 +113,9 @@ def compare_dirs(
             f"no frame in {out_dir} has a reference with the same file name in {ref_dir}"
         )
     mean = {n: float(sum(r[n] for r in rows) / len(rows)) for n in names}
-    temporal = _m.temporal_error([f.numpy(channel) for f in outs]) if len(outs) >= 2 else None
+    temporal = None
+    if len(outs) >= 2:
+        temporal = _m.temporal_error([_scored(f.numpy(channel), channel) for f in outs])
     return {
         "out_dir": str(out_dir),
         "ref_dir": str(ref_dir),
@@ -113,9 +138,13 @@ def format_table(result: dict[str, Any]) -> str:
     """A plain-text table of :func:`compare_dirs`'s result: one line per frame, a mean line,
     and the temporal error."""
     names = list(result.get("metrics") or result["mean"].keys())
-    header = ["file", *names]
-    body = [[r["file"], *(_fmt(r[n]) for n in names)] for r in result["frames"]]
-    mean_row = [f"mean ({len(result['frames'])} frames)", *(_fmt(result["mean"][n]) for n in names)]
+    extra = ["background_mismatch"] if any("background_mismatch" in r
+                                           for r in result["frames"]) else []
+    header = ["file", *names, *extra]
+    body = [[r["file"], *(_fmt(r[n]) for n in names), *(_fmt(r.get(n, "")) for n in extra)]
+            for r in result["frames"]]
+    mean_row = [f"mean ({len(result['frames'])} frames)",
+                *(_fmt(result["mean"][n]) for n in names), *("" for _ in extra)]
     table = [header, *body, mean_row]
     widths = [max(len(row[i]) for row in table) for i in range(len(header))]
 
