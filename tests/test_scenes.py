@@ -471,3 +471,37 @@ def test_glossy_spheres_roughness_matches_the_phong_exponents():
     assert xs == sorted(xs)  # side by side, sharpest on the left
     with pytest.raises(ValueError):
         phong_to_alpha(-3.0)
+
+
+@pytest.mark.parametrize("body, named", [
+    (FLOOR + AREA_LIGHT.replace('<translate y="2.5"/>', '<translate x="nan" y="2.5"/>'),
+     "area light 'lamp'"),
+    (FLOOR.replace('<scale value="3"/>', '<scale value="inf"/>') + AREA_LIGHT, "shape 'floor'"),
+    (FLOOR + '\n  <emitter type="point" id="bulb"><point name="position" x="0" y="nan" z="1"/>'
+     '</emitter>', "light 'bulb'"),
+    (FLOOR + '\n  <emitter type="directional" id="sun"><vector name="direction" x="0" y="inf"'
+     ' z="-1"/></emitter>', "light 'sun'"),
+])
+def test_non_finite_geometry_is_refused(tmp_path, body, named):
+    """A NaN / Inf in a light's or an object's placement used to load and render silently
+    (an area light with a NaN transform gave a black image, no warning)."""
+    with pytest.raises(SceneError, match=f"{named}.*NaN/Inf"):
+        scenes.load(write(tmp_path, scene_xml(body + CONSTANT)))
+
+
+def test_non_finite_camera_is_refused(tmp_path):
+    # (Mitsuba itself refuses a NaN lookat, not a NaN translation after it)
+    text = scene_xml(FLOOR + CONSTANT).replace('up="0, 1, 0"/>',
+                                               'up="0, 1, 0"/><translate x="nan"/>')
+    with pytest.raises(SceneError, match="camera.*NaN/Inf"):
+        scenes.load(write(tmp_path, text))
+
+
+def test_non_finite_vertices_of_a_merged_mesh_are_refused(tmp_path):
+    """Mitsuba merges id-less shapes sharing a BSDF into one mesh with empty bounds: its
+    vertices are checked, not its bounds."""
+    floor = FLOOR.replace(' id="floor"', "").replace('<scale value="3"/>',
+                                                    '<scale value="3"/><translate x="nan"/>')
+    wall = floor.replace('angle="-90"', 'angle="0"').replace("nan", "0")
+    with pytest.raises(SceneError, match="shape ''.*NaN/Inf"):
+        scenes.load(write(tmp_path, scene_xml(floor + wall + AREA_LIGHT + CONSTANT)))

@@ -130,6 +130,42 @@ def _param_digest(obj) -> str:
     return h.hexdigest()
 
 
+def _finite(values) -> bool:
+    return bool(np.isfinite(np.asarray(values, dtype=np.float64)).all())
+
+
+def _bad_bounds(b) -> bool:
+    """A NaN anywhere, or an Inf in non-empty bounds (empty bounds, +inf .. -inf, are those
+    of environment and directional lights)."""
+    v = np.asarray([*b.min, *b.max], dtype=np.float64)
+    return bool(np.isnan(v).any() or (b.valid() and not np.isfinite(v).all()))
+
+
+def check_finite_geometry(scene: mi.Scene, name: str = "scene") -> None:
+    """Raise :class:`SceneError` naming the first shape or emitter whose placement has a NaN
+    or Inf (a NaN in a transform or in vertices: such a light or object silently renders
+    nothing). Shapes (area lights included): a mesh's vertices (the mesh Mitsuba merges
+    id-less shapes into has empty bounds), other shapes' bounds; other emitters: their bounds
+    where they have any (point lights) and their ``to_world``, ``position`` and ``direction``
+    parameters."""
+    for shape in stable_shapes(scene):
+        bad = (not _finite(shape.vertex_positions_buffer()) if shape.is_mesh()
+               else _bad_bounds(shape.bbox()))
+        if bad:
+            kind = "area light" if shape.is_emitter() else "shape"
+            raise SceneError(f"{name}: {kind} {shape.id()!r} has NaN/Inf geometry: check "
+                             "its transform and vertices")
+    for e in scene.emitters():
+        if e.get_shape() is not None:
+            continue  # checked with its shape
+        params = mi.traverse(e)
+        placement = [getattr(params[k], "matrix", params[k]) for k in params.keys()
+                     if k.endswith(("to_world", "position", "direction"))]
+        if _bad_bounds(e.bbox()) or not all(_finite(v) for v in placement):
+            raise SceneError(f"{name}: {e.class_name()} light {e.id()!r} has a NaN/Inf "
+                             "position, direction or transform")
+
+
 def stable_emitters(scene: mi.Scene) -> list:
     """``scene.emitters()`` in an order that does not change between loads of the same scene
     (Mitsuba's own order varies from load to load): area emitters first, in the order of their
@@ -178,6 +214,9 @@ class SceneSetup:
             )
         self.fov = float(p0["x_fov"][0])
         self.rest_camera = to_matrix(p0["to_world"])
+        if not (np.isfinite(self.rest_camera).all() and math.isfinite(self.fov)):
+            raise SceneError(f"{name}: the camera has a NaN/Inf transform or field of view")
+        check_finite_geometry(scene, name)
         film_size = tuple(int(v) for v in s0.film().size())
         self.size = tuple(size) if size is not None else film_size
         w, h = self.size
