@@ -46,3 +46,34 @@ def test_history_is_reprojected_with_motion():
     # with zero motion the history would lag and differ
     still = np.array(taa(_t(cur), _t(prev), _t(np.zeros((h, w, 2))), alpha=0.1))
     assert np.abs(still[:, 3:-1] - cur[:, 3:-1]).max() > 1e-3
+
+
+def test_non_finite_input_stays_where_it_is():
+    """NaN/Inf in the image or the history count as 0 (they used to spread over the 3x3
+    clamp and stay in the history); NaN/Inf motion drops that pixel's history (the integer
+    conversion of a NaN position is backend-dependent)."""
+    rng = np.random.default_rng(3)
+    h, w = 6, 8
+    cur = 0.5 + 0.1 * rng.random((h, w, 3))
+    hist = cur + 0.01
+    zero = np.zeros((h, w, 2))
+    clean = np.array(taa(_t(cur), _t(hist), _t(zero)))
+    bad_cur, bad_hist = cur.copy(), hist.copy()
+    bad_cur[2, 3] = [np.nan, np.inf, -np.inf]
+    bad_hist[4, 5] = np.nan
+    for c, hs, pixel in ((bad_cur, hist, (2, 3)), (cur, bad_hist, (4, 5))):
+        out = np.array(taa(_t(c), _t(hs), _t(zero)))
+        assert np.isfinite(out).all()
+        zeroed = [np.where(np.isfinite(a), a, 0.0) for a in (c, hs)]
+        np.testing.assert_array_equal(out, np.array(taa(*(_t(a) for a in zeroed), _t(zero))))
+        far = np.ones((h, w), bool)
+        far[pixel[0] - 1:pixel[0] + 2, pixel[1] - 1:pixel[1] + 2] = False
+        np.testing.assert_array_equal(out[far], clean[far])  # nothing spread past the clamp
+    first = np.array(taa(_t(bad_cur), None, _t(zero)))
+    assert np.isfinite(first).all() and (first[2, 3] == 0).all()
+    motion = zero.copy()
+    motion[1, 1] = [np.nan, 0.0]
+    motion[1, 2] = [np.inf, -np.inf]
+    out = np.array(taa(_t(cur), _t(hist), _t(motion)))
+    np.testing.assert_array_equal(out[1, 1:3], cur[1, 1:3].astype(np.float32))  # no history
+    np.testing.assert_array_equal(np.delete(out[1], [1, 2], 0), np.delete(clean[1], [1, 2], 0))

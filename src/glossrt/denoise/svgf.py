@@ -105,6 +105,18 @@ def _consistent(gb: GBuffer, q_geo: Img, inside: mi.Bool) -> mi.Bool:
         dr.abs(z_q - gb.inv_z) <= tol)
 
 
+def previous_position(grid: Grid, motion: Img) -> tuple[mi.Float, mi.Float]:
+    """Each pixel's previous-frame position in pixel-index space (pixel centres at integers),
+    ``p + motion``. Input hygiene: non-finite motion puts the pixel off the image (a
+    disocclusion), and positions are clamped to 2 pixels off the image (every tap outside
+    stays outside), so that integer conversions never see NaN or overflow (their result is
+    backend-dependent)."""
+    moving = dr.isfinite(motion[0]) & dr.isfinite(motion[1])
+    px = dr.clip(dr.select(moving, mi.Float(grid.x) + motion[0], -2.0), -2.0, grid.w + 1.0)
+    py = dr.clip(dr.select(moving, mi.Float(grid.y) + motion[1], -2.0), -2.0, grid.h + 1.0)
+    return px, py
+
+
 def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
               moments: list, alpha: float, moments_alpha: float):
     """Temporal accumulation (Schied 2017, sec. 4.1): bilinear 2x2 reprojection with
@@ -117,13 +129,7 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
     for hc, hm in zip(prev.color, prev.moments, strict=True):
         hist += [hc[0], hc[1], hc[2], hm[0], hm[1]]
     packed = Packed(hist)
-    # previous-frame position in pixel-index space (pixel centres at integers). Input
-    # hygiene: non-finite motion is a disocclusion, and positions are clamped to 2 pixels off
-    # the image (every tap outside stays outside) so that the integer conversions below
-    # never see NaN or overflow (their result is backend-dependent)
-    moving = dr.isfinite(motion[0]) & dr.isfinite(motion[1])
-    px = dr.clip(dr.select(moving, mi.Float(grid.x) + motion[0], -2.0), -2.0, grid.w + 1.0)
-    py = dr.clip(dr.select(moving, mi.Float(grid.y) + motion[1], -2.0), -2.0, grid.h + 1.0)
+    px, py = previous_position(grid, motion)
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
     rx, ry = mi.Int32(dr.round(px)), mi.Int32(dr.round(py))
@@ -463,13 +469,16 @@ def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
         alpha: float = 0.1) -> mi.TensorXf:
     """Temporal antialiasing (Karis 2014) as a separate pass: reproject ``history`` with the
     motion vectors (bilinear), clamp it to the 3x3 neighbourhood's min/max of ``image``,
-    blend with weight ``alpha`` for the new frame. Pass the result as next ``history``."""
+    blend with weight ``alpha`` for the new frame. Pass the result as next ``history``.
+
+    Input hygiene: NaN/Inf in ``image`` or ``history`` count as 0 (they reach neither the
+    neighbours' clamp nor the next history); non-finite motion drops the pixel's history,
+    as a disocclusion."""
     h, w, _ = image.shape
+    cur = finite(split(image))[0]
     if history is None or tuple(history.shape) != tuple(image.shape):
-        return mi.TensorXf(image)
+        return merge(cur, h, w)
     grid = Grid(w, h)
-    cur = split(image)
-    mot = split(motion)
     lo = [mi.Float(c) for c in cur]
     hi = [mi.Float(c) for c in cur]
     for dy in (-1, 0, 1):
@@ -477,10 +486,10 @@ def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
             n = fetch(cur, grid.index(grid.x + dx, grid.y + dy))
             lo = [dr.minimum(a, b) for a, b in zip(lo, n, strict=True)]
             hi = [dr.maximum(a, b) for a, b in zip(hi, n, strict=True)]
-    px, py = mi.Float(grid.x) + mot[0], mi.Float(grid.y) + mot[1]
+    px, py = previous_position(grid, split(motion))
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
-    prev = split(history)
+    prev = finite(split(history))[0]
     acc = [dr.zeros(mi.Float, w * h) for _ in prev]
     for dx, dy, wb in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
                        (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
