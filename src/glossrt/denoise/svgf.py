@@ -132,30 +132,39 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
     px, py = previous_position(grid, motion)
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
-    rx, ry = mi.Int32(dr.round(px)), mi.Int32(dr.round(py))
     bilinear = [(x0 + dx, y0 + dy, wb) for dx, dy, wb in (
         (0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
         (1, 1, fx * fy))]
-    fallback = [(rx + dx, ry + dy, None) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
-    # weighted sums of the bilinear taps and, apart, of the 3x3 fallback around the
-    # reprojected pixel (uniform weights on consistent taps); the fallback counts only
-    # where every bilinear tap failed
-    sums, w_sums = [], []
-    for taps in (bilinear, fallback):
+
+    def weighted_sum(taps, read):
+        """Sums of the history over the consistent taps (weights ``wb``, or 1 for None)."""
         acc, w_sum = None, mi.Float(0.0)
         for qx, qy, wb in taps:
-            vals = packed.fetch(grid.index(qx, qy))  # clamped: every load is valid
+            vals = read(grid.index(qx, qy))  # clamped: every load is valid
             ok = _consistent(gb, vals[:5], grid.inside(qx, qy))
             w = dr.select(ok, 1.0 if wb is None else wb, 0.0)
             acc = [w * v for v in vals[5:]] if acc is None else [
                 a + w * v for a, v in zip(acc, vals[5:], strict=True)]
             w_sum += w
-        sums.append(acc)
-        w_sums.append(w_sum)
-    bilinear_ok = w_sums[0] > 1e-2
-    success = bilinear_ok | (w_sums[1] > 0)
-    norm = dr.rcp(dr.maximum(dr.select(bilinear_ok, w_sums[0], w_sums[1]), 1e-6))
-    res = [dr.select(bilinear_ok, b, f) * norm for b, f in zip(*sums, strict=True)]
+        return (*acc, w_sum)
+
+    def fallback():
+        """The 3x3 fallback around the reprojected pixel (uniform weights on consistent
+        taps), which counts only where every bilinear tap failed. Under dr.if_stmt the LLVM
+        backend skips it for packets where no lane needs it (most of them, in steady state);
+        it reads channel by channel, as masked packet gathers abort inside dr.freeze."""
+        rx, ry = mi.Int32(dr.round(px)), mi.Int32(dr.round(py))
+        return weighted_sum([(rx + dx, ry + dy, None) for dy in (-1, 0, 1)
+                             for dx in (-1, 0, 1)], lambda q: fetch(hist, q))
+
+    *bil, w_bil = weighted_sum(bilinear, packed.fetch)
+    bilinear_ok = w_bil > 1e-2
+    zero = dr.zeros(mi.Float, grid.w * grid.h)
+    *fb, w_fb = dr.if_stmt((), ~bilinear_ok, fallback,
+                           lambda: tuple(mi.Float(zero) for _ in range(len(hist) - 4)))
+    success = bilinear_ok | (w_fb > 0)
+    norm = dr.rcp(dr.maximum(dr.select(bilinear_ok, w_bil, w_fb), 1e-6))
+    res = [dr.select(bilinear_ok, b, f) * norm for b, f in zip(bil, fb, strict=True)]
     length = dr.select(success, res[0] + 1.0, 1.0)
     a_c = dr.select(success, dr.maximum(alpha, dr.rcp(length)), 1.0)
     a_m = dr.select(success, dr.maximum(moments_alpha, dr.rcp(length)), 1.0)
