@@ -23,7 +23,7 @@ backend.ensure()
 import mitsuba as mi  # noqa: E402
 
 from glossrt import render, scenes  # noqa: E402
-from glossrt.errors import GlossrtError  # noqa: E402
+from glossrt.errors import GlossrtError, SceneError  # noqa: E402
 from glossrt.lights import bspvt  # noqa: E402
 from glossrt.lights.bspvt import BSPVT  # noqa: E402
 from glossrt.lights.scene import polygon_lights  # noqa: E402
@@ -194,7 +194,12 @@ def test_bad_radiance_from_xml_fails_in_the_cli(tmp_path, capsys):
 
 
 def test_nan_transform_is_not_called_zero_area():
-    setup = _floor_scene(light_to_world=T().translate([0, 1.2, -0.5]).scale(float("nan")))
+    nan_xf = T().translate([0, 1.2, -0.5]).scale(float("nan"))
+    with pytest.raises(SceneError, match="area light 'light' has NaN/Inf"):
+        _floor_scene(light_to_world=nan_xf)  # refused when the scene loads
+    setup = _floor_scene()  # a light made NaN after loading: polygon_lights' own check
+    setup.params["light.to_world"] = nan_xf
+    setup.params.update()
     with pytest.raises(GlossrtError) as e:
         polygon_lights(setup, 0)
     msg = str(e.value)

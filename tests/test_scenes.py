@@ -505,3 +505,21 @@ def test_non_finite_vertices_of_a_merged_mesh_are_refused(tmp_path):
     wall = floor.replace('angle="-90"', 'angle="0"').replace("nan", "0")
     with pytest.raises(SceneError, match="shape ''.*NaN/Inf"):
         scenes.load(write(tmp_path, scene_xml(floor + wall + AREA_LIGHT + CONSTANT)))
+
+
+def test_animation_paths_giving_nan_are_refused():
+    """A camera or object path that returns a NaN/Inf matrix for some frame is named at that
+    frame (the pose used to be applied: a NaN camera rendered a black frame)."""
+    base = scenes.load("glossy-cornell", size=SIZE)
+    good_cam, (sid, good_obj) = base.camera_path, next(iter(base.object_paths.items()))
+
+    def bad_at_3(path):
+        return lambda f: np.full((4, 4), np.nan) if f == 3 else path(f)
+
+    for cam, obj, named in ((bad_at_3(good_cam), good_obj, "camera path"),
+                            (good_cam, bad_at_3(good_obj), f"shape {sid!r}")):
+        setup = scenes.SceneSetup(base.name, base.scene, size=SIZE, camera_path=cam,
+                                  object_paths={sid: obj})
+        setup.set_frame(2)
+        with pytest.raises(SceneError, match=f"{named}.*NaN/Inf transform at frame 3"):
+            setup.set_frame(3)

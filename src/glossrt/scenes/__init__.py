@@ -286,12 +286,19 @@ class SceneSetup:
         """Pose camera and moving objects for ``frame``."""
         if frame == self.frame:
             return
-        self.sensor_params["to_world"] = mi.Transform4f(self.camera_matrix(frame))
+        cam = self.camera_matrix(frame)
+        if not _finite(cam):
+            raise SceneError(f"{self.name}: the camera path gives a NaN/Inf transform at "
+                             f"frame {frame}")
+        self.sensor_params["to_world"] = mi.Transform4f(cam)
         self.sensor_params.update()
         if self.object_paths:
             for sid, path in self.object_paths.items():
                 key, rest = self._rest[sid]
                 m = path(frame)
+                if not _finite(m):
+                    raise SceneError(f"{self.name}: the path of shape {sid!r} gives a NaN/Inf "
+                                     f"transform at frame {frame}")
                 if key.endswith("to_world"):
                     self.params[key] = mi.Transform4f(m) @ rest
                 else:
