@@ -71,16 +71,11 @@ def _output_file(path: str, what: str, keep: tuple[Path, ...] = ()) -> Path:
 
 
 def _write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder (an interrupted
-    write leaves the old file, never half of a new one)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write ``text`` to ``path`` atomically (:func:`glossrt.fileio.replacing`)."""
+    from .fileio import replacing
+
+    with replacing(path) as tmp:
+        Path(tmp).write_text(text)
 
 
 def _warn_stale(out: Path, written: list[str]) -> None:

@@ -18,7 +18,6 @@ import json
 import math
 import os
 import re
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .errors import FrameError, GlossrtError
+from .fileio import FolderNotWritable, replacing
 
 if TYPE_CHECKING:  # pragma: no cover - typing only; mitsuba is imported after backend.ensure()
     import mitsuba as mi
@@ -465,24 +465,14 @@ class Frame:
         bmp.metadata()[HEADER_ATTRIBUTE] = header
 
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-        except OSError as e:
+            with replacing(path) as tmp:
+                bmp.write(tmp, mitsuba.Bitmap.FileFormat.OpenEXR)
+        except FolderNotWritable as e:
             raise FrameError(
                 f"cannot save {path}: folder {folder} is not writable ({e.strerror or e})"
             ) from e
-        os.close(fd)
-        try:
-            bmp.write(tmp, mitsuba.Bitmap.FileFormat.OpenEXR)
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        except BaseException as e:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            if isinstance(e, (OSError, RuntimeError)):
-                raise FrameError(f"cannot save {path} in folder {folder}: {e}") from e
-            raise
+        except (OSError, RuntimeError) as e:
+            raise FrameError(f"cannot save {path} in folder {folder}: {e}") from e
         return path
 
     @classmethod

@@ -147,6 +147,16 @@ def finite_guides(*guides) -> mi.Bool:
     return ok
 
 
+def _guides(frame, with_position: bool, with_roughness: bool) -> tuple:
+    """The frame's guide channels as read, ``(normal, depth, mesh id, position or None,
+    roughness or None)``, and where all of them are finite (:func:`finite_guides`)."""
+    normal, depth, mesh = frame.require("normal", "depth", "mesh_id")
+    n, z, m = split(normal), split(depth)[0], split(mesh)[0]
+    pos = split(frame["position"]) if with_position else None
+    rough = split(frame["roughness"])[0] if with_roughness else None
+    return n, z, m, pos, rough, finite_guides(n, z, m, pos, rough)
+
+
 def gbuffer(frame, grid: Grid, with_position: bool = False,
             with_roughness: bool = False) -> GBuffer:
     """The frame's G-buffer (normal, 1/z and its gradient, mesh id; ``position`` and
@@ -156,12 +166,7 @@ def gbuffer(frame, grid: Grid, with_position: bool = False,
     position = 0, roughness 0), so that every filter treats it as background: it is never a
     tap nor consistent history, and its own output is its (hygienic) input colour. Selects
     only: no host synchronisation."""
-    normal, depth, mesh = frame.require("normal", "depth", "mesh_id")
-    z = split(depth)[0]
-    n, m = split(normal), split(mesh)[0]
-    pos = split(frame["position"]) if with_position else None
-    rough = split(frame["roughness"])[0] if with_roughness else None
-    ok = finite_guides(n, z, m, pos, rough)
+    n, z, m, pos, rough, ok = _guides(frame, with_position, with_roughness)
     inv_z = dr.select(ok & (z > 0), dr.rcp(z), 0.0)
     dzdx, dzdy = depth_gradient(grid, inv_z)
     return GBuffer([dr.select(ok, c, 0.0) for c in n], inv_z, dzdx, dzdy,
@@ -185,11 +190,8 @@ def pixel_guides(frame, lobes: bool) -> PixelGuides:
     """A frame's hit mask, depth, normal and, with ``lobes``, position and roughness. Input
     hygiene: a pixel with a non-finite guide is background (never a tap or sample, keeps its
     own radiance), its guides those of background (docs/FORMATS.md)."""
-    normal = split(frame["normal"])
-    z = split(frame["depth"])[0]
-    pos = split(frame["position"]) if lobes else None
-    alpha = split(frame["roughness"])[0] if lobes else None
-    hit = (split(frame["mesh_id"])[0] > 0) & (z > 0) & finite_guides(normal, z, pos, alpha)
+    normal, z, mesh, pos, alpha, ok = _guides(frame, lobes, lobes)
+    hit = (mesh > 0) & (z > 0) & ok
     return PixelGuides(hit, dr.select(hit, z, -1.0), [dr.select(hit, c, 0.0) for c in normal],
                        None if pos is None else [dr.select(hit, c, 0.0) for c in pos],
                        None if alpha is None else dr.select(hit, alpha, 0.0))

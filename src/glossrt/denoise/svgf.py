@@ -161,7 +161,7 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
     bilinear_ok = w_bil > 1e-2
     zero = dr.zeros(mi.Float, grid.w * grid.h)
     *fb, w_fb = dr.if_stmt((), ~bilinear_ok, fallback,
-                           lambda: tuple(mi.Float(zero) for _ in range(len(hist) - 4)))
+                           lambda: tuple(mi.Float(zero) for _ in (*bil, w_bil)))
     success = bilinear_ok | (w_fb > 0)
     norm = dr.rcp(dr.maximum(dr.select(bilinear_ok, w_bil, w_fb), 1e-6))
     res = [dr.select(bilinear_ok, b, f) * norm for b, f in zip(bil, fb, strict=True)]

@@ -114,6 +114,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
+from ..fileio import replacing  # noqa: E402
 from ..jit import owned  # noqa: E402
 from ..progress import Progress  # noqa: E402
 
@@ -543,26 +544,15 @@ class BSPVT:
         """Write a compressed ``.npz`` (format version :data:`FORMAT_VERSION`) atomically: into
         a temporary file in the same folder, then renamed over ``path`` (an interrupted save
         leaves ``path`` as it was; the temporary file is removed)."""
-        path = os.fspath(path)
-        folder, name = os.path.split(os.path.abspath(path))
-        tmp = os.path.join(folder, f".{name}.{os.getpid()}.{os.urandom(4).hex()}.tmp")
-        try:
-            with open(tmp, "xb") as f:
-                np.savez_compressed(
-                    f, version=np.int32(FORMAT_VERSION), lines=self.lines,
-                    children=self.children, leaf_value=self.leaf_value, roots=self.roots,
-                    resolution=np.int32(self.resolution), epsilon=np.float64(self.epsilon),
-                    positions=self.positions, normals=self.normals,
-                    info=np.array(json.dumps(self.info)))
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
+        with replacing(path) as tmp, open(tmp, "wb") as f:
+            np.savez_compressed(
+                f, version=np.int32(FORMAT_VERSION), lines=self.lines,
+                children=self.children, leaf_value=self.leaf_value, roots=self.roots,
+                resolution=np.int32(self.resolution), epsilon=np.float64(self.epsilon),
+                positions=self.positions, normals=self.normals,
+                info=np.array(json.dumps(self.info)))
+            f.flush()
+            os.fsync(f.fileno())
 
     @classmethod
     def load(cls, path: str) -> BSPVT:

@@ -275,8 +275,6 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
     compared. A pass is remembered on ``trees`` (with the scene and the arrays compared; one
     scene at a time), so shading frame after frame reads the scene's vertices once: edit the
     scene's geometry in place and the change is not seen."""
-    from . import bspvt
-
     pos_t, nrm_t = getattr(trees, "positions", None), getattr(trees, "normals", None)
     if pos_t is None or nrm_t is None:
         return
@@ -285,8 +283,19 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
         return
     tp = np.asarray(pos_t, np.float64).reshape(-1, 3)
     tn = np.asarray(nrm_t, np.float64).reshape(-1, 3)
-    if not (np.any(tp) or np.any(tn)):
-        return
+    if np.any(tp) or np.any(tn):
+        _compare_geometry(scene, trees, tp, tn)
+    try:  # kept with the scene and the arrays compared (replaced arrays are checked anew)
+        trees._glossrt_scene_match = (scene, pos_t, nrm_t)
+    except AttributeError:  # objects without a __dict__: checked every time
+        pass
+
+
+def _compare_geometry(scene: mi.Scene, trees, tp: np.ndarray, tn: np.ndarray) -> None:
+    """:func:`check_trees_match`'s comparison of stored positions ``tp`` and normals ``tn``
+    with the scene's."""
+    from . import bspvt
+
     sp, sn, _ = bspvt.scene_vertices(scene)
     name = _trees_name(trees)
     if sp.shape != tp.shape or sn.shape != tn.shape:
@@ -312,7 +321,3 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
             f"from the scene's {np.round(sn[i], 4).tolist()} by {dn[i]:.3g} "
             f"({int((dn > MATCH_NORMAL_TOL).sum())} of {len(dn)} normals differ); rebuild "
             "them with `glossrt bspvt build`")
-    try:  # kept with the scene and the arrays compared (replaced arrays are checked anew)
-        trees._glossrt_scene_match = (scene, pos_t, nrm_t)
-    except AttributeError:  # objects without a __dict__: checked every time
-        pass

@@ -28,6 +28,7 @@ from .. import backend
 from ..errors import SceneError
 
 backend.ensure()
+import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 Matrix = np.ndarray
@@ -108,8 +109,6 @@ def stable_shapes(scene: mi.Scene) -> list:
 
 def _registry_id(ptr_type, obj) -> int:
     """Dr.Jit registry id of a Mitsuba object (what ``mi.ShapePtr``/``mi.EmitterPtr`` hold)."""
-    import drjit as dr
-
     return int(dr.reinterpret_array(mi.UInt32, ptr_type(obj))[0])
 
 
@@ -149,8 +148,9 @@ def check_finite_geometry(scene: mi.Scene, name: str = "scene") -> None:
     where they have any (point lights) and their ``to_world``, ``position`` and ``direction``
     parameters."""
     for shape in stable_shapes(scene):
-        bad = (not _finite(shape.vertex_positions_buffer()) if shape.is_mesh()
-               else _bad_bounds(shape.bbox()))
+        # a mesh's vertices are tested where they are (one Bool comes back, not the array)
+        bad = (not dr.all(dr.isfinite(shape.vertex_positions_buffer()), axis=None)
+               if shape.is_mesh() else _bad_bounds(shape.bbox()))
         if bad:
             kind = "area light" if shape.is_emitter() else "shape"
             raise SceneError(f"{name}: {kind} {shape.id()!r} has NaN/Inf geometry: check "
