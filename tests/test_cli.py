@@ -76,7 +76,6 @@ def test_render_mitsuba_reference(tmp_path):
         (["bspvt", "build", "polygon-light", "--out", "{tmp}"], ["is a folder"]),
         (["bspvt", "build", "polygon-light", "--out", ""], ["empty path"]),
         (["compare", "{tmp}", "{tmp}", "--json", "{tmp}"], ["is a folder"]),
-        (["compare", "{tmp}", "{tmp}", "--json", "{tmp}/file"], ["refusing to overwrite"]),
         (["bench", "--only", "ltc", "--json", "{tmp}"], ["is a folder"]),
     ],
 )
@@ -166,6 +165,21 @@ def test_compare_json_never_overwrites_a_frame(tiny_sequence, tmp_path, capsys):
     js = tmp_path / "new" / "m.json"  # a missing folder is created
     assert main(["compare", str(tiny_sequence), str(tiny_sequence), "--json", str(js)]) == 0
     assert json.loads(js.read_text())["mean"]["rmse"] == 0.0
+    # the metrics written into a compared folder are not an input: a second run rewrites them
+    inside = tiny_sequence / "metrics.json"
+    try:
+        for _ in range(2):
+            assert main(["compare", str(tiny_sequence), str(tiny_sequence), "--json",
+                         str(inside)]) == 0
+            assert json.loads(inside.read_text())["mean"]["rmse"] == 0.0
+    finally:
+        inside.unlink(missing_ok=True)  # the folder is shared by this module's tests
+    # ... while a link named like JSON that points at a frame is still refused
+    link = tmp_path / "frame-link.json"
+    link.symlink_to(target)
+    assert main(["compare", str(tiny_sequence), str(tiny_sequence), "--json", str(link)]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert _digests(tiny_sequence) == before
 
 
 def test_unsupported_plugin_exit_code(tmp_path, capsys):

@@ -508,7 +508,9 @@ def cmd_compare(args) -> int:
             raise GlossrtError(f"not a folder: {d}")
     js = None
     if args.json is not None:
-        inputs = tuple(p for d in (args.out_dir, args.ref_dir) for p in Path(d).iterdir())
+        # the frames compare reads (load_sequence: *.exr); an earlier run's JSON in a compared
+        # folder is not an input and may be rewritten
+        inputs = tuple(p for d in (args.out_dir, args.ref_dir) for p in Path(d).glob("*.exr"))
         js = _output_file(args.json, "compare --json", keep=inputs)
     res = compare_dirs(args.out_dir, args.ref_dir, channel=args.channel)
     print(format_table(res))
