@@ -233,3 +233,69 @@ def test_textured_light_with_shadows():
     e_bs = np.abs(img - ref)[hit].mean()
     print("textured: ltc", e_ltc, "bspvt", e_bs)
     assert e_bs < 0.4 * e_ltc
+
+
+def floor_and_ball(size=(32, 24)):
+    """The floor of :func:`floor_only` with an analytic sphere hovering over it."""
+    return _setup({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 50.0,
+                   "to_world": T().look_at([0, 2.0, 2.5], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": size[0], "height": size[1]}},
+        "floor": mesh_shape("floor", *grid_mesh(6), T().rotate([1, 0, 0], -90).scale(1.5),
+                            {"type": "roughplastic", "distribution": "ggx", "alpha": 0.3}),
+        "ball": {"type": "sphere", "to_world": T().translate([0, 0.5, 0]).scale(0.3),
+                 "bsdf": {"type": "diffuse"}},
+        "light": {"type": "rectangle", "to_world": T().translate([0, 1.2, -0.5])
+                  .rotate([1, 0, 0], 60).scale(0.4),
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}},
+    }, size, "floor-and-ball")
+
+
+def test_trees_refuse_occluders_moved_since_the_build(tmp_path):
+    """Okuno & Iwasaki's visibility is precomputed for static occluders: trees shaded after
+    an analytic occluder moved (or a mesh was edited in place, after a cached pass) would
+    give wrong shadows without a word, so shading refuses them and names the shape."""
+    from glossrt.lights.bspvt import BSPVT
+
+    setup = floor_and_ball()
+    trees = build_scene_trees(setup.scene, resolution=4, progress=False)
+    rec = trees.info["occluder_bounds"]
+    assert [o["shape"] for o in rec] == ["ball"]
+    np.testing.assert_allclose(rec[0]["min"], [-0.3, 0.2, -0.3], atol=1e-5)
+    f = tmp_path / "t.npz"
+    trees.save(str(f))
+    assert BSPVT.load(str(f)).info["occluder_bounds"] == rec  # the record is kept in files
+    gb = render.Renderer(setup).render(0)
+    lights = polygon_lights(setup, 0)
+    shade_bspvt(setup.scene, gb, trees, lights)  # as built: accepted
+
+    params = mi.traverse(setup.scene)
+    ball = [k for k in params.keys() if k.startswith("ball") and k.endswith("to_world")]
+    assert ball, list(params.keys())
+    rest = mi.Transform4f(np.array(params[ball[0]].matrix))  # a copy, not the live value
+    params[ball[0]] = mi.Transform4f().translate([0.4, 0.0, 0.0]) @ rest
+    params.update()
+    with pytest.raises(GlossrtError, match="'ball'.*moved"):
+        shade_bspvt(setup.scene, gb, trees, lights)
+    params[ball[0]] = rest  # back where it was: accepted again
+    params.update()
+    shade_bspvt(setup.scene, gb, trees, lights)
+
+    # a mesh edited in place after a remembered pass is compared anew
+    key = [k for k in params.keys() if k.startswith("floor") and k.endswith("vertex_positions")]
+    assert key, list(params.keys())
+    v = np.array(params[key[0]]).reshape(-1, 3)
+    params[key[0]] = mi.Float((v + [0.0, 0.2, 0.0]).astype(np.float32).ravel())
+    params.update()
+    with pytest.raises(GlossrtError, match="before an edit"):
+        shade_bspvt(setup.scene, gb, trees, lights)
+
+    # trees written before the record (no "occluder_bounds") are still shaded
+    old = build_scene_trees(floor_and_ball().scene, resolution=4, progress=False)
+    del old.info["occluder_bounds"]
+    other = floor_and_ball()
+    p2 = mi.traverse(other.scene)
+    p2[ball[0]] = mi.Transform4f().translate([0.4, 0.0, 0.0]) @ p2[ball[0]]
+    p2.update()
+    shade_bspvt(other.scene, render.Renderer(other).render(0), old, polygon_lights(other, 0))

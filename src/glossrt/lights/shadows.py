@@ -70,8 +70,28 @@ def build_scene_trees(scene: mi.Scene, resolution: int = 64, epsilon: float = 0.
                               progress=progress, **kwargs)
     t2 = time.perf_counter()
     trees.info.update({"visibility_seconds": t1 - t0, "tree_seconds": t2 - t1,
-                       "total_seconds": t2 - t0})
+                       "total_seconds": t2 - t0,
+                       # the analytic occluders' placement (meshes: ``positions``), so that
+                       # shading can refuse trees whose occluders have moved since
+                       "occluder_bounds": occluder_bounds(scene)})
     return trees
+
+
+def occluder_bounds(scene: mi.Scene) -> list[dict]:
+    """Id and bounding box (``min``, ``max``) of each non-emitting shape that is not a mesh
+    (analytic spheres, ...), in :func:`glossrt.scenes.stable_shapes` order: what the trees'
+    ``info["occluder_bounds"]`` records at build time. Meshes are compared vertex by vertex
+    instead (the trees' ``positions``)."""
+    from ..scenes import stable_shapes
+
+    out = []
+    for s in stable_shapes(scene):
+        if s.is_emitter() or isinstance(s, mi.Mesh):
+            continue
+        b = s.bbox()
+        out.append({"shape": s.id(), "min": [float(b.min[i]) for i in range(3)],
+                    "max": [float(b.max[i]) for i in range(3)]})
+    return out
 
 
 def vertex_materials(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -267,28 +287,70 @@ def _trees_name(trees) -> str:
 
 
 def check_trees_match(scene: mi.Scene, trees) -> None:
-    """Raise :class:`GlossrtError` unless ``trees`` were built for ``scene``'s mesh vertices
-    (:func:`glossrt.lights.bspvt.scene_vertices`): the same count, positions within
-    :data:`MATCH_POSITION_TOL` of the scene's bounding-box diagonal and normals within
-    :data:`MATCH_NORMAL_TOL`. The message names the trees' file (``trees.source``) and the
-    largest mismatch. Trees that store no geometry (all-zero positions and normals) are not
-    compared. A pass is remembered on ``trees`` (with the scene and the arrays compared; one
-    scene at a time), so shading frame after frame reads the scene's vertices once: edit the
-    scene's geometry in place and the change is not seen."""
+    """Raise :class:`GlossrtError` unless ``trees`` were built for ``scene``'s geometry as it
+    is now. Okuno & Iwasaki precompute visibility for static occluders, so trees of another
+    scene, or of this one before an occluder moved, shade wrong shadows.
+
+    * Mesh vertices (:func:`glossrt.lights.bspvt.scene_vertices`): the same count, positions
+      within :data:`MATCH_POSITION_TOL` of the scene's bounding-box diagonal, normals within
+      :data:`MATCH_NORMAL_TOL`. Trees that store no geometry (all-zero positions and
+      normals) are not compared. A pass is remembered on ``trees`` with the scene's identity
+      and its mesh vertex buffers (Dr.Jit variable indices, which change when a mesh is
+      edited through ``mi.traverse``), so shading frame after frame reads the vertices once
+      and an edited mesh is compared anew.
+    * The other occluders (analytic shapes), when the trees recorded them
+      (``info["occluder_bounds"]``, :func:`occluder_bounds`; files written before this
+      record skip it): the same shapes with bounding boxes within the same tolerance,
+      compared on every call (a few ``bbox()`` calls).
+
+    The message names the trees' file (``trees.source``) and the largest mismatch."""
     pos_t, nrm_t = getattr(trees, "positions", None), getattr(trees, "normals", None)
     if pos_t is None or nrm_t is None:
         return
+    stored = (getattr(trees, "info", None) or {}).get("occluder_bounds")
+    if stored is not None:
+        _compare_occluders(scene, trees, stored)
+    key = (id(scene), tuple(m.vertex_positions_buffer().index for m in scene_meshes(scene)))
     cached = getattr(trees, "_glossrt_scene_match", None)
-    if cached is not None and cached[0] is scene and cached[1] is pos_t and cached[2] is nrm_t:
+    if cached is not None and cached[0] == key and cached[1] is pos_t and cached[2] is nrm_t:
         return
     tp = np.asarray(pos_t, np.float64).reshape(-1, 3)
     tn = np.asarray(nrm_t, np.float64).reshape(-1, 3)
     if np.any(tp) or np.any(tn):
         _compare_geometry(scene, trees, tp, tn)
-    try:  # kept with the scene and the arrays compared (replaced arrays are checked anew)
-        trees._glossrt_scene_match = (scene, pos_t, nrm_t)
+    try:  # the scene by identity only: the cache does not keep it alive
+        trees._glossrt_scene_match = (key, pos_t, nrm_t)
     except AttributeError:  # objects without a __dict__: checked every time
         pass
+
+
+def _compare_occluders(scene: mi.Scene, trees, stored: list) -> None:
+    """:func:`check_trees_match`'s comparison of the analytic occluders recorded at build
+    time (``stored``, :func:`occluder_bounds`) with the scene's."""
+    from . import bspvt
+
+    now = occluder_bounds(scene)
+    name = _trees_name(trees)
+    fix = ("BSPVT visibility is precomputed for static occluders: rebuild the trees for this "
+           "pose (glossrt bspvt build), or shade a scene whose occluders move with LTC "
+           "(no shadows) or Monte Carlo")
+    if [o.get("shape") for o in stored] != [o["shape"] for o in now]:
+        raise GlossrtError(
+            f"{name} were built with the analytic occluders "
+            f"{[o.get('shape') for o in stored]} but the scene has "
+            f"{[o['shape'] for o in now]}: built for another scene?")
+    tol = MATCH_POSITION_TOL * bspvt._scene_diagonal(scene)
+    for o, n in zip(stored, now, strict=True):
+        try:
+            a = np.array([o["min"], o["max"]], np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise GlossrtError(f"{name}: unreadable occluder_bounds entry {o!r}") from None
+        b = np.array([n["min"], n["max"]], np.float64)
+        if a.shape != (2, 3) or not np.all(np.abs(a - b) <= tol):
+            raise GlossrtError(
+                f"{name} were built with shape {n['shape']!r} inside "
+                f"{np.round(a, 4).tolist()} but it is now inside {np.round(b, 4).tolist()}: "
+                f"it has moved or changed since; {fix}")
 
 
 def _compare_geometry(scene: mi.Scene, trees, tp: np.ndarray, tn: np.ndarray) -> None:
