@@ -52,7 +52,8 @@ def coarse_polygon_light(size=(48, 36), alpha=0.25):
                   "polygon-light-coarse")
 
 
-def floor_only(size=(32, 24)):
+def floor_only(size=(32, 24), name="floor-only", **extra):
+    """A floor mesh lit by a rectangle (``extra``: more shapes by id)."""
     return _setup({
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 50.0,
@@ -63,7 +64,8 @@ def floor_only(size=(32, 24)):
         "light": {"type": "rectangle", "to_world": T().translate([0, 1.2, -0.5])
                   .rotate([1, 0, 0], 60).scale(0.4),
                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}},
-    }, size, "floor-only")
+        **extra,
+    }, size, name)
 
 
 def test_pixel_triangles_rebuild_positions():
@@ -236,20 +238,10 @@ def test_textured_light_with_shadows():
 
 
 def floor_and_ball(size=(32, 24)):
-    """The floor of :func:`floor_only` with an analytic sphere hovering over it."""
-    return _setup({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 50.0,
-                   "to_world": T().look_at([0, 2.0, 2.5], [0, 0, 0], [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": size[0], "height": size[1]}},
-        "floor": mesh_shape("floor", *grid_mesh(6), T().rotate([1, 0, 0], -90).scale(1.5),
-                            {"type": "roughplastic", "distribution": "ggx", "alpha": 0.3}),
-        "ball": {"type": "sphere", "to_world": T().translate([0, 0.5, 0]).scale(0.3),
-                 "bsdf": {"type": "diffuse"}},
-        "light": {"type": "rectangle", "to_world": T().translate([0, 1.2, -0.5])
-                  .rotate([1, 0, 0], 60).scale(0.4),
-                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}},
-    }, size, "floor-and-ball")
+    """:func:`floor_only` with an analytic sphere hovering over the floor."""
+    return floor_only(size, "floor-and-ball", ball={
+        "type": "sphere", "to_world": T().translate([0, 0.5, 0]).scale(0.3),
+        "bsdf": {"type": "diffuse"}})
 
 
 def test_trees_refuse_occluders_moved_since_the_build(tmp_path):
