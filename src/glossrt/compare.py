@@ -90,13 +90,14 @@ def compare_dirs(
     outs = _load_sequence(out_dir, channel)
     refs = {_file_name(f): f for f in _load_sequence(ref_dir, channel)}
 
+    raws = [f.numpy(channel) for f in outs]  # read once: the rows and the temporal error
     rows: list[dict[str, Any]] = []
-    for f in outs:
+    for f, raw in zip(outs, raws, strict=True):
         name = _file_name(f)
         ref = refs.get(name)
         if ref is None:
             continue
-        raw, raw_ref = f.numpy(channel), ref.numpy(channel)
+        raw_ref = ref.numpy(channel)
         img, ref_img = _scored(raw, channel), _scored(raw_ref, channel)
         row: dict[str, Any] = {"file": name, "index": int(f.index)}
         if channel == "depth":  # background in only one of the two: a silhouette difference
@@ -115,7 +116,7 @@ def compare_dirs(
     mean = {n: float(sum(r[n] for r in rows) / len(rows)) for n in names}
     temporal = None
     if len(outs) >= 2:
-        temporal = _m.temporal_error([_scored(f.numpy(channel), channel) for f in outs])
+        temporal = _m.temporal_error([_scored(r, channel) for r in raws])
     return {
         "out_dir": str(out_dir),
         "ref_dir": str(ref_dir),

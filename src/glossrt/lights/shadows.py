@@ -84,8 +84,13 @@ def occluder_bounds(scene: mi.Scene) -> list[dict]:
     instead (the trees' ``positions``)."""
     from ..scenes import stable_shapes
 
+    return _bounds_of(stable_shapes(scene))
+
+
+def _bounds_of(shapes: list) -> list[dict]:
+    """:func:`occluder_bounds` of shapes already in ``stable_shapes`` order."""
     out = []
-    for s in stable_shapes(scene):
+    for s in shapes:
         if s.is_emitter() or isinstance(s, mi.Mesh):
             continue
         b = s.bbox()
@@ -253,8 +258,9 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result); ``frozen``: replay recorded
     kernels (:func:`glossrt.lights.bspvt_shade.shade_points`). Pixels on shapes without
     trees (the lights themselves, analytic shapes) and background pixels get 0. Trees of
-    another scene (other vertex count, positions or normals) raise :class:`GlossrtError`
-    (:func:`check_trees_match`, once per trees and scene)."""
+    another scene, or of this one before an occluder moved, raise :class:`GlossrtError`
+    (:func:`check_trees_match`: the vertices once per trees and scene pose, the analytic
+    occluders' boxes every call)."""
     from . import bspvt_shade
     from .shading import NEEDS
 
@@ -304,13 +310,17 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
       compared on every call (a few ``bbox()`` calls).
 
     The message names the trees' file (``trees.source``) and the largest mismatch."""
+    from ..scenes import stable_shapes
+
     pos_t, nrm_t = getattr(trees, "positions", None), getattr(trees, "normals", None)
     if pos_t is None or nrm_t is None:
         return
+    shapes = stable_shapes(scene)  # once per call: both checks below read it
     stored = (getattr(trees, "info", None) or {}).get("occluder_bounds")
     if stored is not None:
-        _compare_occluders(scene, trees, stored)
-    key = (id(scene), tuple(m.vertex_positions_buffer().index for m in scene_meshes(scene)))
+        _compare_occluders(scene, trees, stored, _bounds_of(shapes))
+    key = (id(scene), tuple(s.vertex_positions_buffer().index for s in shapes
+                            if isinstance(s, mi.Mesh) and not s.is_emitter()))
     cached = getattr(trees, "_glossrt_scene_match", None)
     if cached is not None and cached[0] == key and cached[1] is pos_t and cached[2] is nrm_t:
         return
@@ -324,12 +334,11 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
         pass
 
 
-def _compare_occluders(scene: mi.Scene, trees, stored: list) -> None:
+def _compare_occluders(scene: mi.Scene, trees, stored: list, now: list) -> None:
     """:func:`check_trees_match`'s comparison of the analytic occluders recorded at build
-    time (``stored``, :func:`occluder_bounds`) with the scene's."""
+    time (``stored``, :func:`occluder_bounds`) with the scene's (``now``)."""
     from . import bspvt
 
-    now = occluder_bounds(scene)
     name = _trees_name(trees)
     fix = ("BSPVT visibility is precomputed for static occluders: rebuild the trees for this "
            "pose (glossrt bspvt build), or shade a scene whose occluders move with LTC "
