@@ -261,6 +261,41 @@ def test_deferred_methods_leave_flat_surfaces_alone(plane):
     assert (a[..., 0] + a[..., 2])[on].max() > 2.5 * alpha2[on].max()  # the flat-region bias
 
 
+def test_partners_on_another_mesh_count_as_the_pixel_itself(plane):
+    # Odd columns get a tilted normal. With their own mesh id every horizontal partner is on
+    # another mesh (zero difference) and every vertical one has the same normal: the deferred
+    # filters leave alpha alone, and the half-vector kernel keeps its vertical direction
+    # only (rank 1). With one mesh id (the control) the same normals widen the lobes.
+    from glossrt.frame import Frame
+
+    _, fr, lights, _ = plane
+    lamp = next(lt for lt in lights if hasattr(lt, "position"))
+    ch = {k: fr.numpy(k).copy() for k in fr.names}
+    ch["normal"][:, 1::2] = _unit([0.3, 1.0, 0.1]).astype(np.float32)
+    on = ch["mesh_id"][..., 0] > 0
+    alpha2 = ch["roughness"][..., 0] ** 2
+    for split_mesh in (True, False):
+        c = {k: v.copy() for k, v in ch.items()}
+        if split_mesh:
+            c["mesh_id"][:, 1::2] = np.where(on[:, 1::2, None], 7.0, 0.0)
+        f = Frame(channels=c, camera=fr.camera, index=fr.index)
+        for m in ("avgnormal", "avgnormal-eig", "projected"):
+            a = specaa.roughness_image(f, m)
+            widened = (a[..., 0] - alpha2)[on]
+            if split_mesh:
+                np.testing.assert_allclose(a[..., 0][on], alpha2[on], rtol=1e-5, err_msg=m)
+            else:
+                assert np.median(widened) > 1e-3, m
+        a = specaa.roughness_image(f, "halfvector", lamp).astype(float)
+        k11, k12, k22 = a[..., 0] - alpha2, a[..., 1], a[..., 2] - alpha2
+        det, tr = (k11 * k22 - k12**2)[on], (k11 + k22)[on]
+        assert np.median(tr) > 1e-5  # the vertical partner is still read
+        if split_mesh:  # det(dv dv^T) = 0
+            assert np.abs(det).max() <= 1e-4 * np.max(tr) ** 2
+        else:
+            assert np.median(det / tr**2) > 1e-3
+
+
 def test_avgnormal_and_projected_kernels_agree_on_a_curved_surface():
     # Both read the same normal differences: slopes about the average normal (sigma^2 0.25,
     # times 2) vs world-space differences (sigma_p^2 = 1 / 2 pi): for small differences the
