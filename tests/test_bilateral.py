@@ -27,15 +27,18 @@ from glossrt.denoise.bilateral import bilateral  # noqa: E402
 from glossrt.frame import RADIANCE, Camera, Frame  # noqa: E402
 
 CAM_POS = np.array([0.3, -0.2, 0.0])
+FOV = 45.0
 
 
 def _camera(w, h):
     m = np.eye(4)
     m[:3, 3] = CAM_POS
-    return Camera(to_world=m, fov=45.0, resolution=(w, h))
+    return Camera(to_world=m, fov=FOV, resolution=(w, h))
 
 
-def random_frame(w=9, h=7, seed=1, background=((0, 0), (4, 3))):
+def random_frame(w=9, h=7, seed=1, background=((0, 0), (4, 3)), jitter=(0.0, 0.0)):
+    """Random radiance, albedos, normals and roughness on visible points of the pixels'
+    camera rays (through the pixel centres plus ``jitter``, recorded in ``meta``)."""
     rng = np.random.default_rng(seed)
     ch = {}
     for c in RADIANCE:
@@ -43,8 +46,13 @@ def random_frame(w=9, h=7, seed=1, background=((0, 0), (4, 3))):
     ch["albedo_diffuse"] = rng.uniform(0.1, 0.9, (h, w, 3))
     ch["albedo_specular"] = rng.uniform(0.1, 0.9, (h, w, 3))
     ch["albedo_specular"][1, 1] = 0.0  # no albedo: filtered as it is
-    pos = np.stack([rng.uniform(-1, 1, (h, w)), rng.uniform(-1, 1, (h, w)),
-                    rng.uniform(2.9, 3.1, (h, w))], -1)
+    # visible points on the pixels' camera rays (what a G-buffer holds; the lobe weight's view
+    # directions are the rays, glossrt.denoise.common.pixel_view_directions)
+    t = math.tan(math.radians(FOV) / 2.0)
+    ys, xs = np.mgrid[0:h, 0:w] + 0.5 + np.array(jitter)[::-1, None, None]
+    z = rng.uniform(2.9, 3.1, (h, w))
+    pos = CAM_POS + np.stack([t * (1 - 2 * xs / w) * z, t * (h - 2 * ys) / w * z, z], -1)
+    assert np.allclose(_camera(w, h).project(pos), np.stack([xs, ys], -1))
     n = rng.normal(size=(h, w, 3)) * [0.3, 0.3, 1.0]
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     to_cam = CAM_POS - pos
@@ -61,8 +69,9 @@ def random_frame(w=9, h=7, seed=1, background=((0, 0), (4, 3))):
         ch["position"][y, x] = 0.0
         ch["roughness"][y, x] = 0.0
     ch["color"] = sum(ch[c] for c in RADIANCE)
+    meta = {"jitter": [float(v) for v in jitter]} if tuple(jitter) != (0.0, 0.0) else {}
     return Frame(channels={k: v.astype(np.float32) for k, v in ch.items()},
-                 camera=_camera(w, h))
+                 camera=_camera(w, h), meta=meta)
 
 
 # -- NumPy reference (written from the paper's formulas, float64, one pixel at a time) ----------

@@ -37,7 +37,7 @@ BAD = {"nan": np.nan, "inf": np.inf}
 #: the guides each method reads
 DENOISERS = {
     "svgf": ("normal", "depth"),
-    "svgf-lobe": ("normal", "depth", "position", "roughness"),
+    "svgf-lobe": ("normal", "depth", "roughness"),
     "svgf-spatial-variance": ("normal", "depth"),
     "atrous": ("normal", "depth", "position"),
     "atrous-temporal": ("normal", "depth", "position"),
@@ -106,6 +106,30 @@ def test_nonfinite_guides_are_background(frames, method, channel, bad):
     _check(got1, want1, f"{method}, the clean frame after a {bad} {channel} patch")
 
 
+def _without_position(f) -> Frame:
+    g = _copy(f)
+    del g.channels["position"]
+    return g
+
+
+def test_lobe_weights_take_view_directions_from_the_camera(frames):
+    # the lobes' view directions are the camera rays (common.pixel_view_directions): a frame
+    # without a position channel is filtered exactly as one with it
+    (f0, f1, _), (l0, l1) = frames
+    for weight in ("lobe", "screen"):
+        _check(bilateral(_without_position(f0), weight=weight), bilateral(f0, weight=weight),
+               f"bilateral {weight} without position")
+    _check(upsample(_without_position(f0), _without_position(l0), weight="lobe"),
+           upsample(f0, l0, weight="lobe"), "upsample lobe without position")
+    st, ref = SpatioTemporalUpsampler(weight="lobe"), SpatioTemporalUpsampler(weight="lobe")
+    for f, lo in ((f0, l0), (f1, l1)):
+        _check(st(_without_position(f), _without_position(lo)), ref(f, lo),
+               "spatio-temporal upsampler without position")
+    d, ref = denoise.make("svgf-lobe"), denoise.make("svgf-lobe")
+    for f in (f0, f1):
+        _check(d(_without_position(f)), ref(f), "svgf-lobe without position")
+
+
 @pytest.mark.parametrize("method,bad", [(m, b) for m in TEMPORAL for b in BAD])
 def test_nonfinite_motion_is_a_disocclusion(frames, method, bad):
     """NaN / Inf motion: the pixel has no history, as when its motion points far off the
@@ -121,8 +145,8 @@ def test_nonfinite_motion_is_a_disocclusion(frames, method, bad):
 
 BILATERAL = {
     "normal": ("normal", "depth"),
-    "lobe": ("normal", "depth", "position", "roughness"),
-    "screen": ("normal", "depth", "position", "roughness"),
+    "lobe": ("normal", "depth", "roughness"),
+    "screen": ("normal", "depth", "roughness"),
 }
 
 
@@ -137,8 +161,7 @@ def test_bilateral_nonfinite_guides_are_background(frames, weight, channel, bad)
 
 
 UPSAMPLE = [(w, side, c, b) for w, chans in (("normal", ("normal", "depth")),
-                                              ("lobe", ("normal", "depth", "position",
-                                                        "roughness")))
+                                              ("lobe", ("normal", "depth", "roughness")))
             for side in ("full", "low") for c in chans for b in BAD]
 
 
@@ -158,8 +181,8 @@ def test_upsample_nonfinite_guides_are_background(frames, weight, side, channel,
     _check(got_w, want_w, what + " (weights)")
 
 
-@pytest.mark.parametrize("channel,bad", [(c, b) for c in ("normal", "depth", "position",
-                                                             "roughness") for b in BAD])
+@pytest.mark.parametrize("channel,bad", [(c, b) for c in ("normal", "depth", "roughness")
+                                         for b in BAD])
 def test_spatio_temporal_upsampler_nonfinite_guides(frames, channel, bad):
     (f0, f1, _), (l0, l1) = frames
     st, ref = SpatioTemporalUpsampler(weight="lobe"), SpatioTemporalUpsampler(weight="lobe")

@@ -24,13 +24,14 @@ Weights (``i`` = the filtered pixel, ``j`` = a tap of the ``(2r+1)^2`` window):
   ``w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta G(xi_i, xi_j, beta lb_i lb_j / (lb_i +
   lb_j))``, ``lb = lambda kappa / (lambda + kappa)``, ``beta = 20``, ``kappa = 100`` (sec. 5),
   where ``(xi, lambda)`` is the pixel's GGX lobe as an SG (Wang et al.'s warp, sec. 4.2,
-  :func:`glossrt.brdf.sg.ggx_lobe_to_sg`) built from its normal, its view direction
-  ``normalize(camera position - position)`` and its roughness. ``approx=False`` uses the exact
-  eq. 6 instead of eq. 7 inside eqs. 4-5. For *diffuse* components the weight stays the
-  normal weight ``w_n``: the paper states (end of sec. 4.2) that the normal-aware weight *is*
-  its lobe weight for a diffuse surface (axis = normal, ``lb_i = lb_j``), and it filters only
-  the specular buffer with lobes (sec. 5); keeping ``w_n`` there means ``weight`` changes the
-  specular filtering only;
+  :func:`glossrt.brdf.sg.ggx_lobe_to_sg`) built from its normal, its view direction (the
+  reversed camera ray through the pixel, :func:`~glossrt.denoise.common.pixel_view_directions`:
+  ``normalize(camera position - position)`` without reading ``position``) and its
+  roughness. ``approx=False`` uses the exact eq. 6 instead of eq. 7 inside eqs. 4-5. For
+  *diffuse* components the weight stays the normal weight ``w_n``: the paper states (end of
+  sec. 4.2) that the normal-aware weight *is* its lobe weight for a diffuse surface (axis =
+  normal, ``lb_i = lb_j``), and it filters only the specular buffer with lobes (sec. 5);
+  keeping ``w_n`` there means ``weight`` changes the specular filtering only;
 * ``weight="screen"``: the baseline of the paper's fig. 4(c), "frequency-analysis methods
   adjust the screen-space kernel bandwidth to the sharpness of the specular reflection"
   (sec. 5.1). The paper does not give its formula; this one is glossrt's. For *specular*
@@ -56,12 +57,12 @@ The paper does not state its screen kernel (sigma_s, radius); the defaults here,
 
 Background pixels (``mesh_id == 0``) are returned unfiltered and are never used as taps; taps
 outside the image are skipped (no clamping / mirroring). A pixel with a NaN / Inf in a guide
-the filter reads (``normal``, ``depth``; ``position`` and ``roughness`` for the lobes) is
-treated as background.
+the filter reads (``normal``, ``depth``; ``roughness`` for the lobes) is treated as
+background.
 
 Reads: the five radiance components, ``albedo_diffuse``, ``albedo_specular``, ``normal``,
 ``depth``, ``mesh_id`` and, for ``weight="lobe"`` or ``"screen"`` (with a specular channel),
-``position``, ``roughness`` and the camera.
+``roughness`` and the camera (with ``meta["jitter"]`` when present).
 Produces: the RGB image (H, W, 3).
 
 Parameter sweeps: ``sigma_n2``, ``beta`` and ``k_s`` may also be passed as opaque Dr.Jit
@@ -90,6 +91,7 @@ from .common import (
     lobe_tap_weight,
     merge,
     pixel_guides,
+    pixel_view_directions,
     remodulate,
     split,
     tap_channels,
@@ -114,7 +116,8 @@ SIGMA_MIN = 0.5
 WEIGHTS = ("normal", "lobe", "screen")
 
 __all__ = ["BETA", "KAPPA", "K_S", "RADIUS", "SIGMA_MIN", "SIGMA_N2", "SIGMA_S", "SIGMA_Z2",
-           "WEIGHTS", "bilateral", "pixel_angle", "screen_sigma", "view_directions"]
+           "WEIGHTS", "bilateral", "pixel_angle", "pixel_view_directions", "screen_sigma",
+           "view_directions"]
 
 
 def pixel_angle(frame) -> float:
@@ -172,7 +175,7 @@ def bilateral(frame, weight: str = "normal",
     use_screen = weight == "screen" and any_specular
     needs = [*RADIANCE, *sorted(set(albedo_of.values())), "normal", "depth", "mesh_id"]
     if use_lobe or use_screen:
-        needs += ["position", "roughness"]
+        needs += ["roughness"]
     check_frame(frame, needs)
     h, w = frame.height, frame.width
     grid = Grid(w, h)
@@ -182,7 +185,7 @@ def bilateral(frame, weight: str = "normal",
     hit, zkey, normal = g.hit, g.z, g.normal  # z = -1 marks background
     n_p = mi.Vector3f(*normal)
     if use_lobe or use_screen:
-        wo = view_directions(frame, g.position, "weight='lobe' or 'screen'")
+        wo = pixel_view_directions(frame, grid, "weight='lobe' or 'screen'")
         # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
         xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, g.roughness, ndf_sharpness)
         xi_p = dr.select(hit, xi_p, mi.Vector3f(0.0, 0.0, 1.0))

@@ -6,11 +6,13 @@ channel (``Img`` = list of channels). Neighbour access gathers with clamped coor
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..brdf.sg import lobe_tap_log_scale, lobe_tap_sharpness, lobe_tap_terms, lobe_weight
 from ..errors import FrameError, GlossrtError
@@ -182,18 +184,17 @@ class PixelGuides:
     hit: mi.Bool
     z: mi.Float  # the depth, -1 on background
     normal: Img
-    position: Img | None = None
     roughness: mi.Float | None = None
 
 
 def pixel_guides(frame, lobes: bool) -> PixelGuides:
-    """A frame's hit mask, depth, normal and, with ``lobes``, position and roughness. Input
-    hygiene: a pixel with a non-finite guide is background (never a tap or sample, keeps its
-    own radiance), its guides those of background (docs/FORMATS.md)."""
-    normal, z, mesh, pos, alpha, ok = _guides(frame, lobes, lobes)
+    """A frame's hit mask, depth, normal and, with ``lobes``, roughness (the lobes' view
+    directions come from the camera, :func:`pixel_view_directions`). Input hygiene: a pixel
+    with a non-finite guide is background (never a tap or sample, keeps its own radiance),
+    its guides those of background (docs/FORMATS.md)."""
+    normal, z, mesh, _, alpha, ok = _guides(frame, False, lobes)
     hit = (mesh > 0) & (z > 0) & ok
     return PixelGuides(hit, dr.select(hit, z, -1.0), [dr.select(hit, c, 0.0) for c in normal],
-                       None if pos is None else [dr.select(hit, c, 0.0) for c in pos],
                        None if alpha is None else dr.select(hit, alpha, 0.0))
 
 
@@ -212,6 +213,49 @@ def albedo_channel(channel: str, who: str) -> str:
             f"{who}: cannot use {channel!r}; choose among "
             f"{', '.join(c for c in RADIANCE if c != 'emission')}")
     return "albedo_specular" if channel.endswith("specular") else "albedo_diffuse"
+
+
+def frame_jitter(frame) -> tuple[float, float]:
+    """The sub-pixel offset ``meta["jitter"]`` (pixels) of the frame's primary rays, (0, 0)
+    when absent; a FrameError naming the file when it is not ``[x, y]``."""
+    j = (frame.meta or {}).get("jitter", (0.0, 0.0))
+    try:
+        jx, jy = (float(v) for v in j)
+    except (TypeError, ValueError):
+        raise FrameError(f"{frame.where}: meta 'jitter' must be [x, y], got {j!r}") from None
+    if not (math.isfinite(jx) and math.isfinite(jy)):
+        raise FrameError(f"{frame.where}: meta 'jitter' must be finite, got {j!r}")
+    return jx, jy
+
+
+def pixel_view_directions(frame, grid: Grid, purpose: str = "this filter") -> mi.Vector3f:
+    """Per-pixel ``wo`` (world space, unit): from the surface a pixel sees towards the camera,
+    i.e. its primary ray reversed, through the pixel centre plus ``meta["jitter"]``
+    (:func:`frame_jitter`). The ray inverts :meth:`glossrt.frame.Camera.project`: in camera
+    space it is ``(t (1 - 2 px / W), t (H - 2 py) / W, 1)``, ``t = tan(fov / 2)``, ``(px,
+    py)`` the sample in the camera's ``W x H`` pixels (a frame of another size is scaled).
+
+    For a pinhole G-buffer this is ``normalize(camera position - position)`` (tested against
+    it on rendered frames) without reading ``position``: on the CPU the three strided reads
+    of that channel cost more than this affine map (measured, docs/PERFORMANCE.md). The map's
+    nine coefficients are opaque (a moving camera does not recompile kernels)."""
+    cam = frame.camera
+    if cam is None:
+        raise FrameError(f"{frame.where}: {purpose} needs the camera (view directions)")
+    jx, jy = frame_jitter(frame)
+    cw, chh = cam.resolution
+    sx, sy = cw / frame.width, chh / frame.height
+    t = math.tan(math.radians(cam.fov) / 2.0)
+    rot = np.asarray(cam.to_world, np.float64)[:3, :3]
+    # camera-space direction of pixel (x, y): affine in x and y (Camera.project inverted)
+    step_x = rot @ np.array([-2.0 * t * sx / cw, 0.0, 0.0])
+    step_y = rot @ np.array([0.0, -2.0 * t * sy / cw, 0.0])
+    origin = rot @ np.array([t * (1.0 - 2.0 * (0.5 + jx) * sx / cw),
+                             t * (chh - 2.0 * (0.5 + jy) * sy) / cw, 1.0])
+    a, b, c = opaque(step_x), opaque(step_y), opaque(origin)
+    x, y = mi.Float(grid.x), mi.Float(grid.y)
+    d = mi.Vector3f(*(dr.fma(x, a[k], dr.fma(y, b[k], c[k])) for k in range(3)))
+    return -dr.normalize(d)
 
 
 def view_directions(frame, position, purpose: str = "this filter") -> mi.Vector3f:

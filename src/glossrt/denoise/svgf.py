@@ -42,10 +42,10 @@ from .common import (
     gbuffer,
     luminance,
     merge,
+    pixel_view_directions,
     remodulate,
     require_camera,
     split,
-    view_directions,
 )
 
 #: the signals filtered separately: (radiance channels summed, albedo channels summed)
@@ -387,7 +387,7 @@ class SVGF:
         if self.params.spatial == "dammertz":
             names.add("position")
         if self.params.weights == "lobe":
-            names.update(("position", "roughness"))
+            names.add("roughness")
         return tuple(sorted(names))
 
     def _is_cut(self, frame) -> bool:
@@ -399,10 +399,11 @@ class SVGF:
 
     def _lobes(self, frame, gb: GBuffer) -> dict:
         """Each pixel's GGX lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009), from
-        the G-buffer's (hygienic) normal, position and roughness."""
+        the G-buffer's (hygienic) normal and roughness and the pixels' camera rays
+        (:func:`~glossrt.denoise.common.pixel_view_directions`)."""
         from ..brdf.sg import ggx_lobe_to_sg
 
-        wo = view_directions(frame, gb.position, "weights='lobe'")
+        wo = pixel_view_directions(frame, Grid(frame.width, frame.height), "weights='lobe'")
         n = mi.Vector3f(*gb.normal)
         axis, lam = ggx_lobe_to_sg(n, wo, gb.roughness)
         return {"lobe_axis": [axis[0], axis[1], axis[2]], "lobe_sharpness": lam,
@@ -420,7 +421,7 @@ class SVGF:
         grid = Grid(w, h)
         dammertz, lobe = self.params.spatial == "dammertz", self.params.weights == "lobe"
         # input hygiene: pixels with non-finite guides become background (common.gbuffer)
-        gb = gbuffer(frame, grid, with_position=dammertz or lobe, with_roughness=lobe)
+        gb = gbuffer(frame, grid, with_position=dammertz, with_roughness=lobe)
         emission, bad_e = finite(split(frame["emission"]))
         ch = {
             "signals": [_signal(frame, rad, alb) for rad, alb in

@@ -44,11 +44,13 @@ low-resolution frames with a sub-pixel jitter that cycles over frames
 samples at every sub-position, as Herzog's method does.
 
 Reads: the full frame's radiance components, albedos, ``normal``, ``depth``, ``mesh_id`` (and
-``position``, ``roughness``, camera for lobes; ``motion`` for the temporal upsampler); the low
-frame's listed components, albedos, ``normal``, ``depth``, ``mesh_id`` (and ``position``,
-``roughness``, camera for lobes) and ``meta["jitter"]`` when present. A pixel with a NaN / Inf
-in a guide read (``normal``, ``depth``; ``position``, ``roughness`` for lobes) is treated as
-background on either side; the spatio-temporal upsampler refuses frames without a camera.
+``roughness`` and the camera for lobes; ``motion`` for the temporal upsampler); the low
+frame's listed components, albedos, ``normal``, ``depth``, ``mesh_id`` (and ``roughness`` and
+the camera for lobes) and ``meta["jitter"]`` when present. The lobes' view directions are the
+pixels' camera rays (:func:`~glossrt.denoise.common.pixel_view_directions`), so ``position``
+is not read. A pixel with a NaN / Inf in a guide read (``normal``, ``depth``; ``roughness``
+for lobes) is treated as background on either side; the spatio-temporal upsampler refuses
+frames without a camera.
 """
 
 from __future__ import annotations
@@ -71,15 +73,16 @@ from .common import (
     check_frame,
     demodulate,
     finite,
+    frame_jitter,
     lobe_tap_weight,
     merge,
     pixel_guides,
+    pixel_view_directions,
     remodulate,
     require_camera,
     split,
     tap_channels,
     tap_sharpness,
-    view_directions,
 )
 
 #: default screen kernel in *low-resolution* pixels, and the window half width (2r x 2r taps)
@@ -139,7 +142,7 @@ class _Guides:
         hit, n = pg.hit, mi.Vector3f(*pg.normal)
         g = _Guides(hit, pg.z, n)
         if lobes:
-            wo = view_directions(frame, pg.position, "weight='lobe'")
+            wo = pixel_view_directions(frame, Grid(frame.width, frame.height), "weight='lobe'")
             xi, lam = ggx_lobe_to_sg(n, wo, pg.roughness)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
             # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
@@ -154,20 +157,11 @@ def _check(frame, low, channels, weight) -> tuple[tuple, dict, bool]:
     channels = tuple(dict.fromkeys(channels))
     albedo_of = {c: albedo_channel(c, "upsample") for c in channels}
     use_lobe = weight == "lobe" and any(c.endswith("specular") for c in channels)
-    geo = ["normal", "depth", "mesh_id"] + (["position", "roughness"] if use_lobe else [])
+    geo = ["normal", "depth", "mesh_id"] + (["roughness"] if use_lobe else [])
     check_frame(frame, [*RADIANCE, *sorted(set(albedo_of.values())), *geo])
     check_frame(low, [*channels, *sorted(set(albedo_of.values())), *geo])
     factor_of(frame, low)
     return channels, albedo_of, use_lobe
-
-
-def _low_jitter(low) -> tuple[float, float]:
-    j = (low.meta or {}).get("jitter", (0.0, 0.0))
-    try:
-        jx, jy = (float(v) for v in j)
-    except (TypeError, ValueError):
-        raise FrameError(f"{low.where}: meta 'jitter' must be [x, y], got {j!r}") from None
-    return jx, jy
 
 
 def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, sigma_n2,
@@ -176,7 +170,7 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     weight sum per channel."""
     f = factor_of(frame, low)
     grid, lgrid = Grid(frame.width, frame.height), Grid(low.width, low.height)
-    jx, jy = _low_jitter(low)
+    jx, jy = frame_jitter(low)
     hi = _Guides.of(frame, use_lobe, kappa)
     lo = _Guides.of(low, use_lobe, kappa)
     # position of each full-resolution pixel centre in low-resolution pixel-index units
@@ -348,7 +342,7 @@ class SpatioTemporalUpsampler:
         size = (frame.width, frame.height)
         grid = Grid(*size)
         # its geometry for the consistency tests: background where _Guides.of says so
-        gb = gbuffer(frame, grid, with_position=use_lobe, with_roughness=use_lobe)
+        gb = gbuffer(frame, grid, with_roughness=use_lobe)
         n = size[0] * size[1]
         if self._history is None or self._size != size:
             zero = dr.zeros(mi.Float, n)
