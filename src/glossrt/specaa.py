@@ -84,7 +84,7 @@ import mitsuba as mi  # noqa: E402
 
 from .brdf import covariance_ggx as cggx  # noqa: E402
 from .brdf.ggx import fresnel_schlick  # noqa: E402
-from .denoise.common import check_frame, merge  # noqa: E402
+from .denoise.common import check_frame, merge, split  # noqa: E402
 from .errors import FrameError, GlossrtError  # noqa: E402
 from .jit import no_gc, opaque  # noqa: E402
 from .lights import analytic  # noqa: E402
@@ -325,21 +325,16 @@ def _quad(ch: dict, sp: ShadingPoints, cam: mi.Point3f, size: tuple[int, int],
     def partner(ip):
         ok = sp.hit & (dr.gather(mi.Float, mesh, ip) == mesh) & (
             ip != dr.arange(mi.UInt32, w * h))
-        n = dr.select(ok, mi.Vector3f(*_gather3(ch["normal"], ip)), sp.n)
+        n = dr.select(ok, mi.Vector3f(*split(ch["normal"], ip)), sp.n)
         if not positions:
             return n, sp.p, ok
-        return n, dr.select(ok, mi.Point3f(*_gather3(ch["position"], ip)), sp.p), ok
+        return n, dr.select(ok, mi.Point3f(*split(ch["position"], ip)), sp.p), ok
 
     (nx, px, okx), (ny, py, oky) = partner(ix), partner(iy)
     q = _Quad(sp, frame.s, frame.t, nx, ny, px, py, cam, okx, oky)
     if positions:
         q.frames = tuple((transport(q.t, sp.n, n), transport(q.b, sp.n, n)) for n in (nx, ny))
     return q
-
-
-def _gather3(t: mi.TensorXf, index: mi.UInt32) -> list:
-    """The three components of the (H, W, 3) tensor ``t`` at the flat pixel ``index``."""
-    return [dr.gather(mi.Float, t.array, 3 * index + k) for k in range(3)]
 
 
 def _half(p: mi.Point3f, cam: mi.Point3f, light, kind: str) -> mi.Vector3f:

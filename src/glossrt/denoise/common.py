@@ -49,10 +49,11 @@ class Grid:
         return (x >= 0) & (x < self.w) & (y >= 0) & (y < self.h)
 
 
-def split(t: mi.TensorXf) -> Img:
-    """(H, W, C) tensor -> C flat channels."""
+def split(t: mi.TensorXf, index: mi.UInt32 | None = None) -> Img:
+    """(H, W, C) tensor -> C flat channels: every pixel's, or those of the flat pixel
+    indices ``index``."""
     h, w, c = t.shape
-    idx = dr.arange(mi.UInt32, h * w) * c
+    idx = (dr.arange(mi.UInt32, h * w) if index is None else index) * c
     return [dr.gather(mi.Float, t.array, idx + k) for k in range(c)]
 
 

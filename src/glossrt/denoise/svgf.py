@@ -397,13 +397,13 @@ class SVGF:
         return not (np.allclose(a, b, atol=1e-5) and
                     abs(self._camera.fov - frame.prev_camera.fov) < 1e-6)
 
-    def _lobes(self, frame, gb: GBuffer) -> dict:
+    def _lobes(self, frame, grid: Grid, gb: GBuffer) -> dict:
         """Each pixel's GGX lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009), from
         the G-buffer's (hygienic) normal and roughness and the pixels' camera rays
         (:func:`~glossrt.denoise.common.pixel_view_directions`)."""
         from ..brdf.sg import ggx_lobe_to_sg
 
-        wo = pixel_view_directions(frame, Grid(frame.width, frame.height), "weights='lobe'")
+        wo = pixel_view_directions(frame, grid, "weights='lobe'")
         n = mi.Vector3f(*gb.normal)
         axis, lam = ggx_lobe_to_sg(n, wo, gb.roughness)
         return {"lobe_axis": [axis[0], axis[1], axis[2]], "lobe_sharpness": lam,
@@ -433,7 +433,7 @@ class SVGF:
         if dammertz:
             ch["position"] = gb.position
         if lobe:
-            ch.update(self._lobes(frame, gb))
+            ch.update(self._lobes(frame, grid, gb))
         hist = self.history or _empty_history(len(ch["signals"]), w * h)
         if self.history is None:
             ch["motion"] = [_zeros(w * h) + 1e9 for _ in range(2)]  # nothing to reproject onto

@@ -137,12 +137,12 @@ class _Guides:
     lam: mi.Float | None = None
 
     @staticmethod
-    def of(frame, lobes: bool, kappa: float | None = KAPPA) -> _Guides:
+    def of(frame, grid: Grid, lobes: bool, kappa: float | None = KAPPA) -> _Guides:
         pg = pixel_guides(frame, lobes)  # non-finite guides: background (never a sample)
         hit, n = pg.hit, mi.Vector3f(*pg.normal)
         g = _Guides(hit, pg.z, n)
         if lobes:
-            wo = pixel_view_directions(frame, Grid(frame.width, frame.height), "weight='lobe'")
+            wo = pixel_view_directions(frame, grid, "weight='lobe'")
             xi, lam = ggx_lobe_to_sg(n, wo, pg.roughness)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
             # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
@@ -171,8 +171,8 @@ def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, 
     f = factor_of(frame, low)
     grid, lgrid = Grid(frame.width, frame.height), Grid(low.width, low.height)
     jx, jy = frame_jitter(low)
-    hi = _Guides.of(frame, use_lobe, kappa)
-    lo = _Guides.of(low, use_lobe, kappa)
+    hi = _Guides.of(frame, grid, use_lobe, kappa)
+    lo = _Guides.of(low, lgrid, use_lobe, kappa)
     # position of each full-resolution pixel centre in low-resolution pixel-index units
     u = (mi.Float(grid.x) + 0.5) / f - 0.5 - jx
     v = (mi.Float(grid.y) + 0.5) / f - 0.5 - jy
