@@ -144,24 +144,30 @@ def test_fresnel_schlick_rgb() -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def test_shipped_table_layout(table: ggx.SpecularAlbedoTable) -> None:
-    with np.load(ggx.default_table_path()) as f:
+@pytest.mark.parametrize("k, distribution", [(0, "ggx"), (1, "beckmann")])
+def test_shipped_table_layout(table: ggx.SpecularAlbedoTable, k: int, distribution: str) -> None:
+    """The loaded tables are the shipped files, GGX first, then Beckmann."""
+    with np.load(ggx.default_table_path(distribution)) as f:
         data = f["table"]
         mu, alpha = ggx.grid_nodes(data.shape[1], data.shape[0])
         assert data.dtype == np.float32
         assert np.allclose(f["mu"], mu) and np.allclose(f["alpha"], alpha)
         assert int(f["samples"]) == ggx.DEFAULT_SAMPLES
     assert (table.n_alpha, table.n_mu) == data.shape[:2] == (ggx.DEFAULT_N_ALPHA, ggx.DEFAULT_N_MU)
-    assert np.array_equal(table.numpy(), data)
+    assert table.n_d == 2
+    assert np.array_equal(table.numpy()[k], data)
     assert np.all(np.isfinite(data)) and np.all(data >= 0.0) and np.all(data.sum(-1) <= 1.0 + 1e-6)
     assert ggx.SpecularAlbedoTable.load() is table  # cached
 
 
-def test_regenerated_cells_reproduce_shipped_table(table: ggx.SpecularAlbedoTable) -> None:
+@pytest.mark.parametrize("k, distribution", [(0, "ggx"), (1, "beckmann")])
+def test_regenerated_cells_reproduce_shipped_table(table: ggx.SpecularAlbedoTable, k: int,
+                                                   distribution: str) -> None:
     """A 5 x 5 grid shares every 16th node of the 65 x 65 one; same Hammersley set, so the
     values agree to float32 rounding."""
-    small = ggx.generate_albedo_table(n_mu=5, n_alpha=5, samples=ggx.DEFAULT_SAMPLES)
-    shipped = table.numpy()
+    small = ggx.generate_albedo_table(n_mu=5, n_alpha=5, samples=ggx.DEFAULT_SAMPLES,
+                                      distribution=distribution)
+    shipped = table.numpy()[k]
     step_a = (table.n_alpha - 1) // 4
     step_m = (table.n_mu - 1) // 4
     assert np.abs(shipped[::step_a, ::step_m] - small).max() < 1e-6
@@ -237,16 +243,19 @@ def test_table_matches_independent_uniform_mc(table: ggx.SpecularAlbedoTable) ->
     assert se.max() < 2e-3  # the test has teeth
 
 
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
 @pytest.mark.parametrize("alpha", [0.05, 0.2, 0.5])
-def test_table_matches_mitsuba_roughconductor(table: ggx.SpecularAlbedoTable, alpha: float) -> None:
+def test_table_matches_mitsuba_roughconductor(table: ggx.SpecularAlbedoTable, alpha: float,
+                                              distribution: str) -> None:
     """(b) A + B (F0 = 1) equals the albedo of Mitsuba's roughconductor with a perfect mirror
-    Fresnel (eta = 0, k = 1), estimated from bsdf.sample weights (visible-normal sampling)."""
-    bsdf = mi.load_dict(
-        {"type": "roughconductor", "distribution": "ggx", "alpha": alpha, "eta": 0.0, "k": 1.0}
-    )
+    Fresnel (eta = 0, k = 1), estimated from bsdf.sample weights (visible-normal sampling),
+    for each distribution (the Beckmann lanes read the Beckmann table)."""
+    bsdf = mi.load_dict({"type": "roughconductor", "distribution": distribution,
+                         "alpha": alpha, "eta": 0.0, "k": 1.0})
     mus = [0.07, 0.23, 0.5, 0.81, 0.97]
     mean, se = _mitsuba_albedo(bsdf, mus, 1 << 18, mi.BSDFContext(), seed=3)
-    got = table.lookup(mi.Float(mus), mi.Float(alpha), mi.Color3f(1.0)).x.numpy()
+    beck = mi.Bool(distribution == "beckmann")
+    got = table.lookup(mi.Float(mus), mi.Float(alpha), mi.Color3f(1.0), beck).x.numpy()
     tol = 4.0 * se + 2.0 * interp_bound(np.array(mus), alpha) + 1e-4  # 1e-4: float32 sums
     assert np.all(np.abs(got - mean) <= tol), (got - mean, tol)
     assert se.max() < 1e-3

@@ -189,3 +189,20 @@ def test_prefiltered_levels_equal_scipys_gaussian_filter():
         want = gaussian_filter(img, sigma, mode="constant")[::step, ::step]
         got = strided_gaussian(23, sigma, step) @ img @ strided_gaussian(37, sigma, step).T
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
+def test_accuracy_groups_by_lobe_share_and_view(distribution):
+    """The accuracy experiment reports per roughness, per share of the lobe a polygon catches
+    and per view angle; the share and view groups partition the cases, and every group's
+    mass error stays within half the worst fit error L1 of its distribution's table (0.5 x
+    1.01 for Beckmann's grazing column)."""
+    from glossrt.ltc_experiments import SHARES, VIEWS, accuracy, accuracy_markdown
+
+    acc = accuracy(80, m=96, distribution=distribution)
+    assert sum(v["cases"] for v in acc["share"].values()) == 80
+    assert sum(v["cases"] for v in acc["view"].values()) == 80
+    assert len(acc["share"]) == len(SHARES) and len(acc["view"]) == len(VIEWS)
+    assert all(v["mass_max"] <= 0.51 for v in acc["share"].values() if v["cases"])
+    md = accuracy_markdown(acc)
+    assert "share of the lobe" in md and "view angle" in md

@@ -15,6 +15,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from glossrt import scenes  # noqa: E402
+from glossrt.brdf.fresnel import split_sum  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
 from glossrt.render import Renderer  # noqa: E402
 from glossrt.render.materials import (  # noqa: E402
@@ -241,12 +242,19 @@ def test_specular_albedo_uses_the_mapped_normal(setup, frame0, renderer):
     n = frame0.numpy("normal").reshape(-1, 3)[pixels].astype(np.float64)
     cos_m = np.sum(n * -_np(ray.d), -1)
     cos_s = np.abs(np.array(mi.Frame3f.cos_theta(si.wi)))
-    f0 = renderer.shapes.materials["floor"].f0
+    mat = renderer.shapes.materials["floor"]
+    fr = mat.fresnel
     table = renderer.table
 
     def lookup(cos):
+        # the split-sum table (GGX: the floor declares it) with the exact conductor Fresnel
+        # at the lobe's effective angle, as glossrt.brdf.fresnel.split_sum
         c = mi.Float(np.maximum(cos, 1e-4).astype(np.float32))
-        return _np(table.lookup(c, mi.Float(L.NORMAL_MAPPED_ALPHA_FLOOR), mi.Color3f(*f0)))
+        assert mat.distribution == "ggx"
+        ab = table.lookup_ab(c, mi.Float(L.NORMAL_MAPPED_ALPHA_FLOOR), mi.Bool(False))
+        e = split_sum(ab.x + ab.y, ab.y, fr.kind, mi.Color3f(*fr.eta), mi.Color3f(*fr.k),
+                      mi.Color3f(*fr.scale), mi.Color3f(*fr.f0))
+        return _np(e)
 
     got = frame0.numpy("albedo_specular").reshape(-1, 3)[pixels]
     want = np.where((cos_m > 0)[:, None], lookup(cos_m), 0.0)

@@ -280,7 +280,7 @@ def ltc(ctx: BenchContext) -> dict:
     from .lights.ltc import shade_tensor
     from .lights.mc import render_mc
     from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
+    from .lights.shading import fresnel_image
 
     w, h = ctx.size
     setup = scenes.load("polygon-light", size=(w, h), frames=4)
@@ -288,7 +288,7 @@ def ltc(ctx: BenchContext) -> dict:
     inputs = []
     for i in range(4):
         gb = r.render(i)
-        inputs.append((gb, polygon_lights(setup, i), f0_image(setup, gb)))
+        inputs.append((gb, polygon_lights(setup, i), fresnel_image(setup, gb)))
     state = {"k": 0}
 
     def step(frozen):
@@ -366,7 +366,7 @@ def bspvt(ctx: BenchContext) -> dict:
     from .lights.ltc import shade_frame
     from .lights.ratio import render_ratio
     from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
+    from .lights.shading import fresnel_image
     from .lights.shadows import build_scene_trees, shade_bspvt
 
     w, h = ctx.size
@@ -378,7 +378,7 @@ def bspvt(ctx: BenchContext) -> dict:
     engines = _bspvt_engines(setup.scene, 64 if w >= 320 else 8, 512 if w >= 320 else 16)
     gb = render.Renderer(setup).render(0)
     lights = polygon_lights(setup, 0)
-    f0 = f0_image(setup, gb)
+    f0 = fresnel_image(setup, gb)
     cases = {}
     for mode in ("vertex", "pixel"):
         for kind, kw in (("", {}), ("-wavefront", {"traversal": "wavefront"}),

@@ -107,7 +107,7 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
     from .lights.mc import render_mc
     from .lights.ratio import render_ratio
     from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
+    from .lights.shading import fresnel_image
     from .lights.shadows import build_scene_trees, shade_bspvt
 
     say = progress or (lambda _m: None)
@@ -123,7 +123,7 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
             say(f"alpha {a:g}, frame {fi}: references ({ref_spp} spp) and methods")
             gb = r.render(fi)
             lights = polygon_lights(setup, fi)
-            f0 = f0_image(setup, gb)
+            f0 = fresnel_image(setup, gb)
             ref = render_mc(gb, lights, ref_spp, f0=f0, scene=setup.scene, seed=11)
             ref_u = render_mc(gb, lights, ref_spp, f0=f0, seed=11)
             shade_bspvt(setup.scene, gb, trees, lights, "pixel", f0=f0)  # warm kernels

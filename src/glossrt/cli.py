@@ -120,6 +120,10 @@ def cmd_render(args) -> int:
             raise GlossrtError("--specaa shades 1 spp frames; its supersampled reference is "
                                "`glossrt experiment --which specaa`")
     setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
+    if args.specaa is not None:
+        from .lights.shading import check_isotropic
+
+        check_isotropic(setup)  # before any frame is rendered
     r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
     out = _writable_dir(args.out)
     todo = list(range(args.start, args.start + args.frames, args.every))
@@ -289,13 +293,15 @@ def _experiment_ltc(out, size, spp: int, polygons: int, published: str | None) -
         (out / "ltc_published.json").write_text(json.dumps(cmp, indent=2, default=str))
         parts.append("## glossrt's fit vs the published table\n\n" + le.published_markdown(cmp))
     if polygons > 0:
-        print(f"accuracy: {polygons} random polygons against the quadrature ...", flush=True)
-        acc = cmp["polygons"]["glossrt"] if cmp else le.accuracy(polygons)
-        rows = ["| alpha | cases | median | p90 | p99 |", "|---|---|---|---|---|"]
-        rows += [f"| {k} | {v['count']} | {v['median']:.3f} | {v['p90']:.3f} | {v['p99']:.3f} |"
-                 for k, v in acc.items()]
-        parts.insert(0, "## polygon_integral vs quadrature (relative error)\n\n"
-                     + "\n".join(rows))
+        for dist in ("beckmann", "ggx"):
+            print(f"accuracy ({dist}): {polygons} random polygons against the quadrature ...",
+                  flush=True)
+            acc = (cmp["polygons"]["glossrt"] if cmp and dist == "ggx"
+                   else le.accuracy(polygons, distribution=dist))
+            (out / f"ltc_accuracy_{dist}.json").write_text(json.dumps(acc, indent=2,
+                                                                      default=str))
+            parts.insert(0, f"## polygon_integral vs quadrature, {dist}\n\n"
+                         + le.accuracy_markdown(acc))
     print(f"images at {size[0]}x{size[1]}, references {spp} spp ...", flush=True)
     res = le.images(size=size, ref_spp=spp, textured=True, progress=print)
     res.montage(out / "ltc_images.png")
@@ -387,7 +393,7 @@ def cmd_light(args) -> int:
     from .lights import mc as lmc
     from .lights.ltc import shade_frame
     from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
+    from .lights.shading import check_isotropic, fresnel_image
     from .progress import Progress
     from .report.page import tonemap
 
@@ -406,6 +412,7 @@ def cmd_light(args) -> int:
         trees = BSPVT.load(args.bspvt)
     size = scenes.parse_size(args.size) if args.size else None
     setup = scenes.load(args.scene, size=size, frames=args.frames)
+    check_isotropic(setup)  # before any work or output
     r = render.Renderer(setup, seed=args.seed)
     out = _writable_dir(args.out)
     cache: dict = {}
@@ -420,7 +427,7 @@ def cmd_light(args) -> int:
             if not lights:
                 raise GlossrtError(f"{setup.name}: no polygon lights (area emitters on "
                                    "rectangles or small planar meshes) in this scene")
-            f0 = f0_image(setup, gb)
+            f0 = fresnel_image(setup, gb)
             t0 = time.perf_counter()
             if args.method == "ltc":
                 img = shade_frame(gb, lights, f0=f0, textures=cache)
@@ -455,7 +462,8 @@ def cmd_light(args) -> int:
                                     progress=lambda d, n, i=i: p.update(i * n + d))
             times.append(time.perf_counter() - t0)
             ch = {k: gb[k] for k in ("albedo_diffuse", "normal", "position", "depth",
-                                     "roughness", "mesh_id", "motion")}
+                                     "roughness", "distribution", "mesh_id", "motion")
+                  if k in gb.names}
             ch["color"] = img
             meta = {"scene": setup.name, "method": args.method, "lights": len(lights),
                     "shadows": (args.method in ("bspvt", "ratio")

@@ -63,6 +63,7 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "position": _XYZ,
     "depth": ("Z",),
     "roughness": ("Y",),
+    "distribution": ("Y",),
     "mesh_id": ("Y",),
     "motion": ("X", "Y"),
 }

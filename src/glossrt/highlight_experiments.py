@@ -26,11 +26,11 @@ SAMPLE_COUNTS = (1, 4, 16, 64)
 def _frame(size, frame_index: int = 0):
     from . import render, scenes
     from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
+    from .lights.shading import fresnel_image
 
     setup = scenes.load("light-shapes", size=size)
     gb = render.Renderer(setup).render(frame_index)
-    return setup, gb, polygon_lights(setup, frame_index), f0_image(setup, gb)
+    return setup, gb, polygon_lights(setup, frame_index), fresnel_image(setup, gb)
 
 
 @dataclass

@@ -52,16 +52,29 @@ def random_polygons(rng: np.random.Generator, k: int) -> list[tuple]:
     return cases
 
 
-def accuracy(n: int = 2000, seed: int = 5, m: int = 400, table=None) -> dict:
-    """Relative error statistics of LTC's polygon integral (see the module docstring);
-    cases whose exact value is below 1e-3 of the largest are left out (relative error of
-    nothing). Returns {"all": stats, 0.1: stats, ...} with stats median / p90 / p99 / count.
-    ``table``: the LTC table to score (default glossrt's, see :func:`load_published_table`)."""
+#: lobe-share groups of :func:`accuracy`: the part of the lobe's mass a polygon catches
+SHARES = ((0.0, 0.01, "< 1%"), (0.01, 0.1, "1-10%"), (0.1, 0.5, "10-50%"), (0.5, 2.0, "> 50%"))
+#: view-angle groups of :func:`accuracy` (degrees)
+VIEWS = ((0.0, 30.0), (30.0, 60.0), (60.0, 80.0), (80.0, 90.0))
+
+
+def accuracy(n: int = 2000, seed: int = 5, m: int = 400, table=None,
+             distribution: str = "ggx") -> dict:
+    """Error statistics of LTC's polygon integral for ``distribution``'s lobe (see the
+    module docstring), grouped by roughness, by the share of the lobe's mass the polygon
+    catches (``exact / norm``) and by view angle. Per group: the relative error's median /
+    p90 / p99 over cases whose exact value is at least 1e-3 of the largest (relative error
+    of nothing is meaningless), and the mass error ``|LTC - exact| / norm``'s median and
+    max over all cases (bounded by half the fit's L1 error). Returns {"all": stats,
+    0.1: stats, ..., "share": {label: stats}, "view": {label: stats}}. ``table``: the LTC
+    table to score (default glossrt's, see :func:`load_published_table`)."""
     from .lights.ltc import polygon_integral
+    from .lights.ltc_fit import brdf_moments
     from .lights.quadrature import polygon_quadrature
 
     cases = random_polygons(np.random.default_rng(seed), n)
-    want = np.array([polygon_quadrature(v, wo, nn, a, m=m) for v, wo, nn, a in cases])
+    want = np.array([polygon_quadrature(v, wo, nn, a, m=m, distribution=distribution)
+                     for v, wo, nn, a in cases])
     got = np.zeros(len(cases))
     groups: dict[int, list[int]] = {}
     for i, c in enumerate(cases):
@@ -71,21 +84,49 @@ def accuracy(n: int = 2000, seed: int = 5, m: int = 400, table=None) -> dict:
                                     np.array([cases[i][2] for i in idx]),
                                     np.array([cases[i][1] for i in idx]),
                                     np.array([cases[i][3] for i in idx]), two_sided=False,
-                                    table=table)
+                                    table=table, distribution=distribution)
     alphas = np.array([c[3] for c in cases])
+    cos_o = np.array([float(c[1] @ c[2]) for c in cases])
+    norm = brdf_moments(alphas, cos_o, 1 << 12, distribution)["norm"]
+    share = want / norm
+    view = np.degrees(np.arccos(np.clip(cos_o, -1.0, 1.0)))
     sig = want > 1e-3 * want.max()
     rel = np.abs(got / np.where(sig, want, 1.0) - 1)
+    mass = np.abs(got - want) / norm
 
     def stats(mask):
         r = rel[mask & sig]
         med, p90, p99 = np.percentile(r, [50, 90, 99]) if r.size else (np.nan,) * 3
+        ms = mass[mask]
         return {"median": float(med), "p90": float(p90), "p99": float(p99),
-                "count": int(r.size)}
+                "count": int(r.size), "cases": int(mask.sum()),
+                "mass_median": float(np.median(ms)) if ms.size else float("nan"),
+                "mass_max": float(ms.max()) if ms.size else float("nan")}
 
-    out = {"all": stats(np.ones(len(cases), bool))}
+    out: dict = {"all": stats(np.ones(len(cases), bool))}
     for a in ALPHAS:
         out[a] = stats((alphas > 0.75 * a) & (alphas < 1.25 * a))
+    out["share"] = {lab: stats((share >= lo) & (share < hi)) for lo, hi, lab in SHARES}
+    out["view"] = {f"{lo:g}-{hi:g} deg": stats((view >= lo) & (view < hi)) for lo, hi in VIEWS}
     return out
+
+
+def accuracy_markdown(acc: dict) -> str:
+    """The tables of :func:`accuracy`: by roughness, by lobe share, by view angle."""
+    head = ("| {} | cases (rel.) | median rel. error | p90 | p99 | mass error median | "
+            "mass error max |\n|---|---|---|---|---|---|---|")
+
+    def row(k, v):
+        return (f"| {k} | {v['cases']} ({v['count']}) | {v['median']:.3f} | {v['p90']:.3f} | "
+                f"{v['p99']:.3f} | {v['mass_median']:.2e} | {v['mass_max']:.3f} |")
+
+    parts = [head.format("alpha") + "\n" + "\n".join(
+        row(k, v) for k, v in acc.items() if k not in ("share", "view"))]
+    parts.append(head.format("share of the lobe") + "\n" + "\n".join(
+        row(k, v) for k, v in acc["share"].items()))
+    parts.append(head.format("view angle") + "\n" + "\n".join(
+        row(k, v) for k, v in acc["view"].items()))
+    return "\n\n".join(parts)
 
 
 # Heitz et al.'s fit (selfshadow/ltc_code, fitLTC.cpp): rows at alpha = max(r^2, 1e-5)
@@ -125,10 +166,10 @@ def load_published_table(path: str | Path):
     t1 = parts["g_ltc_1"].reshape(n, n, 4).transpose(1, 0, 2)
     t2 = parts["g_ltc_2"].reshape(n, n, 4).transpose(1, 0, 2)
     m00, m20, m02, m22 = (t1[..., k] for k in range(4))
-    if not np.all(np.isfinite(t1)) or np.any(m22 == 0.0):
+    if not np.all(np.isfinite(t1)):
         raise GlossrtError(f"{path}: non-finite or singular matrices in g_ltc_1")
-    # glossrt's canonical M^-1 = [[a, 0, b], [0, c, 0], [d, 0, 1]] (normalised by (2, 2))
-    coeffs = np.stack([m00 / m22, m02 / m22, 1.0 / m22, m20 / m22], -1)
+    # glossrt's canonical M^-1 = [[a, 0, b], [0, 1, 0], [c, 0, d]]: the same normalisation
+    coeffs = np.stack([m00, m02, m20, m22], -1)
     return LTCTable.from_arrays(coeffs, t2[..., 0], t2[..., 1], PUBLISHED_ALPHA_MIN)
 
 
@@ -281,7 +322,7 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
     from .lights.ltc import shade_frame
     from .lights.mc import render_mc
     from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
+    from .lights.shading import fresnel_image
 
     say = progress or (lambda _m: None)
     res = LTCImageResults(tuple(size), ref_spp)
@@ -294,7 +335,7 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
         setup = scenes.load(name, size=size)
         gb = render.Renderer(setup).render(frame)
         lights = polygon_lights(setup, frame)
-        f0 = f0_image(setup, gb)
+        f0 = fresnel_image(setup, gb)
         cache: dict = {}
         ltc, ltc_ms = _timed(lambda gb=gb, lights=lights, f0=f0, cache=cache:
                              shade_frame(gb, lights, f0=f0, textures=cache))

@@ -51,7 +51,9 @@ References:
     E. Heitz, "Sampling the GGX Distribution of Visible Normals", JCGT 7(4), 2018.
     J. Hammersley, D. Handscomb, "Monte Carlo Methods", 1964 (Hammersley point set).
 
-Regenerate the shipped table with ``python -m glossrt.brdf.ggx``.
+Regenerate the shipped tables with ``python -m glossrt.brdf.ggx [--distribution beckmann]``
+(``data/ggx_albedo.npz``, ``data/beckmann_albedo.npz``: Beckmann's ``D`` and ``G1`` of
+:mod:`glossrt.brdf.microfacet`, the same grid and Fresnel split).
 """
 
 from __future__ import annotations
@@ -104,8 +106,6 @@ DEFAULT_N_MU = 65
 DEFAULT_N_ALPHA = 65
 #: Hammersley points per cell for the shipped table (power of two).
 DEFAULT_SAMPLES = 1 << 16
-
-_TABLE_FILE = "ggx_albedo.npz"
 
 F = TypeVar("F")  # a Dr.Jit floating point array type (mi.Float, Float64, ...)
 
@@ -215,6 +215,7 @@ def vndf_quadrature(
     alpha: Any,
     weights: Callable[[Any], Sequence[Any]],
     samples: int = DEFAULT_SAMPLES,
+    distribution: str = "ggx",
 ) -> list[np.ndarray]:
     """Integrate ``weights(wo.h) * f_spec cos_i / F`` over the hemisphere at arbitrary points.
 
@@ -234,6 +235,10 @@ def vndf_quadrature(
             [``ALPHA_MIN``, 1]).
         weights: maps ``c = wo.h`` to a sequence of weights (Dr.Jit float64 arrays).
         samples: Hammersley points per point; a power of two.
+        distribution: ``"ggx"`` (the above) or ``"beckmann"``: Beckmann's ``D`` and ``G1``
+            (:mod:`glossrt.brdf.microfacet`), half vectors drawn from ``D(h) cos(theta_h)``,
+            estimator ``w(wo.h) G1(wo) G1(wi) wo.h / (cos_o cos_h)`` (Walter et al. 2007,
+            eq. 38).
 
     Returns:
         One float64 numpy array per weight, one value per point.
@@ -245,6 +250,9 @@ def vndf_quadrature(
     if mu_np.shape != al_np.shape:
         raise ValueError("mu and alpha must have the same number of elements")
     n_pts = mu_np.size
+    from . import microfacet as mf
+
+    beck = mf.code(distribution) == mf.BECKMANN
     f64 = _float64_t()
     u32 = mi.UInt32
     log2n = samples.bit_length() - 1
@@ -267,11 +275,13 @@ def vndf_quadrature(
         wx = dr.sqrt(dr.maximum(1.0 - m * m, 0.0))
         wz = m
         zero = dr.zeros(f64, dr.width(m))
-        hx, hy, hz = sample_vndf(wx, zero, wz, a, u1, u2)
+        hx, hy, hz = mf.sample_h(wx, zero, wz, a, u1, u2, beck)
         c = wx * hx + wz * hz  # wo.h (= wi.h)
         wi_z = 2.0 * c * hz - wz
         # G1(wi), with Mitsuba's orientation check (wi.h and n.wi of the same sign).
-        g1 = dr.select(c > 0.0, G1_smith(wi_z, a), 0.0)
+        g1 = dr.select(c > 0.0, mf.G1(wi_z, a, beck), 0.0)
+        if beck:  # Walter et al. 2007, eq. 38 with the reflection Jacobian
+            g1 = g1 * mf.G1(wz, a, True) * c / (wz * dr.maximum(hz, 1e-30))
         sums = [dr.block_sum(f64(w) * g1, samples) / samples for w in weights(c)]
         dr.eval(sums)
         if not out:
@@ -281,7 +291,8 @@ def vndf_quadrature(
     return out
 
 
-def albedo_ab(mu: Any, alpha: Any, samples: int = DEFAULT_SAMPLES) -> tuple[np.ndarray, np.ndarray]:
+def albedo_ab(mu: Any, alpha: Any, samples: int = DEFAULT_SAMPLES,
+              distribution: str = "ggx") -> tuple[np.ndarray, np.ndarray]:
     """Integrate ``A(mu, alpha)`` and ``B(mu, alpha)`` at arbitrary points.
 
     ``A`` weights the GGX lobe with ``1 - (1 - wo.h)^5`` and ``B`` with ``(1 - wo.h)^5``, so that
@@ -293,7 +304,7 @@ def albedo_ab(mu: Any, alpha: Any, samples: int = DEFAULT_SAMPLES) -> tuple[np.n
         w5 = fresnel_schlick(c, 0.0)  # (1 - c)^5
         return 1.0 - w5, w5
 
-    a, b = vndf_quadrature(mu, alpha, ab, samples)
+    a, b = vndf_quadrature(mu, alpha, ab, samples, distribution)
     return a, b
 
 
@@ -311,7 +322,8 @@ def grid_nodes(n_mu: int, n_alpha: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def generate_albedo_table(
-    n_mu: int = DEFAULT_N_MU, n_alpha: int = DEFAULT_N_ALPHA, samples: int = DEFAULT_SAMPLES
+    n_mu: int = DEFAULT_N_MU, n_alpha: int = DEFAULT_N_ALPHA, samples: int = DEFAULT_SAMPLES,
+    distribution: str = "ggx",
 ) -> np.ndarray:
     """Compute the split-sum table ``(A, B)`` on the grid of :func:`grid_nodes`.
 
@@ -323,7 +335,7 @@ def generate_albedo_table(
     """
     mu, alpha = grid_nodes(n_mu, n_alpha)
     mm, aa = np.meshgrid(mu, alpha[1:])  # (n_alpha - 1, n_mu)
-    a, b = albedo_ab(mm.ravel(), aa.ravel(), samples)
+    a, b = albedo_ab(mm.ravel(), aa.ravel(), samples, distribution)
     table = np.empty((n_alpha, n_mu, 2))
     table[1:] = np.stack([a, b], axis=-1).reshape(n_alpha - 1, n_mu, 2)
     w5 = (1.0 - mu) ** 5
@@ -332,12 +344,17 @@ def generate_albedo_table(
     return table
 
 
-def default_table_path() -> Path:
-    """Path of the shipped table ``glossrt/data/ggx_albedo.npz``."""
-    return Path(str(resources.files("glossrt") / "data" / _TABLE_FILE))
+def default_table_path(distribution: str = "ggx") -> Path:
+    """Path of the shipped table of ``distribution``: ``glossrt/data/ggx_albedo.npz`` or
+    ``beckmann_albedo.npz``."""
+    from . import microfacet as mf
+
+    name = mf.NAMES[mf.code(distribution)]
+    return Path(str(resources.files("glossrt") / "data" / f"{name}_albedo.npz"))
 
 
-def save_table(table: np.ndarray, path: Path | str, samples: int) -> None:
+def save_table(table: np.ndarray, path: Path | str, samples: int,
+               distribution: str = "ggx") -> None:
     """Write a table produced by :func:`generate_albedo_table` with its grid description."""
     n_alpha, n_mu, _ = table.shape
     mu, alpha = grid_nodes(n_mu, n_alpha)
@@ -349,9 +366,10 @@ def save_table(table: np.ndarray, path: Path | str, samples: int) -> None:
         samples=np.int64(samples),
         mu_min=np.float64(MU_MIN),
         alpha_min=np.float64(ALPHA_MIN),
+        distribution=np.array(distribution),
         layout=np.array(
             "table[j, i, c]: alpha_j = (j/(n_alpha-1))^2, mu_i = (i/(n_mu-1))^2, c=0: A, c=1: B; "
-            "E = F0*A + B for GGX + separable Smith G + Schlick Fresnel"
+            f"E = F0*A + B for {distribution} D + separable Smith G + Schlick Fresnel"
         ),
     )
 
@@ -362,46 +380,57 @@ def save_table(table: np.ndarray, path: Path | str, samples: int) -> None:
 
 
 class SpecularAlbedoTable:
-    """The ``(A, B)`` table on the device, with a Dr.Jit bilinear lookup.
+    """The ``(A, B)`` tables on the device, one per distribution, with a Dr.Jit bilinear
+    lookup.
 
-    ``data`` is a flat ``mi.Float`` of length ``n_alpha * n_mu * 2`` (row-major
-    ``[alpha][mu][A, B]``). The class is a Dr.Jit PyTree (``DRJIT_STRUCT``), so instances can be
-    passed to ``dr.freeze``-decorated functions, loops and vcalls: ``data`` is traversed as a
-    variable and the integer sizes are hashed (a table of another size re-traces).
+    ``data`` is a flat ``mi.Float`` of length ``n_d * n_alpha * n_mu * 2`` (row-major
+    ``[distribution][alpha][mu][A, B]``; the shipped pair is GGX, then Beckmann). The class
+    is a Dr.Jit PyTree (``DRJIT_STRUCT``), so instances can be passed to
+    ``dr.freeze``-decorated functions, loops and vcalls: ``data`` is traversed as a variable
+    and the integer sizes are hashed (a table of another size re-traces).
     ``DRJIT_STRUCT`` names the ``mi.Float`` of the variant active when this module was first
     imported (glossrt selects one variant per process).
     """
 
-    DRJIT_STRUCT = {"data": mi.Float, "n_mu": int, "n_alpha": int}
+    DRJIT_STRUCT = {"data": mi.Float, "n_mu": int, "n_alpha": int, "n_d": int}
 
-    def __init__(self, data: mi.Float | None = None, n_mu: int = 0, n_alpha: int = 0) -> None:
+    def __init__(self, data: mi.Float | None = None, n_mu: int = 0, n_alpha: int = 0,
+                 n_d: int = 1) -> None:
         self.data = data if data is not None else mi.Float()
         self.n_mu = int(n_mu)
         self.n_alpha = int(n_alpha)
+        self.n_d = int(n_d)
 
     @classmethod
     def from_array(cls, table: np.ndarray) -> SpecularAlbedoTable:
-        """Build from an ``(n_alpha, n_mu, 2)`` array laid out as :func:`generate_albedo_table`."""
+        """Build from an ``(n_alpha, n_mu, 2)`` array laid out as :func:`generate_albedo_table`
+        (or ``(n_d, n_alpha, n_mu, 2)``: GGX, then Beckmann)."""
         table = np.asarray(table, dtype=np.float32)
-        if table.ndim != 3 or table.shape[2] != 2 or min(table.shape[:2]) < 2:
+        if table.ndim == 3:
+            table = table[None]
+        if table.ndim != 4 or table.shape[3] != 2 or min(table.shape[1:3]) < 2:
             raise ValueError(f"expected an (n_alpha, n_mu, 2) table, got {table.shape}")
-        n_alpha, n_mu, _ = table.shape
+        n_d, n_alpha, n_mu, _ = table.shape
         data = mi.Float(np.ascontiguousarray(table).ravel())
         dr.make_opaque(data)
-        return cls(data, n_mu, n_alpha)
+        return cls(data, n_mu, n_alpha, n_d)
 
     @classmethod
     def load(cls, path: Path | str | None = None) -> SpecularAlbedoTable:
-        """Load the shipped table (or ``path``); cached per path and Mitsuba variant."""
-        p = str(Path(path).resolve()) if path is not None else str(default_table_path())
+        """The shipped tables of GGX and Beckmann (or the one table at ``path``); cached per
+        path and Mitsuba variant."""
+        p = str(Path(path).resolve()) if path is not None else ""
         return _load_cached(p, mi.variant())
 
     def numpy(self) -> np.ndarray:
-        """The table as an ``(n_alpha, n_mu, 2)`` float32 array."""
-        return np.asarray(self.data.numpy()).reshape(self.n_alpha, self.n_mu, 2)
+        """The tables as an ``(n_d, n_alpha, n_mu, 2)`` float32 array."""
+        return np.asarray(self.data.numpy()).reshape(self.n_d, self.n_alpha, self.n_mu, 2)
 
-    def lookup_ab(self, cos_o: mi.Float, alpha: mi.Float) -> mi.Vector2f:
-        """Bilinearly interpolated ``(A, B)`` at ``mu = cos_o`` and GGX roughness ``alpha``.
+    def lookup_ab(self, cos_o: mi.Float, alpha: mi.Float,
+                  beckmann: mi.Bool | None = None) -> mi.Vector2f:
+        """Bilinearly interpolated ``(A, B)`` at ``mu = cos_o`` and roughness ``alpha``, from
+        the Beckmann table where ``beckmann`` (per lane; a table of one distribution ignores
+        it) and the GGX one elsewhere.
 
         Interpolation is bilinear in ``(sqrt(mu), sqrt(alpha))``, the table's grid. Inputs are
         clamped to the grid: ``mu`` to [0, 1] (NaN and negative values read the grazing column)
@@ -420,29 +449,36 @@ class SpecularAlbedoTable:
         tx = x - mi.Float(i0)
         ty = y - mi.Float(j0)
         base = j0 * n_mu + i0
+        if beckmann is not None and self.n_d > 1:
+            base = base + dr.select(beckmann, n_alpha * n_mu, 0)
         v00 = dr.gather(mi.Vector2f, self.data, base)
         v10 = dr.gather(mi.Vector2f, self.data, base + 1)
         v01 = dr.gather(mi.Vector2f, self.data, base + n_mu)
         v11 = dr.gather(mi.Vector2f, self.data, base + n_mu + 1)
         return dr.lerp(dr.lerp(v00, v10, tx), dr.lerp(v01, v11, tx), ty)
 
-    def lookup(self, cos_o: mi.Float, alpha: mi.Float, f0: mi.Color3f) -> mi.Color3f:
-        """Directional albedo ``E = F0 A + B`` of the GGX lobe for RGB ``f0``.
+    def lookup(self, cos_o: mi.Float, alpha: mi.Float, f0: mi.Color3f,
+               beckmann: mi.Bool | None = None) -> mi.Color3f:
+        """Directional albedo ``E = F0 A + B`` of the lobe for RGB ``f0``.
 
-        See :meth:`lookup_ab` for the interpolation and clamping.
+        See :meth:`lookup_ab` for the interpolation, clamping and ``beckmann``.
         """
-        ab = self.lookup_ab(cos_o, alpha)
+        ab = self.lookup_ab(cos_o, alpha, beckmann)
         return mi.Color3f(f0) * ab.x + ab.y
 
     def __repr__(self) -> str:
-        return f"SpecularAlbedoTable(n_alpha={self.n_alpha}, n_mu={self.n_mu})"
+        return (f"SpecularAlbedoTable(n_d={self.n_d}, n_alpha={self.n_alpha}, "
+                f"n_mu={self.n_mu})")
 
 
 @functools.lru_cache(maxsize=8)
 def _load_cached(path: str, variant: str) -> SpecularAlbedoTable:
-    with np.load(path, allow_pickle=False) as f:
-        table = f["table"]
-    return SpecularAlbedoTable.from_array(table)
+    paths = [path] if path else [str(default_table_path(d)) for d in ("ggx", "beckmann")]
+    tables = []
+    for p in paths:
+        with np.load(p, allow_pickle=False) as f:
+            tables.append(f["table"])
+    return SpecularAlbedoTable.from_array(np.stack(tables))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -451,19 +487,20 @@ def _load_cached(path: str, variant: str) -> SpecularAlbedoTable:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Regenerate ``glossrt/data/ggx_albedo.npz`` (``python -m glossrt.brdf.ggx``)."""
+    """Regenerate ``glossrt/data/<distribution>_albedo.npz`` (``python -m glossrt.brdf.ggx``)."""
     ap = argparse.ArgumentParser(prog="python -m glossrt.brdf.ggx", description=main.__doc__)
     ap.add_argument("--out", type=Path, default=None, help="output .npz (default: shipped file)")
     ap.add_argument("--n-mu", type=int, default=DEFAULT_N_MU)
     ap.add_argument("--n-alpha", type=int, default=DEFAULT_N_ALPHA)
     ap.add_argument("--samples", type=int, default=DEFAULT_SAMPLES, help="power of two")
+    ap.add_argument("--distribution", choices=("ggx", "beckmann"), default="ggx")
     args = ap.parse_args(argv)
-    out = args.out or default_table_path()
+    out = args.out or default_table_path(args.distribution)
     t0 = time.perf_counter()
-    table = generate_albedo_table(args.n_mu, args.n_alpha, args.samples)
+    table = generate_albedo_table(args.n_mu, args.n_alpha, args.samples, args.distribution)
     dt = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_table(table, out, args.samples)
+    save_table(table, out, args.samples, args.distribution)
     mu, _ = grid_nodes(args.n_mu, args.n_alpha)
     limit = np.abs(table[0, :, 1] - (1.0 - mu) ** 5).max()
     print(

@@ -89,6 +89,7 @@ from .ltc import (  # noqa: E402
     _device_lights,
     _integrals,
     _local,
+    _mask,
     _table,
     _tex_eval,
     _tex_plane,
@@ -1060,9 +1061,9 @@ def _shade_core(dev: DeviceTrees, lights: list, sp: ShadingPoints, idx: list, w:
     ``direct``: call :func:`_fused_integrals` without :func:`visible_integrals`' checks (no
     host synchronisation: what :data:`_shade_frozen` records)."""
     cos_o = dr.clip(dr.dot(sp.n, sp.wo), 0.0, 1.0)
-    coeffs, norm, fres = table.lookup(sp.alpha, cos_o)
-    # as ltc.shade_frame: Schlick split of the fit, int f F cos = F0 (norm - fres) + fres
-    spec_w = sp.f0 * (norm - fres) + fres
+    coeffs, norm, fres = table.lookup(sp.alpha, cos_o, _mask(sp.beckmann))
+    # as ltc.shade_frame: the fit's split sum, int f F cos per unit D integral
+    spec_w = sp.spec_weight(norm, fres)
     m = len(idx)
     if m == 1:
         lane_q, tree = dr.arange(mi.UInt32, width), idx[0]
@@ -1186,7 +1187,8 @@ def _np_vec(name: str, x: Any, rows: int, cols: int | None = 3) -> np.ndarray:
 
 
 
-def _points(p, n, wo, alpha, albedo, f0, rows: int, hit=None) -> ShadingPoints:
+def _points(p, n, wo, alpha, albedo, f0, rows: int, hit=None,
+            beckmann=None) -> ShadingPoints:
     from ..brdf.ggx import ALPHA_MIN
 
     p = _np_vec("positions", p, rows)
@@ -1211,7 +1213,17 @@ def _points(p, n, wo, alpha, albedo, f0, rows: int, hit=None) -> ShadingPoints:
                          _dr_vec(mi.Vector3f, wo),
                          owned(mi.Float, np.maximum(alpha, ALPHA_MIN)),
                          _dr_vec(mi.Color3f, albedo), _dr_vec(mi.Color3f, f0),
-                         owned(mi.UInt32, ok) != 0)
+                         owned(mi.UInt32, ok) != 0, _beckmann_lanes(beckmann, rows))
+
+
+def _beckmann_lanes(beckmann: Any, rows: int) -> mi.Bool | bool:
+    """A ``ShadingPoints.beckmann`` from a bool or a (rows,) array (``None``: GGX)."""
+    if beckmann is None or np.ndim(beckmann) == 0:
+        return bool(beckmann)
+    b = np.asarray(beckmann, bool)
+    if b.shape != (rows,):
+        raise GlossrtError(f"beckmann must have shape ({rows},), got {b.shape}")
+    return owned(mi.UInt32, b) != 0
 
 
 def _np_color(c: mi.Color3f) -> np.ndarray:
@@ -1220,12 +1232,13 @@ def _np_color(c: mi.Color3f) -> np.ndarray:
 
 def shade_vertices(trees: Any, lights: Sequence, wo: Any, alpha: Any, albedo: Any,
                    f0: Any = None, textures: dict | None = None, traversal: str = "kernel",
-                   frozen: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                   frozen: bool = False, beckmann: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """The paper's per-vertex shading (Okuno & Iwasaki, sec. 3.3): each vertex shaded at its
     own position and normal (``trees.positions``, ``trees.normals``) with its own tree.
 
-    ``wo`` (V, 3) view directions (towards the viewer), ``alpha`` (V,) GGX roughness (or a
-    scalar), ``albedo`` and ``f0`` (V, 3); ``traversal`` and ``frozen`` as
+    ``wo`` (V, 3) view directions (towards the viewer), ``alpha`` (V,) microfacet roughness
+    (or a scalar), ``albedo`` and ``f0`` (V, 3); ``beckmann`` (V,) or a bool: Beckmann's
+    distribution instead of GGX (default GGX); ``traversal`` and ``frozen`` as
     :func:`shade_points`.
     Returns (diffuse, specular), (V, 3) float32 each (:func:`shade_points`; 0 where the view
     is below the vertex's tangent plane)."""
@@ -1233,7 +1246,7 @@ def shade_vertices(trees: Any, lights: Sequence, wo: Any, alpha: Any, albedo: An
     nv = dev.n_vertices
     pos = np.stack([np.asarray(dev.positions[c], np.float64) for c in range(3)], -1)
     nrm = np.stack([np.asarray(dev.normals[c], np.float64) for c in range(3)], -1)
-    sp = _points(pos, nrm, wo, alpha, albedo, f0, nv)
+    sp = _points(pos, nrm, wo, alpha, albedo, f0, nv, beckmann=beckmann)
     d, s = shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)], textures=textures,
                         traversal=traversal, frozen=frozen)
     return _np_color(d), _np_color(s)

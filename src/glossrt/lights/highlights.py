@@ -35,11 +35,12 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick, sample_vndf  # noqa: E402
+from ..brdf import microfacet as mf  # noqa: E402
+from ..brdf.ggx import ALPHA_MIN  # noqa: E402
 from ..denoise.common import check_frame, merge, split  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..jit import opaque  # noqa: E402
-from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices, smith_lambda  # noqa: E402
+from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices  # noqa: E402
 
 
 def shade_plain(frame, lights: list, f0: np.ndarray | None = None) -> np.ndarray:
@@ -113,10 +114,11 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
         for h, w in hs:
             l = el.reflect(v, h)  # noqa: E741
             g = el.geometric_attenuation(n, h, v, l)
-            f = fresnel_schlick(dr.dot(v, h), sp.f0)
+            f = sp.fresnel_at(dr.dot(v, h))
             total += f * (g * w) * env(l, 0.0)
         return total
-    # GGX: visible normals (Heitz 2018) + filtered importance sampling (Colbert & Krivanek 2007)
+    # the pixel's microfacet lobe (GGX: visible normals, Heitz 2018; Beckmann: D cos, Walter
+    # et al. 2007) + filtered importance sampling (Colbert & Krivanek 2007)
     from .envmap import fis_lod
 
     frame = mi.Frame3f(n)
@@ -124,19 +126,18 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     a = max(alpha, ALPHA_MIN) if isinstance(alpha, float) else dr.maximum(alpha, ALPHA_MIN)
     for k in range(samples):
         u1, u2 = el.hash_uniforms(pix_idx, offset + k, frame_index)
-        hx, hy, hz = sample_vndf(vl.x, vl.y, vl.z, a, u1, u2)
+        hx, hy, hz = mf.sample_h(vl.x, vl.y, vl.z, a, u1, u2, sp.beckmann)
         hl = mi.Vector3f(hx, hy, hz)
         ll = 2.0 * dr.dot(vl, hl) * hl - vl
         ok = (ll.z > 0) & (vl.z > 0)
         vh = dr.maximum(dr.dot(vl, hl), 1e-8)
-        # pdf of l: D_wo(h) / (4 v.h) = G1(v) D(h) / (4 cos_o)
-        g1v = dr.rcp(1.0 + smith_lambda(vl.z, a))
-        pdf = g1v * D_ggx(hz, a) / (4.0 * dr.maximum(vl.z, 1e-8))
+        # pdf of l: p_h(h) / (4 v.h)
+        pdf = mf.pdf_h(vl.z, vh, hz, a, sp.beckmann) / (4.0 * vh)
         lod = fis_lod(pdf, fis_samples or samples, level0)
-        # weight f cos / pdf = F G2 / G1(v) (height-correlated G2, the shared BRDF)
-        g2 = dr.rcp(1.0 + smith_lambda(vl.z, a) + smith_lambda(dr.maximum(ll.z, 1e-8), a))
-        f = fresnel_schlick(vh, sp.f0)
-        w = dr.select(ok, g2 / g1v, 0.0) / samples
+        # weight f cos / pdf with the shared BRDF (Mitsuba's D and separable Smith term)
+        fc = mf.specular_cos(vl.z, ll.z, hz, a, sp.beckmann)
+        f = sp.fresnel_at(vh)
+        w = dr.select(ok & (pdf > 0), fc / dr.maximum(pdf, 1e-30), 0.0) / samples
         total += f * w * env(frame.to_world(ll), lod)
     return total
 
@@ -272,7 +273,8 @@ class HighlightRenderer:
                  frame_index: int = 0, offset=0, fis_samples: int | None = None) -> np.ndarray:
         """Specular reflection (H, W, 3) of the ``lights`` in ``frame``'s G-buffer through the
         light cube ``maps`` (:meth:`maps`); ``f0`` per pixel (default 0: then only ``F``'s
-        Schlick term lights it; pass :func:`glossrt.lights.shading.f0_image`)."""
+        Fresnel term lights it; pass :func:`glossrt.lights.shading.fresnel_image` for the
+        exact terms or :func:`~glossrt.lights.shading.f0_image` for Schlick's)."""
         from ..brdf import ellipsoidal as el
         from .envmap import cull_mask, light_spheres, lobe_spread
 
@@ -344,9 +346,10 @@ def shade_highlights(setup, frame, frame_index: int = 0, lights: list | None = N
     """One-call form: light cube maps of ``setup`` at ``frame_index`` and the highlights of
     ``frame`` (options of :class:`HighlightRenderer`)."""
     from .scene import polygon_lights
-    from .shading import f0_image
+    from .shading import fresnel_image
 
     lights = polygon_lights(setup, frame_index) if lights is None else lights
     hr = HighlightRenderer(**options)
     maps = hr.maps(setup, frame_index, lights)
-    return hr(frame, lights, maps, f0_image(setup, frame) if f0 is None else f0, frame_index)
+    return hr(frame, lights, maps, fresnel_image(setup, frame) if f0 is None else f0,
+              frame_index)

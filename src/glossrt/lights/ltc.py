@@ -42,7 +42,13 @@ from ..denoise.common import check_frame, merge  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
 from ..jit import no_gc, opaque  # noqa: E402
 from .polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
-from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices  # noqa: E402
+from .shading import (  # noqa: E402
+    NEEDS,
+    ShadingPoints,
+    f0_tensor,
+    light_vertices,
+    shading_channels,
+)
 
 __all__ = ["PrefilteredTexture", "ltc_frame", "polygon_integral", "shade_frame", "shade_tensor"]
 
@@ -72,9 +78,17 @@ def _local(verts_world: Sequence, p, t1, t2, n) -> list:
 
 
 def _apply_minv(coeffs, verts: list) -> list:
-    """``M^-1 v`` with Heitz's canonical ``M^-1 = [[a, 0, b], [0, c, 0], [d, 0, 1]]``."""
+    """``M^-1 v`` with Heitz's canonical ``M^-1 = [[a, 0, b], [0, 1, 0], [c, 0, d]]``
+    (divided by its middle element, :func:`glossrt.lights.ltc_fit.minv_matrix`)."""
     a, b, c, d = coeffs
-    return [mi.Vector3f(a * v.x + b * v.z, c * v.y, d * v.x + v.z) for v in verts]
+    return [mi.Vector3f(a * v.x + b * v.z, v.y, c * v.x + d * v.z) for v in verts]
+
+
+def _mask(beckmann) -> mi.Bool | None:
+    """A per-lane Beckmann mask for table lookups (``None``: every lane GGX)."""
+    if isinstance(beckmann, bool):
+        return mi.Bool(True) if beckmann else None
+    return beckmann
 
 
 def _integrals(local: list, coeffs, two_sided):
@@ -85,16 +99,18 @@ def _integrals(local: list, coeffs, two_sided):
 
 
 def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
-                     table=None) -> np.ndarray:
-    """Integral over the polygon of the GGX BRDF (height-correlated Smith, Fresnel = 1) times
-    the clamped cosine, by LTC: ``norm * int_{M^-1 P} D_o``.
+                     table=None, distribution: str = "ggx") -> np.ndarray:
+    """Integral over the polygon of the microfacet BRDF (``distribution`` ``"ggx"`` or
+    ``"beckmann"``, Mitsuba's separable Smith term, Fresnel = 1) times the clamped cosine, by
+    LTC: ``norm * int_{M^-1 P} D_o``.
 
     NumPy in and out, batched over leading axes: ``vertices`` (..., K, 3) *relative to the
     shading point* (world axes, 3 <= K <= 8), ``normal`` and ``view`` (..., 3) unit vectors
     (``view`` points away from the surface, towards the eye), ``alpha`` (...). Returns (...).
     One-sided polygons emit towards their counter-clockwise side (see
     :mod:`glossrt.lights.polygon`). ``table``: an :class:`~glossrt.lights.ltc_fit.LTCTable`
-    (default: glossrt's shipped fit), e.g. another fit to compare.
+    (default: glossrt's shipped fits), e.g. another fit to compare (a table of one
+    distribution is used as it is).
 
     >>> import numpy as np
     >>> from glossrt.lights.ltc import polygon_integral
@@ -108,6 +124,9 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
         a = np.asarray(alpha, np.float64)
     except (TypeError, ValueError) as e:
         raise GlossrtError(f"polygon_integral: inputs must be numeric arrays: {e}") from e
+    if distribution not in ("ggx", "beckmann"):
+        raise GlossrtError(f"polygon_integral: distribution must be 'ggx' or 'beckmann', "
+                           f"got {distribution!r}")
     if verts.ndim < 2 or verts.shape[-1] != 3 or not K_MIN <= verts.shape[-2] <= K_MAX:
         raise GlossrtError(f"polygon_integral: vertices must be (..., K, 3) with "
                            f"{K_MIN} <= K <= {K_MAX}, got {verts.shape}")
@@ -138,7 +157,9 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
     origin = dr.zeros(mi.Point3f, len(a))
     local = _local([vec(verts[:, j]) for j in range(k)], origin, t1, t2, nd)
     cos_o = dr.clip(dr.dot(nd, wod), 0.0, 1.0)
-    coeffs, norm, _ = (table or _table()).lookup(mi.Float(a.astype(np.float32)), cos_o)
+    coeffs, norm, _ = (table or _table()).lookup(
+        mi.Float(a.astype(np.float32)), cos_o,
+        mi.Bool(True) if distribution == "beckmann" else None)
     i_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
     out = np.array(norm * i_s, dtype=np.float64)
     out[np.array(dr.dot(nd, wod)) <= 0] = 0.0  # view below the surface: no reflection
@@ -288,9 +309,9 @@ def _shade(sp: ShadingPoints, table, lights: list, two_sided: Sequence[bool],
     or ``None``."""
     t1, t2 = ltc_frame(sp.n, sp.wo)
     cos_o = dr.clip(dr.dot(sp.n, sp.wo), 0.0, 1.0)
-    coeffs, norm, fres = table.lookup(sp.alpha, cos_o)
-    # Schlick split of the fit: int f F cos = F0 (norm - fres) + fres (per unit D integral)
-    spec_w = sp.f0 * (norm - fres) + fres
+    coeffs, norm, fres = table.lookup(sp.alpha, cos_o, _mask(sp.beckmann))
+    # the fit's split sum: int f F cos per unit D integral (Schlick, or the exact term)
+    spec_w = sp.spec_weight(norm, fres)
     total = dr.zeros(mi.Color3f, dr.width(sp.p))
     for k, (world, le) in enumerate(lights):
         local = _local(world, sp.p, t1, t2, sp.n)
@@ -343,7 +364,7 @@ def shade_tensor(frame, lights: list, f0: np.ndarray | None = None,
     if frozen and not has_tex:
         if frame.camera is None:
             raise FrameError(f"{frame.where}: polygon-light shading needs the camera")
-        ch = {k: frame[k] for k in NEEDS}
+        ch = shading_channels(frame)
         ch["f0"] = f0_t
         with no_gc():
             return _shade_frozen(ch, opaque(frame.camera.position), dev, two, _table(),
@@ -357,8 +378,8 @@ def shade_tensor(frame, lights: list, f0: np.ndarray | None = None,
 def shade_frame(frame, lights: list, f0: np.ndarray | None = None,
                 textures: dict | None = None, frozen: bool = False) -> np.ndarray:
     """Direct light (H, W, 3) of ``frame``'s G-buffer from the polygon ``lights`` by LTC:
-    GGX specular with Schlick Fresnel (``f0`` per pixel, see
-    :func:`glossrt.lights.shading.f0_image`; default 0) plus Lambertian diffuse
+    GGX or Beckmann specular (the ``distribution`` channel) with Schlick Fresnel (``f0`` per
+    pixel, see :func:`glossrt.lights.shading.f0_image`; default 0) plus Lambertian diffuse
     (``albedo_diffuse``), unshadowed. Lights: objects with ``vertices`` (K, 3) world space,
     ``radiance`` RGB, ``two_sided``, optional ``texture`` (H, W, 3) and ``uv`` (K, 2)
     (:class:`glossrt.lights.scene.PolygonLight`). ``textures``: a cache {id(light texture):

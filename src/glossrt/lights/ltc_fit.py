@@ -1,4 +1,5 @@
-"""Linearly transformed cosines (LTC) fitted to glossrt's GGX specular lobe, and their table.
+"""Linearly transformed cosines (LTC) fitted to the GGX and Beckmann lobes Mitsuba renders, and
+their tables.
 
 Heitz, Dupuy, Hill, Neubelt 2016, "Real-time polygonal-light shading with linearly transformed
 cosines" (SIGGRAPH 2016; "HDHN16" below) approximate a BRDF lobe by a *linearly transformed
@@ -15,11 +16,13 @@ integrate the clamped cosine there, sec. 3.2 / 4). :func:`ltc_eval` and :func:`l
 implement both (NumPy or Dr.Jit).
 
 **The lobe.** The BRDF is the specular term of glossrt's polygon-light shading
-(:mod:`glossrt.lights.shading`): GGX ``D`` (Walter et al. 2007, eq. 33) with the
-height-correlated Smith ``G2 = 1 / (1 + Lambda(wo) + Lambda(wi))`` (Heitz 2014, "Understanding
-the masking-shadowing function", eq. 99) and Fresnel = 1, times the clamped cosine:
+(:mod:`glossrt.lights.shading`), the one Mitsuba's ``roughconductor`` / ``roughplastic``
+render: ``D`` GGX (Walter et al. 2007, eq. 33) or Beckmann (eq. 25), one table per
+distribution, with Mitsuba's separable Smith term ``G1(wo) G1(wi)`` (eq. 23; GGX eq. 34,
+Beckmann's rational approximation eq. 27; :mod:`glossrt.brdf.microfacet`) and Fresnel = 1,
+times the clamped cosine:
 
-    rho(wo, wi) cos(theta_i) = D(h) G2(wo, wi) / (4 cos(theta_o))     (Walter et al. 2007, eq. 20)
+    rho(wo, wi) cos(theta_i) = D(h) G1(wo) G1(wi) / (4 cos(theta_o))  (Walter et al. 2007, eq. 20)
 
 for ``wi`` and ``wo`` above the surface, else 0. The view lies in the xz-plane,
 ``wo = (sin theta_o, 0, cos theta_o)``: +x points towards the view's projection on the
@@ -34,18 +37,22 @@ tangent plane (the reflection lobe leans towards -x).
       integral rho F cos(theta_i) dwi = F0 (norm - fres) + fres  (= F0 norm + (1 - F0) fres)
 
   (the split-sum form of Karis 2013; ``norm - fres`` and ``fres`` are ``A`` and ``B`` of
-  :mod:`glossrt.brdf.ggx`, there with the separable Smith form); shading scales the LTC
-  integral (unit mass) by that value;
+  :mod:`glossrt.brdf.ggx`); shading scales the LTC integral (unit mass) by that value;
 * ``minv``: four coefficients ``(a, b, c, d)`` of the inverse matrix in the canonical form of
-  HDHN16 sec. 4 for a view in the xz-plane, normalised so that its (2, 2) entry is 1::
+  HDHN16 sec. 4 for a view in the xz-plane, divided by its middle entry (as HDHN16's public
+  fitting code has done since 2017)::
 
       M^-1 = [[a, 0, b],
-              [0, c, 0],
-              [d, 0, 1]]
+              [0, 1, 0],
+              [c, 0, d]]
 
   (:func:`minv_matrix` rebuilds it; ``D`` is invariant to the scale of ``M^-1``, hence the
   normalisation). The LTC ``D`` with this matrix approximates the *normalised* lobe
-  ``rho cos / norm``.
+  ``rho cos / norm``. The middle entry is ``1 / m22`` (step 2 below), bounded away from 0,
+  so every coefficient stays below 2 (measured: 1.13 GGX, 1.40 Beckmann). Table format 1
+  divided by the (2, 2) entry, ``cos(phi) / ...``, which goes to 0 as the lobe turns to the
+  horizon: it reached 1.2e13 in the grazing corner of smooth lobes (35 cells beyond float16)
+  and is refused by :func:`read_table`.
 
 **Shading frame.** For a shading normal ``n`` and view ``wo`` (world space) take
 ``t1 = normalize(wo - n (n.wo))`` (any tangent when ``wo`` is parallel to ``n``: the lobe is
@@ -55,7 +62,8 @@ then rotationally symmetric), ``t2 = n x t1``; a world direction ``w`` has local
 so ``ltc_eval(M^-1 R, w) = ltc_eval(M^-1, R w)`` and polygons can be transformed by
 ``M^-1 R`` directly.
 
-**Table axes** (``size`` nodes per axis, 64 for the shipped table ``data/ltc_ggx.npz``):
+**Table axes** (``size`` nodes per axis, 64 for the shipped tables ``data/ltc_ggx.npz`` and
+``data/ltc_beckmann.npz``):
 
 * rows ``j``: perceptual roughness ``r_j = j / (size - 1)``, fitted at
   ``alpha_j = max(r_j^2, ALPHA_MIN)``: ``ALPHA_MIN = 1e-4`` is Mitsuba's clamp (and the one
@@ -80,27 +88,33 @@ copied), with one change (step 2: the frame angle is fitted too), per cell:
 
 1. ``norm``, ``fres`` and the lobe's average direction ``integral rho cos wi dwi`` (its y
    component is 0 by symmetry; angle ``avg_phi`` from +z) by deterministic quadrature
-   (:func:`brdf_moments`: a Hammersley set mapped through GGX visible-normal sampling,
-   Heitz 2018, in float64);
+   (:func:`brdf_moments`: a Hammersley set mapped through the lobe's sampling, GGX visible
+   normals (Heitz 2018) or Beckmann ``D cos``, in float64);
 2. ``M = R_y(phi) [[m11, 0, m13], [0, m22, 0], [0, 0, 1]]`` (:func:`ltc_matrix`; ``R_y(phi)``
    turns +z by ``phi`` towards +x). Up to scale this is every matrix of the canonical form
    (an RQ decomposition of its xz block), and ``(M^-1)_22 = cos(phi)``. The four parameters
-   ``(m11, m22, m13, phi)`` minimise
+   ``(m11, m22, m13, phi)`` minimise the L1 error
 
-       E = integral |rho cos / norm - D|^3 dw
+       E1 = integral |rho cos / norm - D| dw      (``metric="l1"``, the shipped tables)
 
-   (the cubed-difference metric of HDHN16's fitting code). That code fixes ``phi`` to the
-   average direction; fitting it as well lowers ``E`` 2-6x at oblique views (measured), as
-   it lets the LTC's own horizon (the great circle where ``(M^-1 w)_z = 0``) follow the
+   which bounds every polygon's error (below), or ``E = integral |rho cos / norm - D|^3 dw``
+   (``metric="l3"``, the cubed-difference metric of HDHN16's fitting code). Measured: L1
+   fits lower the median polygon error of GGX from 0.044 to 0.034 and its 99th percentile
+   from 1.94 to 1.22 (tests/test_ltc.py's 600 polygons), and image errors against
+   Mitsuba's ``direct`` integrator by 10-15% (docs/RESULTS.md). HDHN16's code fixes ``phi``
+   to the average direction; fitting it as well lowers ``E`` 2-6x at oblique views
+   (measured), as it lets the LTC's own horizon (the great circle where
+   ``(M^-1 w)_z = 0``) follow the
    surface's, which clips the lobe. ``E`` is estimated with multiple importance sampling
    (Veach 1997, balance heuristic) from ``n x n`` stratified samples (``n = 64``) of *both*
-   the LTC (:func:`ltc_sample`) and GGX visible normals: each sample ``w`` of either strategy
-   contributes ``|rho cos / norm - D|^3 / (p_brdf(w) + D(w))``. The samples are the same for
+   the LTC (:func:`ltc_sample`) and the lobe (:func:`glossrt.brdf.microfacet.sample_h`: GGX
+   visible normals, Beckmann ``D cos``): each sample ``w`` of either strategy contributes
+   ``|rho cos / norm - D|^k / (p_brdf(w) + D(w))``. The samples are the same for
    every evaluation of a cell, so ``E`` is a smooth deterministic function of the
    parameters. It is evaluated by one Dr.Jit kernel vectorised over the samples, in float64,
    recorded once with ``dr.freeze`` (every parameter is an input array, so no evaluation
    re-traces or recompiles: ~0.23 ms per evaluation on 2 CPU cores, Python included);
-3. SciPy's Nelder-Mead (Nelder & Mead 1965) minimises ``log E`` over
+3. SciPy's Nelder-Mead (Nelder & Mead 1965) minimises ``log E1`` (or ``log E``) over
    ``x = (ln m11, ln m22, m13 / m11, atanh(2 phi / pi))`` (scale-free, so one tolerance
    serves every roughness; ``|phi| < pi/2`` keeps ``(M^-1)_22 > 0``), from a simplex of
    size 0.05 around the start (as HDHN16's code), ``xatol = 1e-4``, ``fatol = 1e-6``, at
@@ -122,24 +136,28 @@ samples: ``err_l3`` (``E`` above) and ``err_l1 = integral |rho cos / norm - D| d
 [0, 2]: twice the total-variation distance between the normalised lobe and the LTC, so
 ``|integral_P rho cos / norm - integral_P D| <= err_l1 / 2`` for every region ``P``).
 
-**Measured** (shipped table, 2-core CPU, ``llvm_ad_rgb``): the full 64 x 64 fit takes 165 s
-(165-190 s over runs; 853k error evaluations). 14 cells stop at the 4000-evaluation cap:
-13 at ``alpha <= 2.5e-4`` where the fit is already near-exact (L1 < 3e-4) and the search
-creeps along a flat valley, and (5, 62) (L1 0.19). Lobe error ``err_l1`` over the cells:
-median 0.038, mean 0.087, 95th percentile 0.36, max 0.93 (the grazing column ``u = 1``;
-without it max 0.73); for views up to 50 degrees (``u <= 0.8``) median 0.033, max 0.24. The
-published fit of HDHN16's code (``fit/results/ltc.js`` of their repository, evaluated with the
-same samples; row 0 excluded, fitted there at ``alpha = 1e-5``) has median 0.057, mean 0.125,
-95th percentile 0.47, and is worse than this table in 3871 of the 4032 cells; their ``norm``
-(32 x 32 samples, float32) differs from ours by median 7e-4, up to 0.065 at grazing, where
-ours agrees with an independent quadrature to 3e-5 (tests/test_ltc_fit.py). Bilinear lookups
-midway between nodes are within 0.006 of the worse neighbouring node's ``err_l1`` for
-``r >= 0.16`` and views up to 80 degrees; for narrower lobes near grazing the lobe moves by
-more than its width between nodes and interpolation degrades (as it does with HDHN16's
-table). The coefficients scale like ``1 / alpha`` (``a ~ 5000`` at ``alpha = 1e-4``); at
-``alpha <= 0.007`` and views beyond 86 degrees ``phi`` approaches ``-pi/2``, so the
-(2, 2)-normalisation divides by ``cos(phi) ~ 0`` and 8 cells exceed 1e6 (up to ~1e13;
-float32 keeps their relative precision, but interpolating towards them is meaningless).
+**Measured** (shipped tables, 2-core CPU, ``llvm_ad_rgb``, 2026-12-01): the 64 x 64 L1 fit
+takes 96 s for GGX (775k error evaluations; 4 cells stop at the 4000-evaluation cap, all at
+``alpha <= 2.5e-4`` where the fit is near-exact) and 107 s for Beckmann (708k). Lobe error
+``err_l1`` over the cells, GGX: median 0.034, mean 0.067, 95th percentile 0.26, max 0.80
+(the grazing column ``u = 1``; without it 0.54); for views up to 69 degrees (``u <= 0.8``)
+median 0.030, max 0.20. Beckmann: median 0.34, mean 0.28, 95th percentile 0.45, max 1.0;
+``u <= 0.8``: median 0.31, max 0.41. No LTC fits a Beckmann lobe as closely as a GGX one:
+GGX's ``D`` is itself a linearly transformed cosine of the normals (HDHN16), Beckmann's has
+Gaussian, not power-law, tails. An independent scan of every scaled cosine against a
+Beckmann lobe at normal incidence (alpha 0.1, float64 quadrature) finds no L1 below 0.342:
+the table's 0.34-0.37 at small alpha is that limit, not a failed fit. It improves towards
+rough lobes (0.01-0.04 at alpha >= 0.6, near normal incidence). (The earlier GGX table,
+height-correlated Smith and L3: median 0.038, 95th percentile 0.36; the published fit of
+HDHN16's code scored with the same samples: median 0.057, 95th percentile 0.47.)
+
+Bilinear lookups midway between nodes (121 midpoints ``r = (j + 1/2) / 63``,
+``u = (i + 1/2) / 63``, ``j, i = 1, 7, ..., 61``): the L1 error at the midpoint exceeds the
+worst of its four nodes by median -0.001, 90th percentile 0.0043 (GGX; Beckmann 0.0002);
+the earlier (2, 2)-normalised table: 90th percentile 0.015, and at views up to 69 degrees a
+worst midpoint L1 of 0.58 against 0.35 now. Near-mirror rows (``r < 0.05``) close to
+grazing still interpolate poorly with either normalisation (a lobe narrower than the node
+spacing moves by more than its width between nodes: L1 up to 1.8 there).
 
 References:
     E. Heitz, J. Dupuy, S. Hill, D. Neubelt, "Real-time polygonal-light shading with linearly
@@ -176,10 +194,11 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 from scipy.optimize import minimize  # noqa: E402
 
-from ..brdf.ggx import ALPHA_MIN, D_ggx, sample_vndf  # noqa: E402
+from ..brdf import microfacet as mf  # noqa: E402
+from ..brdf.ggx import ALPHA_MIN  # noqa: E402
+from ..errors import GlossrtError  # noqa: E402
 from ..jit import no_gc  # noqa: E402
 from ..progress import Progress  # noqa: E402
-from .shading import smith_lambda  # noqa: E402
 
 __all__ = [
     "ALPHA_MIN",
@@ -226,7 +245,10 @@ NM_MAXFEV = 4000
 PHI_X_MAX = 10.0
 _TANH_MAX = math.tanh(PHI_X_MAX)
 
-_TABLE_FILE = "ltc_ggx.npz"
+#: errors a fit can minimise (module docstring)
+METRICS = ("l3", "l1")
+#: layout version of the table files: 2 = ``M^-1`` divided by its middle element
+TABLE_FORMAT = 2
 
 
 def _f64() -> type:
@@ -260,7 +282,8 @@ def node_config(r: Any, u: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def minv_matrix(coeffs: Any) -> Any:
-    """Rebuild ``M^-1 = [[a, 0, b], [0, c, 0], [d, 0, 1]]`` from ``coeffs = (a, b, c, d)``.
+    """Rebuild ``M^-1 = [[a, 0, b], [0, 1, 0], [c, 0, d]]`` from ``coeffs = (a, b, c, d)``
+    (the inverse matrix divided by its middle element, module docstring).
 
     NumPy: ``(..., 4) -> (..., 3, 3)`` float64. Dr.Jit: a 4-vector (``mi.Vector4f``, ...) ->
     the matching 3x3 matrix type (``mi.Matrix3f``, ...), one matrix per lane.
@@ -270,13 +293,13 @@ def minv_matrix(coeffs: Any) -> Any:
         out = np.zeros(c.shape[:-1] + (3, 3))
         out[..., 0, 0] = c[..., 0]
         out[..., 0, 2] = c[..., 1]
-        out[..., 1, 1] = c[..., 2]
-        out[..., 2, 0] = c[..., 3]
-        out[..., 2, 2] = 1.0
+        out[..., 1, 1] = 1.0
+        out[..., 2, 0] = c[..., 2]
+        out[..., 2, 2] = c[..., 3]
         return out
     mat_t = _matrix3_of(type(coeffs))
     a, b, c, d = coeffs[0], coeffs[1], coeffs[2], coeffs[3]
-    return mat_t(a, 0.0, b, 0.0, c, 0.0, d, 0.0, 1.0)
+    return mat_t(a, 0.0, b, 0.0, 1.0, 0.0, c, 0.0, d)
 
 
 def _matrix3_of(vec_t: type) -> type:
@@ -288,12 +311,13 @@ def _matrix3_of(vec_t: type) -> type:
 
 def coeffs_from_minv(minv: np.ndarray) -> np.ndarray:
     """``(..., 3, 3)`` inverse matrices in the xz-plane form -> ``(..., 4)`` coefficients
-    ``(a, b, c, d)`` after dividing by the (2, 2) entry (which must be positive)."""
+    ``(a, b, c, d)`` of :func:`minv_matrix` after dividing by the middle entry (which must be
+    positive: ``1 / m22`` of the fit's parameters)."""
     m = np.asarray(minv, dtype=np.float64)
-    e = m[..., 2, 2]
+    e = m[..., 1, 1]
     if np.any(~(e > 0)):
-        raise ValueError("the (2, 2) entry of M^-1 must be positive")
-    return np.stack([m[..., 0, 0], m[..., 0, 2], m[..., 1, 1], m[..., 2, 0]], -1) / e[..., None]
+        raise ValueError("the middle entry of M^-1 must be positive")
+    return np.stack([m[..., 0, 0], m[..., 0, 2], m[..., 2, 0], m[..., 2, 2]], -1) / e[..., None]
 
 
 def ltc_matrix(m11: float, m22: float, m13: float, phi: float) -> np.ndarray:
@@ -383,22 +407,23 @@ def world_minv(coeffs: mi.Vector4f, n: mi.Vector3f, wo: mi.Vector3f) -> mi.Matri
 
 
 # ----------------------------------------------------------------------------------------------
-# The GGX lobe (height-correlated G2, F = 1) in the local frame, view in the xz-plane
+# The lobe (GGX or Beckmann D, separable Smith G1 G1, F = 1) in the local frame, view in xz
 # ----------------------------------------------------------------------------------------------
 
 
-def _lobe(wox, woz, alpha, lam_o, x, y, z):
-    """``rho cos(theta_i)`` at ``wi = (x, y, z)`` and the density of GGX visible-normal
-    sampling of ``wi`` (Heitz 2018: ``p(wi) = G1(wo) D(h) / (4 cos_o)`` for ``wo.h > 0``)."""
+def _lobe(wox, woz, alpha, beckmann, x, y, z):
+    """``rho cos(theta_i)`` at ``wi = (x, y, z)`` (separable Smith, F = 1) and the density of
+    the BRDF sampling strategy at ``wi`` (:func:`glossrt.brdf.microfacet.pdf_h` over the
+    reflection Jacobian ``4 wo.h``)."""
     hx, hy, hz = wox + x, y, woz + z
     inv = dr.rsqrt(dr.maximum(hx * hx + hy * hy + hz * hz, 1e-300))
     hx, hy, hz = hx * inv, hy * inv, hz * inv
-    d = D_ggx(hz, alpha)
-    visible = (hz > 0.0) & (wox * hx + woz * hz > 0.0)
-    # Heitz 2014, eq. 99: height-correlated G2; Walter et al. 2007, eq. 20 (times cos_i)
-    g2 = dr.rcp(1.0 + lam_o + smith_lambda(z, alpha))
-    f = dr.select(visible & (z > 0.0), d * g2 / (4.0 * woz), 0.0)
-    pdf = dr.select(visible, d / ((1.0 + lam_o) * 4.0 * woz), 0.0)
+    wo_h = wox * hx + woz * hz
+    visible = (hz > 0.0) & (wo_h > 0.0)
+    # Walter et al. 2007, eqs. 20 and 23 (times cos_i): D G1(wo) G1(wi) / (4 cos_o)
+    f = dr.select(visible, mf.specular_cos(woz, z, hz, alpha, beckmann), 0.0)
+    pdf = dr.select(visible, mf.pdf_h(woz, wo_h, hz, alpha, beckmann)
+                    / (4.0 * dr.maximum(wo_h, 1e-300)), 0.0)
     return f, pdf
 
 
@@ -408,20 +433,22 @@ def _hammersley(f64, k, n: int):
     return u1, u2
 
 
-def brdf_moments(alpha: Any, cos_o: Any, samples: int = MOMENT_SAMPLES) -> dict[str, np.ndarray]:
+def brdf_moments(alpha: Any, cos_o: Any, samples: int = MOMENT_SAMPLES,
+                 distribution: str = "ggx") -> dict[str, np.ndarray]:
     """``norm``, ``fres`` and the average direction of the lobe at arbitrary points.
 
     Per point ``(alpha, cos_o)`` (view ``wo = (sin, 0, cos)``): the same ``samples``-point
-    Hammersley set mapped to visible normals (:func:`glossrt.brdf.ggx.sample_vndf`),
-    ``wi = reflect(wo, h)``, weight ``rho cos / p = G2(wo, wi) / G1(wo)
-    = (1 + Lambda(wo)) / (1 + Lambda(wo) + Lambda(wi))`` (0 below the horizon; bounded, so
-    the quadrature converges fast). Float64, vectorised over all points.
+    Hammersley set mapped to half vectors by :func:`glossrt.brdf.microfacet.sample_h` (GGX
+    visible normals, Beckmann ``D cos``), ``wi = reflect(wo, h)``, weight ``rho cos / p``
+    (for GGX ``G1(wi)``, for Beckmann ``G1(wo) G1(wi) wo.h / (cos_o cos_h)``; 0 below the
+    horizon; bounded, so the quadrature converges fast). Float64, vectorised over all points.
 
     Returns float64 arrays ``norm``, ``fres`` and ``dir_x``, ``dir_z`` (the unit average
     direction ``integral rho cos wi dwi`` normalised; its y component is 0 by symmetry).
     """
     if samples <= 0 or samples & (samples - 1):
         raise ValueError(f"samples must be a positive power of two, got {samples}")
+    beck = mf.code(distribution) == mf.BECKMANN
     al = np.asarray(alpha, dtype=np.float64).ravel()
     co = np.asarray(cos_o, dtype=np.float64).ravel()
     if al.shape != co.shape:
@@ -439,12 +466,11 @@ def brdf_moments(alpha: Any, cos_o: Any, samples: int = MOMENT_SAMPLES) -> dict[
         c = dr.gather(f64, f64(co[start:stop]), cell)
         s = dr.sqrt(dr.maximum(1.0 - c * c, 0.0))
         u1, u2 = _hammersley(f64, k, samples)
-        hx, hy, hz = sample_vndf(s, dr.zeros(f64, dr.width(c)), c, a, u1, u2)
+        hx, hy, hz = mf.sample_h(s, dr.zeros(f64, dr.width(c)), c, a, u1, u2, beck)
         cd = s * hx + c * hz  # wo.h = wi.h
         x, z = 2.0 * cd * hx - s, 2.0 * cd * hz - c  # wi (its y component is not needed)
-        lam_o = smith_lambda(c, a)
-        w = dr.select((z > 0.0) & (cd > 0.0),
-                      (1.0 + lam_o) / (1.0 + lam_o + smith_lambda(z, a)), 0.0)
+        f, pdf = _lobe(s, c, a, beck, x, 2.0 * cd * hy, z)
+        w = dr.select((pdf > 0.0) & (z > 0.0), f / dr.select(pdf > 0.0, pdf, 1.0), 0.0)
         m = 1.0 - dr.clip(cd, 0.0, 1.0)
         m5 = m * m * m * m * m
         sums = {
@@ -467,8 +493,8 @@ def brdf_moments(alpha: Any, cos_o: Any, samples: int = MOMENT_SAMPLES) -> dict[
 # ----------------------------------------------------------------------------------------------
 
 # Layout of the per-evaluation parameter array of the error kernel.
-_P_ALPHA, _P_WOX, _P_WOZ, _P_INVNORM, _P_M, _P_MINV, _P_DET = 0, 1, 2, 3, 4, 13, 22
-_P_SIZE = 23
+_P_ALPHA, _P_WOX, _P_WOZ, _P_INVNORM, _P_M, _P_MINV, _P_DET, _P_BECK = 0, 1, 2, 3, 4, 13, 22, 23
+_P_SIZE = 24
 
 
 def _error_kernel(u1, u2, p):
@@ -487,10 +513,10 @@ def _error_kernel(u1, u2, p):
     m = [[g(_P_M + 3 * r + c) for c in range(3)] for r in range(3)]
     minv = [[g(_P_MINV + 3 * r + c) for c in range(3)] for r in range(3)]
     det = g(_P_DET)
-    lam_o = smith_lambda(woz, alpha)
+    beck = g(_P_BECK) > 0.5  # the distribution: an array entry, so one recording serves both
 
     def terms(x, y, z):
-        f, p_brdf = _lobe(wox, woz, alpha, lam_o, x, y, z)
+        f, p_brdf = _lobe(wox, woz, alpha, beck, x, y, z)
         f = f * inv_norm
         d = _ltc_eval_xyz(minv, det, x, y, z)
         den = p_brdf + d  # balance heuristic, one sample per strategy (Veach 1997, sec. 9.2)
@@ -508,8 +534,8 @@ def _error_kernel(u1, u2, p):
     z = m[2][0] * ox + m[2][1] * oy + m[2][2] * oz
     inv = dr.rsqrt(x * x + y * y + z * z)
     e3a, e1a = terms(x * inv, y * inv, z * inv)
-    # strategy 2: GGX visible normals (Heitz 2018), reflected
-    hx, hy, hz = sample_vndf(wox, dr.zeros(f64, dr.width(u1)), woz, alpha, u1, u2)
+    # strategy 2: the BRDF's (GGX visible normals, Heitz 2018; Beckmann D cos), reflected
+    hx, hy, hz = mf.sample_h(wox, dr.zeros(f64, dr.width(u1)), woz, alpha, u1, u2, beck)
     cd = wox * hx + woz * hz
     e3b, e1b = terms(2.0 * cd * hx - wox, 2.0 * cd * hy, 2.0 * cd * hz - woz)
     return e3a + e3b, e1a + e1b
@@ -533,9 +559,14 @@ class _Objective:
     """The fit error of one cell as a function of the LTC parameters ``x``."""
 
     def __init__(self, alpha: float, cos_o: float, norm: float, isotropic: bool,
-                 n: int = FIT_SAMPLES, frozen: bool = True):
+                 n: int = FIT_SAMPLES, frozen: bool = True, distribution: str = "ggx",
+                 metric: str = "l3"):
+        if metric not in METRICS:
+            raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
+        self.metric = metric
         self.base = np.zeros(_P_SIZE)
         self.base[_P_ALPHA] = alpha
+        self.base[_P_BECK] = float(mf.code(distribution) == mf.BECKMANN)
         self.base[_P_WOX] = math.sqrt(max(1.0 - cos_o * cos_o, 0.0))
         self.base[_P_WOZ] = cos_o
         self.base[_P_INVNORM] = 1.0 / norm
@@ -583,8 +614,9 @@ class _Objective:
         return float(np.sum(e3.numpy())) / n, float(np.sum(e1.numpy())) / n
 
     def __call__(self, x: np.ndarray) -> float:
-        e3 = self.errors(x)[0]
-        return math.log(e3) if e3 > 0.0 and math.isfinite(e3) else 1e300
+        e3, e1 = self.errors(x)
+        e = e1 if self.metric == "l1" else e3
+        return math.log(e) if e > 0.0 and math.isfinite(e) else 1e300
 
 
 @dataclass
@@ -619,7 +651,8 @@ def average_phi(moments: dict[str, float]) -> float:
 
 def fit_cell(alpha: float, cos_o: float, start: Any, *, isotropic: bool = False,
              moments: dict[str, float] | None = None, fit_samples: int = FIT_SAMPLES,
-             moment_samples: int = MOMENT_SAMPLES, frozen: bool = True) -> CellFit:
+             moment_samples: int = MOMENT_SAMPLES, frozen: bool = True,
+             distribution: str = "ggx", metric: str = "l1") -> CellFit:
     """Fit the LTC of one cell (module docstring, steps 1-3).
 
     Args:
@@ -635,11 +668,14 @@ def fit_cell(alpha: float, cos_o: float, start: Any, *, isotropic: bool = False,
         fit_samples: ``n`` of the ``n x n`` stratified samples per strategy.
         moment_samples: Hammersley points for the moments.
         frozen: evaluate through the ``dr.freeze`` recording (the default) or trace each call.
+        distribution: ``"ggx"`` or ``"beckmann"``.
+        metric: the error minimised, ``"l3"`` (``E``, HDHN16's) or ``"l1"`` (``err_l1``).
     """
     if moments is None:
-        mo = brdf_moments([alpha], [cos_o], moment_samples)
+        mo = brdf_moments([alpha], [cos_o], moment_samples, distribution)
         moments = {k: float(v[0]) for k, v in mo.items()}
-    obj = _Objective(alpha, cos_o, moments["norm"], isotropic, fit_samples, frozen)
+    obj = _Objective(alpha, cos_o, moments["norm"], isotropic, fit_samples, frozen, distribution,
+                     metric)
     starts = np.atleast_2d(np.asarray(start, dtype=np.float64))
     candidates = [obj.x_of(st) for st in starts]
     x0 = candidates[0]
@@ -659,14 +695,14 @@ def fit_cell(alpha: float, cos_o: float, start: Any, *, isotropic: bool = False,
 
 
 def lobe_errors(alpha: float, cos_o: float, m: np.ndarray, norm: float | None = None,
-                fit_samples: int = FIT_SAMPLES) -> tuple[float, float]:
+                fit_samples: int = FIT_SAMPLES, distribution: str = "ggx") -> tuple[float, float]:
     """``(E, L1)`` (module docstring) of any LTC with forward matrix ``m`` (3x3, local frame
     of the view ``(sin, 0, cos)``) against the normalised lobe at ``(alpha, cos_o)``, with the
     fit's ``fit_samples x fit_samples`` samples per strategy. ``norm`` defaults to
     :func:`brdf_moments`'."""
     if norm is None:
-        norm = float(brdf_moments([alpha], [cos_o])["norm"][0])
-    obj = _Objective(alpha, cos_o, norm, False, fit_samples)
+        norm = float(brdf_moments([alpha], [cos_o], distribution=distribution)["norm"][0])
+    obj = _Objective(alpha, cos_o, norm, False, fit_samples, distribution=distribution)
     return obj.errors_of(np.asarray(m, dtype=np.float64))
 
 
@@ -696,8 +732,8 @@ def warm_start(params: np.ndarray, avg_phi: np.ndarray, j: int,
 
 
 def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,
-              fit_samples: int = FIT_SAMPLES,
-              moment_samples: int = MOMENT_SAMPLES) -> dict[str, np.ndarray]:
+              fit_samples: int = FIT_SAMPLES, moment_samples: int = MOMENT_SAMPLES,
+              distribution: str = "ggx", metric: str = "l1") -> dict[str, np.ndarray]:
     """Fit the whole ``size x size`` table (module docstring).
 
     Returns float64 arrays ``minv`` ``(size, size, 4)``, ``params`` ``(size, size, 4)``,
@@ -707,7 +743,7 @@ def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,
     r, u = grid_axes(size)
     alpha, cos_o = node_config(r, u)
     aa, cc = np.meshgrid(alpha, cos_o, indexing="ij")
-    mo = brdf_moments(aa.ravel(), cc.ravel(), moment_samples)
+    mo = brdf_moments(aa.ravel(), cc.ravel(), moment_samples, distribution)
     mo = {k: v.reshape(size, size) for k, v in mo.items()}
     avg_phi = np.arctan2(mo["dir_x"], mo["dir_z"])
     out = {
@@ -717,14 +753,16 @@ def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,
         "err_l1": np.zeros((size, size)),
         "nfev": np.zeros((size, size), dtype=np.int64),
     }
-    with no_gc(), Progress(size * size, "fitting LTC", enabled=progress) as bar:
+    with no_gc(), Progress(size * size, f"fitting LTC ({distribution})",
+                           enabled=progress) as bar:
         done = 0
         for j in range(size - 1, -1, -1):
             for i in range(size):
                 start, iso = warm_start(out["params"], avg_phi, j, i)
                 cell = fit_cell(alpha[j], cos_o[i], start, isotropic=iso,
                                 moments={k: float(v[j, i]) for k, v in mo.items()},
-                                fit_samples=fit_samples)
+                                fit_samples=fit_samples, distribution=distribution,
+                                metric=metric)
                 out["minv"][j, i] = cell.coeffs
                 out["params"][j, i] = cell.params
                 out["err_l3"][j, i] = cell.err_l3
@@ -733,7 +771,7 @@ def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,
                 done += 1
                 bar.update(done)
     out.update(norm=mo["norm"], fres=mo["fres"], avg_phi=avg_phi, r=r, u=u, alpha=alpha,
-               cos_o=cos_o)
+               cos_o=cos_o, distribution=distribution, metric=metric)
     return out
 
 
@@ -742,17 +780,23 @@ def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,
 # ----------------------------------------------------------------------------------------------
 
 
-def default_table_path() -> Path:
-    """Path of the shipped table ``glossrt/data/ltc_ggx.npz``."""
-    return Path(str(resources.files("glossrt") / "data" / _TABLE_FILE))
+def default_table_path(distribution: str = "ggx") -> Path:
+    """Path of the shipped table of ``distribution``: ``glossrt/data/ltc_ggx.npz`` or
+    ``ltc_beckmann.npz``."""
+    name = mf.NAMES[mf.code(distribution)]
+    return Path(str(resources.files("glossrt") / "data" / f"ltc_{name}.npz"))
 
 
 def save_table(table: dict[str, np.ndarray], path: Path | str, *, fit_samples: int = FIT_SAMPLES,
                moment_samples: int = MOMENT_SAMPLES, seconds: float = float("nan")) -> None:
     """Write a table from :func:`fit_table`: the runtime arrays (``minv``, ``norm``, ``fres``)
     in float32, the axes and the fit's parameters and errors (float64) as metadata."""
+    dist = str(table.get("distribution", "ggx"))
     np.savez_compressed(
         path,
+        format=np.int64(TABLE_FORMAT),
+        distribution=np.array(dist),
+        metric=np.array(str(table.get("metric", "l3"))),
         minv=table["minv"].astype(np.float32),
         norm=table["norm"].astype(np.float32),
         fres=table["fres"].astype(np.float32),
@@ -773,47 +817,61 @@ def save_table(table: dict[str, np.ndarray], path: Path | str, *, fit_samples: i
         layout=np.array(
             "[j, i]: r_j = j/(n-1) (alpha = max(r^2, alpha_min)), u_i = i/(n-1) "
             "(cos_o = max(1 - u^2, cos_o_min)); minv[..., :] = (a, b, c, d) of "
-            "M^-1 = [[a,0,b],[0,c,0],[d,0,1]] (view in the xz-plane, +x towards the view); "
-            "norm = int rho cos, fres = int rho cos (1 - wo.h)^5 for GGX + height-correlated "
-            "Smith G2, F = 1; int rho F cos = F0 (norm - fres) + fres with Schlick F"
+            "M^-1 = [[a,0,b],[0,1,0],[c,0,d]] (divided by its middle element; view in the "
+            "xz-plane, +x towards the view); norm = int rho cos, fres = int rho cos "
+            f"(1 - wo.h)^5 for {dist} D, Mitsuba's separable Smith G1(wo) G1(wi), F = 1"
         ),
     )
 
 
 class LTCTable:
-    """The LTC table on the device, with a Dr.Jit bilinear lookup (and a NumPy twin).
+    """LTC tables on the device, one per distribution, with a Dr.Jit bilinear lookup (and a
+    NumPy twin).
 
-    ``minv`` is a flat ``mi.Float`` of ``n_r * n_u * 4`` coefficients and ``nf`` one of
-    ``n_r * n_u * 2`` (``norm``, ``fres``), both row-major ``[r][u]``; ``r0`` is the
-    roughness at which row 0 was fitted (``sqrt(ALPHA_MIN)``). A Dr.Jit PyTree
+    ``minv`` is a flat ``mi.Float`` of ``n_d * n_r * n_u * 4`` coefficients and ``nf`` one of
+    ``n_d * n_r * n_u * 2`` (``norm``, ``fres``), both row-major ``[distribution][r][u]``
+    (``distributions`` names them: the shipped pair is ``("ggx", "beckmann")``); ``r0`` is
+    the roughness at which row 0 was fitted (``sqrt(ALPHA_MIN)``). A Dr.Jit PyTree
     (``DRJIT_STRUCT``): instances can be passed to frozen functions, loops and vcalls.
-    ``host`` keeps the float32 NumPy arrays for :meth:`lookup_np`.
+    ``host`` keeps the float32 NumPy arrays (of the first distribution) for
+    :meth:`lookup_np`.
     """
 
-    DRJIT_STRUCT = {"minv": mi.Float, "nf": mi.Float, "n_r": int, "n_u": int, "r0": float}
+    DRJIT_STRUCT = {"minv": mi.Float, "nf": mi.Float, "n_r": int, "n_u": int, "r0": float,
+                    "n_d": int}
 
     def __init__(self, minv: mi.Float | None = None, nf: mi.Float | None = None, n_r: int = 0,
-                 n_u: int = 0, r0: float = 0.0, host: dict[str, np.ndarray] | None = None) -> None:
+                 n_u: int = 0, r0: float = 0.0, host: dict[str, np.ndarray] | None = None,
+                 n_d: int = 1, distributions: tuple[str, ...] = ("ggx",)) -> None:
         self.minv = minv if minv is not None else mi.Float()
         self.nf = nf if nf is not None else mi.Float()
         self.n_r = int(n_r)
         self.n_u = int(n_u)
         self.r0 = float(r0)
+        self.n_d = int(n_d)
+        self.distributions = tuple(distributions)
         self.host = host or {}
 
     @classmethod
     def from_arrays(cls, minv: np.ndarray, norm: np.ndarray, fres: np.ndarray,
-                    alpha_min: float = ALPHA_MIN) -> LTCTable:
-        """From ``minv`` ``(n_r, n_u, 4)`` and ``norm``, ``fres`` ``(n_r, n_u)``, fitted at
+                    alpha_min: float = ALPHA_MIN,
+                    distributions: tuple[str, ...] = ("ggx",)) -> LTCTable:
+        """From ``minv`` ``(n_r, n_u, 4)`` and ``norm``, ``fres`` ``(n_r, n_u)`` (or with a
+        leading axis of one table per entry of ``distributions``), fitted at
         ``alpha = max(r^2, alpha_min)`` (:func:`node_config`)."""
-        minv = np.ascontiguousarray(minv, dtype=np.float32)
+        minv = np.asarray(minv, dtype=np.float32)
+        if minv.ndim == 3:
+            minv, norm, fres = minv[None], np.asarray(norm)[None], np.asarray(fres)[None]
+        minv = np.ascontiguousarray(minv)
         norm = np.asarray(norm, dtype=np.float32)
         fres = np.asarray(fres, dtype=np.float32)
-        if minv.ndim != 3 or minv.shape[2] != 4 or min(minv.shape[:2]) < 2:
+        if minv.ndim != 4 or minv.shape[3] != 4 or min(minv.shape[1:3]) < 2:
             raise ValueError(f"expected an (n_r, n_u, 4) minv table, got {minv.shape}")
-        if norm.shape != minv.shape[:2] or fres.shape != minv.shape[:2]:
+        if norm.shape != minv.shape[:3] or fres.shape != minv.shape[:3]:
             raise ValueError("norm and fres must have the shape (n_r, n_u) of minv")
-        n_r, n_u, _ = minv.shape
+        n_d, n_r, n_u, _ = minv.shape
+        if len(distributions) != n_d:
+            raise ValueError(f"{n_d} tables for distributions {distributions}")
         nf = np.ascontiguousarray(np.stack([norm, fres], -1))
         d_minv = mi.Float(minv.ravel())
         d_nf = mi.Float(nf.ravel())
@@ -821,12 +879,15 @@ class LTCTable:
         r0 = math.sqrt(alpha_min)
         if not 0.0 <= r0 < 1.0 / (n_r - 1):
             raise ValueError(f"alpha_min must lie in [0, 1/(n_r-1)^2), got {alpha_min}")
-        return cls(d_minv, d_nf, n_r, n_u, r0, {"minv": minv, "norm": norm, "fres": fres})
+        return cls(d_minv, d_nf, n_r, n_u, r0,
+                   {"minv": minv[0], "norm": norm[0], "fres": fres[0]}, n_d, distributions)
 
     @classmethod
     def load(cls, path: Path | str | None = None) -> LTCTable:
-        """Load the shipped table (or ``path``); cached per path and Mitsuba variant."""
-        p = str(Path(path).resolve()) if path is not None else str(default_table_path())
+        """The shipped tables of both distributions (GGX and Beckmann), or the one table at
+        ``path`` (it shades every pixel with its own distribution); cached per path and
+        Mitsuba variant."""
+        p = str(Path(path).resolve()) if path is not None else ""
         return _load_cached(p, mi.variant())
 
     def _coords(self, alpha, cos_o, xp):
@@ -847,9 +908,12 @@ class LTCTable:
         y = dr.select(r < r1, dr.maximum(r - self.r0, 0.0) * k0, r * (self.n_r - 1))
         return y, dr.sqrt(1.0 - c) * (self.n_u - 1)
 
-    def lookup(self, alpha: mi.Float, cos_o: mi.Float) -> tuple[mi.Vector4f, mi.Float, mi.Float]:
-        """Bilinearly interpolated ``(coeffs, norm, fres)`` at GGX ``alpha`` and view cosine
-        ``cos_o``: ``coeffs = (a, b, c, d)`` of ``M^-1`` (:func:`minv_matrix`).
+    def lookup(self, alpha: mi.Float, cos_o: mi.Float, beckmann: mi.Bool | None = None
+               ) -> tuple[mi.Vector4f, mi.Float, mi.Float]:
+        """Bilinearly interpolated ``(coeffs, norm, fres)`` at roughness ``alpha`` and view
+        cosine ``cos_o``: ``coeffs = (a, b, c, d)`` of ``M^-1`` (:func:`minv_matrix`), from
+        the Beckmann table where ``beckmann`` (per lane) and the GGX one elsewhere (a table
+        of one distribution ignores ``beckmann``).
 
         Interpolation is bilinear in ``(r, u) = (sqrt(alpha), sqrt(1 - cos_o))`` between the
         fitted nodes (row 0 at ``r = sqrt(ALPHA_MIN)``, so ``alpha <= ALPHA_MIN`` reads row 0);
@@ -862,6 +926,9 @@ class LTCTable:
         ty = y - mi.Float(j0)
         tx = x - mi.Float(i0)
         base = j0 * self.n_u + i0
+        if beckmann is not None and self.n_d > 1:
+            index = self.distributions.index("beckmann")
+            base = base + dr.select(beckmann, index * self.n_r * self.n_u, 0)
         corners = (base, base + 1, base + self.n_u, base + self.n_u + 1)
         c = [dr.gather(mi.Vector4f, self.minv, k) for k in corners]
         n = [dr.gather(mi.Vector2f, self.nf, k) for k in corners]
@@ -886,18 +953,42 @@ class LTCTable:
         return v[..., :4], v[..., 4], v[..., 5]
 
     def numpy(self) -> dict[str, np.ndarray]:
-        """The table as float32 arrays ``minv`` ``(n_r, n_u, 4)``, ``norm``, ``fres``."""
+        """The (first) table as float32 arrays ``minv`` ``(n_r, n_u, 4)``, ``norm``,
+        ``fres``."""
         return {k: v.copy() for k, v in self.host.items()}
 
     def __repr__(self) -> str:
-        return f"LTCTable(n_r={self.n_r}, n_u={self.n_u})"
+        return f"LTCTable(n_r={self.n_r}, n_u={self.n_u}, distributions={self.distributions})"
+
+
+def read_table(path: Path | str) -> dict[str, Any]:
+    """The runtime arrays of one table file (``minv``, ``norm``, ``fres``, ``alpha_min``,
+    ``distribution``), checked: a clear :class:`~glossrt.errors.GlossrtError` for a file of
+    the earlier layout (``M^-1`` normalised by its (2, 2) element) or of another kind."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            if "minv" not in f.files:
+                raise GlossrtError(f"{path}: not an LTC table (no 'minv' array)")
+            fmt = int(f["format"]) if "format" in f.files else 1
+            if fmt != TABLE_FORMAT:
+                raise GlossrtError(
+                    f"{path}: LTC table format {fmt} (M^-1 normalised by its (2, 2) element), "
+                    f"glossrt reads format {TABLE_FORMAT}: refit it with 'glossrt ltc-fit'")
+            return {"minv": f["minv"], "norm": f["norm"], "fres": f["fres"],
+                    "alpha_min": float(f["alpha_min"]),
+                    "distribution": str(f["distribution"])}
+    except (OSError, ValueError) as e:
+        raise GlossrtError(f"{path}: cannot read the LTC table: {e}") from e
 
 
 @functools.lru_cache(maxsize=8)
 def _load_cached(path: str, variant: str) -> LTCTable:
-    with np.load(path, allow_pickle=False) as f:
-        alpha_min = float(f["alpha_min"]) if "alpha_min" in f.files else ALPHA_MIN
-        return LTCTable.from_arrays(f["minv"], f["norm"], f["fres"], alpha_min)
+    paths = [path] if path else [str(default_table_path(d)) for d in mf.NAMES]
+    tabs = [read_table(p) for p in paths]
+    return LTCTable.from_arrays(np.stack([t["minv"] for t in tabs]),
+                                np.stack([t["norm"] for t in tabs]),
+                                np.stack([t["fres"] for t in tabs]), tabs[0]["alpha_min"],
+                                tuple(t["distribution"] for t in tabs))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -906,10 +997,14 @@ def _load_cached(path: str, variant: str) -> LTCTable:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Fit the GGX LTC table and write it (``python -m glossrt.lights.ltc_fit``)."""
+    """Fit the LTC table of a distribution and write it (``python -m glossrt.lights.ltc_fit``)."""
     ap = argparse.ArgumentParser(prog="python -m glossrt.lights.ltc_fit", description=main.__doc__)
     ap.add_argument("--out", type=Path, default=None,
-                    help="output .npz (default: the shipped glossrt/data/ltc_ggx.npz)")
+                    help="output .npz (default: the shipped glossrt/data/ltc_<distribution>.npz)")
+    ap.add_argument("--distribution", choices=mf.NAMES, default="ggx",
+                    help="microfacet distribution of the fitted lobe (default: ggx)")
+    ap.add_argument("--metric", choices=METRICS, default="l1",
+                    help="error the fit minimises: l3 (Heitz et al.'s) or l1 (default: l1)")
     ap.add_argument("--size", type=int, default=DEFAULT_SIZE, help="nodes per axis (64)")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                     help="progress bar on stderr (default: on)")
@@ -920,10 +1015,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.size < 2:
         ap.error("--size must be at least 2")
-    out = args.out or default_table_path()
+    out = args.out or default_table_path(args.distribution)
     t0 = time.perf_counter()
     table = fit_table(args.size, progress=args.progress, fit_samples=args.fit_samples,
-                      moment_samples=args.moment_samples)
+                      moment_samples=args.moment_samples, distribution=args.distribution,
+                      metric=args.metric)
     dt = time.perf_counter() - t0
     finite = all(np.all(np.isfinite(table[k])) for k in ("minv", "norm", "fres"))
     if not finite:
@@ -932,7 +1028,7 @@ def main(argv: list[str] | None = None) -> int:
     save_table(table, out, fit_samples=args.fit_samples, moment_samples=args.moment_samples,
                seconds=dt)
     e1 = table["err_l1"]
-    print(f"wrote {out}: {args.size} x {args.size} cells in {dt:.1f} s "
+    print(f"wrote {out} ({args.distribution}): {args.size} x {args.size} cells in {dt:.1f} s "
           f"({int(table['nfev'].sum())} error evaluations); L1 lobe error median "
           f"{np.median(e1):.4f}, 95% {np.quantile(e1, 0.95):.4f}, max {e1.max():.4f}; "
           f"norm in [{table['norm'].min():.4f}, {table['norm'].max():.4f}]")

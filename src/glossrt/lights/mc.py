@@ -7,8 +7,10 @@ heuristic), each sample drawing one direction from each of two strategies:
 
 * light sampling: a uniform point ``y`` on the polygon (fan triangulation, triangle chosen by
   area), ``p_l(w) = |y - x|^2 / (A |n_l . w|)``;
-* BRDF sampling: with probability ``q`` a cosine-distributed direction, else a GGX visible
-  normal (Heitz 2018) reflected about, ``p_b(w) = q cos/pi + (1 - q) D_wo(h) / (4 wo.h)``;
+* BRDF sampling: with probability ``q`` a cosine-distributed direction, else a half vector
+  of the pixel's distribution (:func:`glossrt.brdf.microfacet.sample_h`: GGX visible normals,
+  Heitz 2018; Beckmann ``D cos``) reflected about, ``p_b(w) = q cos/pi + (1 - q) p_h(h) /
+  (4 wo.h)``;
   the direction counts if its ray meets the polygon on its emitting side.
 
 ``L(y)`` is the light's radiance times its texture (bilinear, full resolution) at ``y``'s
@@ -30,7 +32,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..brdf.ggx import D_ggx, G1_smith, sample_vndf  # noqa: E402
+from ..brdf import microfacet as mf  # noqa: E402
 from ..denoise.common import LUM  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..jit import opaque  # noqa: E402
@@ -168,7 +170,7 @@ def strategies(sp: ShadingPoints, lt, frame: mi.Frame3f, wo_l: mi.Vector3f, q: m
     # -- strategy 2: BRDF sampling
     u0, u1, u2 = rng.next_float32(), rng.next_float32(), rng.next_float32()
     wd = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u1, u2))
-    hx, hy, hz = sample_vndf(wo_l.x, wo_l.y, wo_l.z, sp.alpha, u1, u2)
+    hx, hy, hz = mf.sample_h(wo_l.x, wo_l.y, wo_l.z, sp.alpha, u1, u2, sp.beckmann)
     h = mi.Vector3f(hx, hy, hz)
     wl = dr.select(u0 < q, wd, 2.0 * dr.dot(wo_l, h) * h - wo_l)
     w2 = frame.to_world(wl)
@@ -200,15 +202,13 @@ def estimate(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) -> mi.C
 
 def _pdf_brdf(sp: ShadingPoints, frame: mi.Frame3f, wo_l: mi.Vector3f, q: mi.Float,
               w: mi.Vector3f) -> mi.Float:
-    """Density of the BRDF strategy: ``q cos/pi + (1 - q) D_wo(h) / (4 wo.h)``."""
+    """Density of the BRDF strategy: ``q cos/pi + (1 - q) p_h(h) / (4 wo.h)``."""
     wl = frame.to_local(w)
     cos_i = wl.z
     h = dr.normalize(wl + wo_l)
     wo_h = dr.dot(wo_l, h)
-    # Heitz 2018: D_wo(h) = G1(wo) max(0, wo.h) D(h) / cos_o; Jacobian 1 / (4 wo.h)
-    d_wo = G1_smith(wo_l.z, sp.alpha) * dr.maximum(wo_h, 0.0) * D_ggx(h.z, sp.alpha) / \
-        dr.maximum(wo_l.z, 1e-8)
-    p_s = d_wo / dr.maximum(4.0 * wo_h, 1e-8)
+    # the half vector's density (Heitz 2018 / Walter et al. 2007); Jacobian 1 / (4 wo.h)
+    p_s = mf.pdf_h(wo_l.z, wo_h, h.z, sp.alpha, sp.beckmann) / dr.maximum(4.0 * wo_h, 1e-8)
     return dr.select(cos_i > 0, q * cos_i / dr.pi + (1.0 - q) * p_s, 0.0)
 
 

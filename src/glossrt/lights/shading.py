@@ -1,16 +1,22 @@
 """What deferred polygon-light shading reads from a Frame, and the BRDF it shades with.
 
-The BRDF of glossrt's polygon-light shading (issue 5; LTC and its Monte Carlo reference use
-the same one, so their difference is the LTC approximation alone):
+The BRDF of glossrt's polygon-light shading (LTC and its Monte Carlo reference use the same
+one, so their difference is the LTC approximation alone), Mitsuba's rough BSDFs as the
+renderer renders them, per pixel with the distribution of the ``distribution`` channel (GGX
+where a frame has no such channel):
 
 * diffuse: Lambert, ``albedo_diffuse / pi``;
-* specular: GGX (Walter et al. 2007, eq. 33) with the *height-correlated* Smith
-  shadowing-masking ``G2 = 1 / (1 + Lambda(wo) + Lambda(wi))`` (Heitz 2014, "Understanding the
-  masking-shadowing function", eq. 99) and Schlick's Fresnel with the material's ``F0``
-  (Schlick 1994): ``f = F(wo.h) D(h) G2 / (4 cos_o cos_i)``.
+* specular: GGX (Walter et al. 2007, eq. 33) or Beckmann (eq. 25) with Mitsuba's *separable*
+  Smith shadowing-masking ``G1(wo) G1(wi)`` (eq. 23; :mod:`glossrt.brdf.microfacet`) and
+  Schlick's Fresnel with the material's ``F0`` (Schlick 1994):
+  ``f = F(wo.h) D(h) G1(wo) G1(wi) / (4 cos_o cos_i)``.
 
-(The path tracer follows Mitsuba's separable Smith form instead; see
-:mod:`glossrt.brdf.ggx`. The two differ by a few percent at grazing angles.)
+The Fresnel term is Mitsuba's exact conductor or dielectric one when the shading functions are
+given :func:`fresnel_image` (the CLI's choice: per sample in the Monte Carlo reference, at the
+lobe's effective angle in LTC's split sum, :mod:`glossrt.brdf.fresnel`), Schlick's with the
+material's F0 when given an (H, W, 3) F0 image. What it still approximates: LTC's fit of the
+lobe and the effective angle of its Fresnel weight, and ``roughplastic``'s diffuse lobe, taken
+as Lambert with the ``albedo_diffuse`` the renderer writes.
 
 ``F0`` is not in a Frame: :func:`f0_image` looks it up per pixel from the scene's materials
 through ``mesh_id``.
@@ -28,7 +34,9 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..brdf.ggx import ALPHA_MIN, D_ggx, fresnel_schlick  # noqa: E402
+from ..brdf import microfacet as mf  # noqa: E402
+from ..brdf.fresnel import ROW, fresnel_exact, split_sum  # noqa: E402
+from ..brdf.ggx import ALPHA_MIN, fresnel_schlick  # noqa: E402
 from ..denoise.common import check_frame, split, view_directions  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
 from ..jit import owned_float  # noqa: E402
@@ -47,15 +55,43 @@ def light_vertices(light) -> np.ndarray:
     return v
 
 
-def f0_image(setup, frame) -> np.ndarray:
-    """Specular F0 (H, W, 3) per pixel from the materials of ``setup``'s shapes, through the
-    frame's ``mesh_id`` (0 = background: F0 0)."""
+def check_isotropic(setup) -> None:
+    """A clear :class:`GlossrtError` naming the first shape whose rough lobe is anisotropic
+    (``alpha_u != alpha_v``): glossrt's analytic shading (LTC, BSPVT, the ratio estimator,
+    highlights, specular antialiasing and their Monte Carlo reference) takes one ``alpha``
+    per pixel; an anisotropic LTC would need a table over two more dimensions. The path
+    tracer renders such BSDFs (Mitsuba's own), and ``glossrt render --mitsuba`` gives their
+    reference."""
     from ..render.materials import describe_bsdf
     from ..scenes import stable_shapes
 
-    table = np.zeros((len(setup.shapes) + 1, 3))
     for i, s in enumerate(stable_shapes(setup.scene)):
-        table[i + 1] = describe_bsdf(s.bsdf()).f0
+        m = describe_bsdf(s.bsdf())
+        if m.anisotropic is not None:
+            name = s.id() or f"shape {i + 1}"
+            au, av = m.anisotropic
+            raise GlossrtError(
+                f"{setup.name}: shape {name!r} ({m.kind}, {m.distribution}, alpha_u {au:g} != "
+                f"alpha_v {av:g}) is anisotropic; glossrt's analytic light shading handles "
+                "isotropic lobes only (set alpha_u = alpha_v, or render it with "
+                "'glossrt render --mitsuba')")
+
+
+def fresnel_image(setup, frame) -> np.ndarray:
+    """The Fresnel term of every pixel's material, (H, W, 13) float32 rows of
+    :meth:`glossrt.brdf.fresnel.Fresnel.row` (kind, eta, k, specular_reflectance, F0), from
+    the materials of ``setup``'s shapes through the frame's ``mesh_id`` (0 = background: a
+    Schlick row with F0 0). Pass it as ``f0`` to the shading functions to shade with
+    Mitsuba's exact conductor / dielectric terms (the CLI does); refuses anisotropic
+    materials (:func:`check_isotropic`)."""
+    from ..brdf.fresnel import ROW
+    from ..render.materials import describe_bsdf
+    from ..scenes import stable_shapes
+
+    check_isotropic(setup)
+    table = np.zeros((len(setup.shapes) + 1, ROW))
+    for i, s in enumerate(stable_shapes(setup.scene)):
+        table[i + 1] = describe_bsdf(s.bsdf()).fresnel.row()
     ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
     if ids.min() < 0 or ids.max() >= len(table):
         raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
@@ -63,10 +99,32 @@ def f0_image(setup, frame) -> np.ndarray:
     return table[ids].astype(np.float32)
 
 
+def f0_image(setup, frame) -> np.ndarray:
+    """Specular F0 (H, W, 3) per pixel (the last three columns of :func:`fresnel_image`), for
+    shading with Schlick's Fresnel; refuses anisotropic materials (:func:`check_isotropic`)."""
+    return np.ascontiguousarray(fresnel_image(setup, frame)[..., -3:])
+
+
+@dataclass
+class FresnelLanes:
+    """Per-lane Fresnel terms (:class:`glossrt.brdf.fresnel.Fresnel`): kind, eta, k, scale."""
+
+    kind: mi.UInt32
+    eta: mi.Color3f
+    k: mi.Color3f
+    scale: mi.Color3f
+
+    def take(self, index: mi.UInt32) -> FresnelLanes:
+        return FresnelLanes(*(dr.gather(type(v), v, index) for v in (
+            self.kind, self.eta, self.k, self.scale)))
+
+
 @dataclass
 class ShadingPoints:
     """One lane per pixel: world position, normal, view direction (towards the camera),
-    GGX alpha, diffuse albedo, F0 and whether the pixel sees a surface."""
+    microfacet alpha, diffuse albedo, F0, whether the pixel sees a surface, whether its
+    distribution is Beckmann (a per-lane ``mi.Bool``, or a Python bool for all lanes) and
+    its exact Fresnel term (``None``: Schlick's with ``f0``)."""
 
     p: mi.Point3f
     n: mi.Vector3f
@@ -75,15 +133,17 @@ class ShadingPoints:
     albedo: mi.Color3f
     f0: mi.Color3f
     hit: mi.Bool
+    beckmann: mi.Bool | bool = False
+    fresnel: FresnelLanes | None = None
 
     @staticmethod
     def of(frame, f0: np.ndarray | None = None) -> ShadingPoints:
-        """From a Frame's G-buffer (and its camera); ``f0`` (H, W, 3), default 0."""
+        """From a Frame's G-buffer (and its camera); ``f0`` (H, W, 3) F0 for Schlick's
+        Fresnel, or (H, W, 13) from :func:`fresnel_image` for the exact terms; default 0."""
         check_frame(frame, NEEDS)
         p = mi.Point3f(*split(frame["position"]))
         wo = view_directions(frame, p, "polygon-light shading")
-        return ShadingPoints.of_channels({k: frame[k] for k in NEEDS}, wo,
-                                         f0_tensor(frame, f0))
+        return ShadingPoints.of_channels(shading_channels(frame), wo, f0_tensor(frame, f0))
 
     def take(self, index: mi.UInt32) -> ShadingPoints:
         """The lanes ``index`` (a gather of every field): subsets and repeated pixels."""
@@ -91,14 +151,38 @@ class ShadingPoints:
 
     @staticmethod
     def of_channels(ch: dict, wo: mi.Vector3f, f0: mi.TensorXf) -> ShadingPoints:
-        """From G-buffer tensors ``ch`` (the :data:`NEEDS` channels), view directions and an
-        (H, W, 3) F0 tensor: only Dr.Jit operations (usable inside ``dr.freeze``)."""
+        """From G-buffer tensors ``ch`` (the :data:`NEEDS` channels and, when present,
+        ``distribution``), view directions and an (H, W, 3) F0 or (H, W, 13) Fresnel tensor
+        (:func:`f0_tensor`): only Dr.Jit operations (usable inside ``dr.freeze``)."""
         p = mi.Point3f(*split(ch["position"]))
         n = mi.Vector3f(*split(ch["normal"]))
         hit = split(ch["mesh_id"])[0] > 0
         alpha = dr.maximum(split(ch["roughness"])[0], ALPHA_MIN)
+        beckmann = (split(ch["distribution"])[0] == float(mf.BECKMANN)
+                    if "distribution" in ch else False)
+        f = split(f0)
+        fresnel = None
+        if len(f) == ROW:
+            fresnel = FresnelLanes(mi.UInt32(f[0]), mi.Color3f(*f[1:4]), mi.Color3f(*f[4:7]),
+                                   mi.Color3f(*f[7:10]))
         return ShadingPoints(p, n, wo, alpha, mi.Color3f(*split(ch["albedo_diffuse"])),
-                             mi.Color3f(*split(f0)), hit & (dr.dot(n, wo) > 0))
+                             mi.Color3f(*f[-3:]), hit & (dr.dot(n, wo) > 0), beckmann, fresnel)
+
+    def spec_weight(self, norm: mi.Float, fres: mi.Float) -> mi.Color3f:
+        """``integral f F cos`` per unit LTC mass from a split-sum table's ``norm`` and
+        ``fres``: Schlick's split ``F0 (norm - fres) + fres``, or Mitsuba's exact term at the
+        lobe's effective angle (:func:`glossrt.brdf.fresnel.split_sum`)."""
+        if self.fresnel is None:
+            return self.f0 * (norm - fres) + fres
+        fr = self.fresnel
+        return split_sum(norm, fres, fr.kind, fr.eta, fr.k, fr.scale, self.f0)
+
+    def fresnel_at(self, cos: mi.Float) -> mi.Color3f:
+        """The Fresnel term at ``cos = wo.h``: Schlick's with ``f0`` or the exact one."""
+        if self.fresnel is None:
+            return fresnel_schlick(cos, self.f0)
+        fr = self.fresnel
+        return fresnel_exact(cos, fr.kind, fr.eta, fr.k, fr.scale, self.f0)
 
 
     @staticmethod
@@ -112,26 +196,40 @@ class ShadingPoints:
 
 
 def _take(sp: ShadingPoints, index: mi.UInt32) -> ShadingPoints:
+    beck = sp.beckmann
+    if not isinstance(beck, bool):
+        beck = dr.gather(mi.Bool, beck, index)
+    fres = None if sp.fresnel is None else sp.fresnel.take(index)
     return ShadingPoints(*(dr.gather(type(v), v, index) for v in (
-        sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)))
+        sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)), beck, fres)
+
+
+def shading_channels(frame) -> dict:
+    """The frame's :data:`NEEDS` channels, and ``distribution`` when it has one (frames
+    written before that channel existed shade as GGX)."""
+    names = NEEDS + (("distribution",) if "distribution" in frame.names else ())
+    return {k: frame[k] for k in names}
 
 
 def f0_tensor(frame, f0: np.ndarray | None) -> mi.TensorXf:
-    """``f0`` (H, W, 3) as a tensor of the frame's size (zeros for ``None``); a clear error
-    when its size does not match."""
+    """``f0`` (H, W, 3) F0 or (H, W, 13) :func:`fresnel_image` as a tensor of the frame's
+    size (zeros for ``None``); a clear error when its size does not match."""
     h, w = frame.height, frame.width
     if f0 is None:
         return dr.zeros(mi.TensorXf, (h, w, 3))
     f0 = np.asarray(f0, np.float32)
-    if f0.size != h * w * 3:
-        raise FrameError(f"{frame.where}: F0 image has shape {f0.shape}, expected ({h}, {w}, 3)")
+    c = f0.shape[-1] if f0.ndim == 3 else 3
+    if f0.size != h * w * c or c not in (3, ROW):
+        raise FrameError(f"{frame.where}: F0 image has shape {f0.shape}, expected ({h}, {w}, 3) "
+                         f"or ({h}, {w}, {ROW}) (fresnel_image)")
     # in Dr.Jit's own memory: an input of the frozen LTC shading (see jit.owned_float)
-    return mi.TensorXf(owned_float(f0), (h, w, 3))
+    return mi.TensorXf(owned_float(f0), (h, w, c))
 
 
 def smith_lambda(cos_theta, alpha):
     """GGX Smith ``Lambda(v) = (-1 + sqrt(1 + alpha^2 tan^2 theta)) / 2`` (Heitz 2014, eq. 72),
-    written without the tangent (finite at grazing: ``Lambda -> inf`` as ``cos -> 0``)."""
+    written without the tangent (finite at grazing: ``Lambda -> inf`` as ``cos -> 0``);
+    ``G1 = 1 / (1 + Lambda)``."""
     c2 = dr.maximum(dr.square(cos_theta), 1e-12)
     return 0.5 * (dr.sqrt(1.0 + dr.square(alpha) * (1.0 - c2) / c2) - 1.0)
 
@@ -143,10 +241,8 @@ def brdf_cos(sp: ShadingPoints, wi: mi.Vector3f) -> tuple[mi.Color3f, mi.Color3f
     cos_o = dr.dot(sp.n, sp.wo)
     ok = sp.hit & (cos_i > 0) & (cos_o > 0)
     h = dr.normalize(sp.wo + wi)
-    # Heitz 2014, eq. 99: height-correlated G2
-    g2 = dr.rcp(1.0 + smith_lambda(cos_o, sp.alpha) + smith_lambda(cos_i, sp.alpha))
-    f = fresnel_schlick(dr.dot(sp.wo, h), sp.f0)
-    # Walter et al. 2007, eq. 20 times cos_i
-    spec = f * (D_ggx(dr.dot(sp.n, h), sp.alpha) * g2 / (4.0 * dr.maximum(cos_o, 1e-8)))
+    f = sp.fresnel_at(dr.dot(sp.wo, h))
+    # Walter et al. 2007, eqs. 20 and 23 times cos_i: D G1(wo) G1(wi) / (4 cos_o)
+    spec = f * mf.specular_cos(cos_o, cos_i, dr.dot(sp.n, h), sp.alpha, sp.beckmann)
     diff = sp.albedo * (cos_i / dr.pi)
     return dr.select(ok, diff, 0.0), dr.select(ok, spec, 0.0)

@@ -99,6 +99,15 @@ def _bounds_of(shapes: list) -> list[dict]:
     return out
 
 
+def vertex_beckmann(scene: mi.Scene) -> np.ndarray:
+    """Per vertex (numbering of :func:`scene_vertices`): whether its mesh's rough lobe has
+    Beckmann's distribution (V,) bool (:func:`glossrt.render.materials.describe_bsdf`)."""
+    from ..render.materials import describe_bsdf
+
+    return np.concatenate([np.full(m.vertex_count(), describe_bsdf(m.bsdf()).beckmann)
+                           for m in scene_meshes(scene)] or [np.zeros(0, bool)])
+
+
 def vertex_materials(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per vertex (numbering of :func:`scene_vertices`): GGX alpha (V,), diffuse albedo and
     F0 (V, 3) of each mesh's BSDF: alpha and F0 as the G-buffer and
@@ -202,7 +211,7 @@ def _shade_pixel_mode(frame, dev, lights: list, triangles: tuple, f0, textures,
     up = mi.Vector3f(0.0, 0.0, 1.0)  # placeholders where nothing is shaded (finite inputs)
     sp = ShadingPoints(dr.select(hit, sp.p, mi.Point3f(0.0)),
                        dr.select(hit, dr.normalize(sp.n), up), dr.select(hit, sp.wo, up),
-                       sp.alpha, sp.albedo, sp.f0, hit)
+                       sp.alpha, sp.albedo, sp.f0, hit, sp.beckmann, sp.fresnel)
     if frozen:  # every pixel a lane (a fixed size: the recording replays frame after frame)
         d, s = bspvt_shade.shade_points(dev, lights, sp, verts, bary, textures=textures,
                                         traversal=traversal, frozen=True)
@@ -232,10 +241,12 @@ def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, triangles: tup
     to_cam = cam - dev.positions
     wo = to_cam / dr.maximum(dr.norm(to_cam), 1e-12)
     alpha, albedo, vf0 = vertex_materials(scene)
+    beckmann = vertex_beckmann(scene)
     # as shade_vertices: views at or below a vertex's tangent plane shade it black
     sp = ShadingPoints(dev.positions, dev.normals, wo, owned(mi.Float, alpha),
                        bspvt_shade._dr_vec(mi.Color3f, albedo),
-                       bspvt_shade._dr_vec(mi.Color3f, vf0), dr.dot(dev.normals, wo) > 0)
+                       bspvt_shade._dr_vec(mi.Color3f, vf0), dr.dot(dev.normals, wo) > 0,
+                       bspvt_shade._beckmann_lanes(beckmann, nv))
     d, s = bspvt_shade.shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)],
                                     textures=textures, traversal=traversal, frozen=frozen)
     col = d + s

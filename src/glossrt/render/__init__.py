@@ -41,8 +41,8 @@ from .pathtracer import (  # noqa: E402
 )
 
 GBUFFER_OUT = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "roughness",
-               "mesh_id", "motion")
-COMPONENTS = {"depth": 1, "roughness": 1, "mesh_id": 1, "motion": 2}
+               "distribution", "mesh_id", "motion")
+COMPONENTS = {"depth": 1, "roughness": 1, "distribution": 1, "mesh_id": 1, "motion": 2}
 REFERENCE_SALT = 0x5EED
 #: seeds of multi-sample pixel subsets (:meth:`Renderer.render_pixels` with spp > 1)
 PIXELS_SALT = 0xADA9
@@ -248,12 +248,19 @@ class Renderer:
         channels.update(gbuf)
         return self._frame(frame, channels, spp, bad, time.perf_counter() - t0, reference=True)
 
-    def render_mitsuba(self, frame: int, spp: int, seed: int = 0) -> mi.TensorXf:
+    def render_mitsuba(self, frame: int, spp: int, seed: int = 0,
+                       integrator: str = "path") -> mi.TensorXf:
         """Mitsuba's own ``path`` integrator (anti-aliased, box filter) on the same scene,
-        camera and ``max_depth``: RGB image (H, W, 3)."""
+        camera and ``max_depth``, or its ``direct`` integrator (``integrator="direct"``:
+        emission plus one bounce of light, shadowed, the ground truth of direct lighting):
+        RGB image (H, W, 3)."""
+        if integrator not in ("path", "direct"):
+            raise GlossrtError(f"render_mitsuba: integrator must be 'path' or 'direct', "
+                               f"got {integrator!r}")
         self.setup.set_frame(frame)
         md = -1 if self.max_depth == UNBOUNDED_DEPTH else self.max_depth
-        integrator = mi.load_dict({"type": "path", "max_depth": md})
+        integrator = mi.load_dict({"type": "path", "max_depth": md} if integrator == "path"
+                                  else {"type": "direct"})
         img = mi.render(self.setup.scene, sensor=self.setup.sensor, integrator=integrator,
                         spp=spp, seed=frame_seed(frame, seed, 0xA11A5))
         return mi.TensorXf(img)

@@ -6,11 +6,15 @@ Wrappers are looked through by their parameter prefixes (``mi.traverse`` keys): 
 
 from __future__ import annotations
 
+import re
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mitsuba as mi
 import numpy as np
+
+from ..brdf.fresnel import CONDUCTOR, DIELECTRIC, SCHLICK, Fresnel
+from ..errors import GlossrtError
 
 
 @dataclass
@@ -18,12 +22,25 @@ class Material:
     kind: str
     has_diffuse: bool
     has_specular: bool
-    alpha: float  # constant GGX alpha (1 for purely diffuse, 0 for smooth)
+    alpha: float  # constant microfacet alpha (1 for purely diffuse, 0 for smooth)
     alpha_attr: bool  # evaluate bsdf.eval_attribute_1("alpha") per hit instead
     f0: tuple[float, float, float]
     #: :data:`NORMAL_MAP_NONE`, :data:`NORMAL_MAP` (the BSDF is a ``normalmap``) or
     #: :data:`NORMAL_MAP_TWOSIDED` (a ``twosided`` around one ``normalmap``)
     normal_map: int = 0
+    #: the microfacet distribution Mitsuba renders (``"ggx"`` or ``"beckmann"``; Mitsuba's
+    #: rough plugins default to Beckmann), ``None`` for a BSDF without a rough lobe
+    distribution: str | None = None
+    #: ``(alpha_u, alpha_v)`` when they differ (an anisotropic lobe; ``alpha`` is then their
+    #: geometric mean), else ``None``
+    anisotropic: tuple[float, float] | None = None
+    #: the Fresnel term Mitsuba weights the specular lobe with (exact conductor or dielectric)
+    fresnel: Fresnel = field(default_factory=Fresnel)
+
+    @property
+    def beckmann(self) -> bool:
+        """Whether the rough lobe uses Beckmann's distribution."""
+        return self.distribution == "beckmann"
 
 
 #: ``Material.normal_map``: no normal map (the shading normal is the shape's)
@@ -44,6 +61,10 @@ _PREFIXES = ("", "brdf_0.", "nested_brdf_0.", "nested_bsdf.", "nested_bsdf.brdf_
 def _rgb(value) -> np.ndarray:
     a = np.array(value, dtype=np.float64).ravel()
     return np.repeat(a, 3)[:3] if a.size == 1 else a[:3]
+
+
+def _t3(a) -> tuple[float, float, float]:
+    return tuple(float(v) for v in np.asarray(a, np.float64).ravel()[:3])
 
 
 def _param(params: mi.SceneParameters, *names: str):
@@ -72,6 +93,18 @@ def _normal_map_kind(bsdf: mi.BSDF, keys: set[str]) -> int:
     return NORMAL_MAP_NONE
 
 
+_DISTRIBUTION = re.compile(r"distribution\s*=\s*(\w+)")
+
+
+def bsdf_distribution(bsdf: mi.BSDF) -> str | None:
+    """The microfacet distribution of ``bsdf`` (through wrappers: the first rough BSDF in its
+    description, which for ``twosided`` is its front side), as Mitsuba prints it (``ggx`` or
+    ``beckmann``); ``None`` when it has no rough lobe. Mitsuba 3 exposes the choice only in
+    the plugin's string form."""
+    m = _DISTRIBUTION.search(str(bsdf))
+    return m.group(1).lower() if m else None
+
+
 def describe_bsdf(bsdf: mi.BSDF) -> Material:
     """Lobes, roughness and Fresnel F0 (normal incidence) of a supported Mitsuba BSDF, looking
     through ``twosided`` and ``normalmap`` wrappers (the nested BSDF's roughness and F0), and
@@ -84,7 +117,15 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
     kind = bsdf.class_name()
 
     alpha, alpha_attr = (0.0 if has_s else 1.0), False
+    distribution, aniso = None, None
     if glossy:
+        distribution = bsdf_distribution(bsdf)
+        if distribution is None:
+            raise GlossrtError(f"{kind}: a rough lobe whose microfacet distribution Mitsuba "
+                               f"does not print; glossrt never assumes GGX")
+        if distribution not in ("ggx", "beckmann"):
+            raise GlossrtError(f"{kind}: microfacet distribution {distribution!r} is not "
+                               f"supported (ggx or beckmann)")
         val, key = _param(params, "alpha.value", "alpha")
         if val is not None:
             alpha = float(np.array(val).ravel()[0])
@@ -93,7 +134,10 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
             av, _ = _param(params, "alpha_v.value", "alpha_v")
             tex, tkey = _param(params, "alpha.data")
             if au is not None and av is not None:
-                alpha = float(np.sqrt(np.array(au).ravel()[0] * np.array(av).ravel()[0]))
+                a_u, a_v = float(np.array(au).ravel()[0]), float(np.array(av).ravel()[0])
+                alpha = float(np.sqrt(a_u * a_v))
+                if a_u != a_v:
+                    aniso = (a_u, a_v)
             elif bsdf.has_attribute("alpha"):
                 alpha_attr = True
             elif tex is not None:
@@ -105,19 +149,24 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
                 )
 
     f0 = np.zeros(3)
+    fresnel = Fresnel()
     if has_s:
         eta, _ = _param(params, "eta.value", "eta")
         k, _ = _param(params, "k.value")
+        spec, _ = _param(params, "specular_reflectance.value")
+        scale = _rgb(spec) if spec is not None else np.ones(3)
         if k is not None:  # conductor: Fresnel at normal incidence with complex IOR
             e, kk = _rgb(eta), _rgb(k)
             f0 = ((e - 1) ** 2 + kk**2) / ((e + 1) ** 2 + kk**2)
+            fresnel = Fresnel(CONDUCTOR, _t3(e), _t3(kk), _t3(scale), _t3(f0 * scale))
         elif eta is not None:  # dielectric coating (plastic)
             e = _rgb(eta)
             f0 = ((e - 1) / (e + 1)) ** 2
+            fresnel = Fresnel(DIELECTRIC, _t3(e), (0.0, 0.0, 0.0), _t3(scale), _t3(f0 * scale))
         else:
             f0 = np.ones(3)
-        spec, _ = _param(params, "specular_reflectance.value")
-        if spec is not None:
-            f0 = f0 * _rgb(spec)
+            fresnel = Fresnel(SCHLICK, scale=_t3(scale), f0=_t3(f0 * scale))
+        f0 = f0 * scale
     return Material(kind, has_d, has_s, alpha, alpha_attr, tuple(float(v) for v in f0),
-                    _normal_map_kind(bsdf, set(params.keys())))
+                    _normal_map_kind(bsdf, set(params.keys())),
+                    distribution, aniso, fresnel)

@@ -2,7 +2,8 @@
 
 Reads a :class:`glossrt.scenes.SceneSetup`; produces every channel of the Frame schema:
 ``color, emission, direct_diffuse, direct_specular, indirect_diffuse, indirect_specular,
-albedo_diffuse, albedo_specular, normal, position, depth, roughness, mesh_id, motion``.
+albedo_diffuse, albedo_specular, normal, position, depth, roughness, distribution, mesh_id,
+motion``.
 
 The light transport is Mitsuba's ``path`` integrator (next-event estimation with
 power-heuristic MIS, Russian roulette from depth 5) with the contributions split:
@@ -30,6 +31,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..brdf.fresnel import ROW, split_sum
+from ..brdf.microfacet import BECKMANN, GGX
 from ..scenes import stable_emitters, stable_shapes
 from .materials import NORMAL_MAP_TWOSIDED
 
@@ -284,7 +287,8 @@ class ShapeTable:
     non-diffuse lobe, its specular F0 (RGB) and roughness: a constant, or the BSDF's
     ``alpha`` attribute evaluated per hit when it is textured; ``normal_map``: whether a
     Mitsuba ``normalmap`` BSDF perturbs the shading normal
-    (:data:`glossrt.render.materials.NORMAL_MAP` and friends; 0: no)."""
+    (:data:`glossrt.render.materials.NORMAL_MAP` and friends; 0: no); ``beckmann``: whether
+    its rough lobe has Beckmann's microfacet distribution (Mitsuba's default)."""
 
     DRJIT_STRUCT = {
         "index": mi.UInt32,
@@ -294,6 +298,11 @@ class ShapeTable:
         "alpha": mi.Float,
         "f0": mi.Color3f,
         "normal_map": mi.UInt32,
+        "beckmann": mi.Bool,
+        "fresnel_kind": mi.UInt32,
+        "eta": mi.Color3f,
+        "k": mi.Color3f,
+        "spec_scale": mi.Color3f,
     }
 
     def __init__(self, scene: mi.Scene):
@@ -305,6 +314,8 @@ class ShapeTable:
         index, has_d, has_s, attr, alpha = [0] * n, [False] * n, [False] * n, [False] * n, [0.0] * n
         f0 = [[0.0] * n for _ in range(3)]
         normal_map = [0] * n
+        beckmann = [False] * n
+        fres = np.zeros((n, ROW))
         self.materials = {}
         for i, (s, rid) in enumerate(zip(shapes, ids, strict=True)):
             m = describe_bsdf(s.bsdf())
@@ -313,6 +324,8 @@ class ShapeTable:
             has_d[rid], has_s[rid], attr[rid], alpha[rid] = (
                 m.has_diffuse, m.has_specular, m.alpha_attr, m.alpha)
             normal_map[rid] = m.normal_map
+            beckmann[rid] = m.beckmann
+            fres[rid] = m.fresnel.row()
             for c in range(3):
                 f0[c][rid] = m.f0[c]
         self.index = mi.UInt32(index)
@@ -322,6 +335,13 @@ class ShapeTable:
         self.alpha = mi.Float(alpha)
         self.f0 = mi.Color3f(*f0)
         self.normal_map = mi.UInt32(normal_map)
+        #: per shape: its rough lobe has Beckmann's distribution (else GGX or no rough lobe)
+        self.beckmann = mi.Bool(beckmann)
+        #: per shape: its Fresnel term (:class:`glossrt.brdf.fresnel.Fresnel`)
+        self.fresnel_kind = mi.UInt32(fres[:, 0].astype(np.uint32))
+        self.eta = mi.Color3f(*(fres[:, 1 + c].astype(np.float32) for c in range(3)))
+        self.k = mi.Color3f(*(fres[:, 4 + c].astype(np.float32) for c in range(3)))
+        self.spec_scale = mi.Color3f(*(fres[:, 7 + c].astype(np.float32) for c in range(3)))
         #: whether any shape is normal-mapped (a Python bool: pass it to gbuffer(), so scenes
         #: without normal maps keep the texture lookup's virtual call out of their kernels)
         self.any_normal_map = any(v != 0 for v in normal_map)
@@ -388,6 +408,7 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     attr = dr.gather(mi.Bool, shapes.alpha_attr, rid, valid)
     alpha = dr.gather(mi.Float, shapes.alpha, rid, valid)
     f0 = dr.gather(mi.Color3f, shapes.f0, rid, valid)
+    beckmann = dr.gather(mi.Bool, shapes.beckmann, rid, valid) & valid
     alpha = dr.select(attr, bsdf.eval_attribute_1("alpha", si, valid & attr), alpha)
     normal_map = (dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
                   if shapes.any_normal_map else None)
@@ -396,7 +417,15 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     cos_m = dr.dot(n, -ray.d)
     cos_o = dr.select(mapped, dr.maximum(cos_m, 1e-4), cos_o)
     albedo_d = dr.select(valid & has_d, bsdf.eval_diffuse_reflectance(si, valid & has_d), 0.0)
-    albedo_s = dr.select(valid & has_s, table.lookup(cos_o, alpha, f0), 0.0)
+    # the split-sum table of the pixel's distribution with Mitsuba's exact Fresnel term at the
+    # lobe's effective angle (glossrt.brdf.fresnel)
+    ab = table.lookup_ab(cos_o, alpha, beckmann)
+    kind = dr.gather(mi.UInt32, shapes.fresnel_kind, rid, valid)
+    eta = dr.gather(mi.Color3f, shapes.eta, rid, valid)
+    kk = dr.gather(mi.Color3f, shapes.k, rid, valid)
+    scale = dr.gather(mi.Color3f, shapes.spec_scale, rid, valid)
+    e_spec = split_sum(ab.x + ab.y, ab.y, kind, eta, kk, scale, f0)
+    albedo_s = dr.select(valid & has_s, e_spec, 0.0)
     albedo_s = dr.select(mapped & (cos_m <= 0), 0.0, albedo_s)
     origin, forward = camera_axes(sensor)
     # camera-space z (not si.t: Mitsuba's rays start on the near-clip plane)
@@ -408,6 +437,7 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
         "position": dr.select(valid, mi.Vector3f(si.p), 0.0),
         "depth": depth,
         "roughness": dr.select(valid, alpha, 0.0),
+        "distribution": dr.select(beckmann, float(BECKMANN), float(GGX)),
         "mesh_id": mi.Float(index),
     }
 

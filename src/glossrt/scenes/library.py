@@ -65,13 +65,15 @@ def glossy_cornell() -> SceneSpec:
             "type": "sphere",
             "center": [-0.4, -0.62, -0.2],
             "radius": 0.38,
-            "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.05},
+            "bsdf": {"type": "roughconductor", "distribution": "ggx", "material": "Au",
+                     "alpha": 0.05},
         },
         "box": {
             "type": "cube",
             "to_world": T().translate([0.45, -0.7, 0.15]).rotate([0, 1, 0], 25).scale(0.3),
             "bsdf": {
                 "type": "roughplastic",
+                "distribution": "ggx",
                 "alpha": 0.3,
                 "diffuse_reflectance": {"type": "rgb", "value": [0.15, 0.25, 0.6]},
             },
@@ -122,12 +124,14 @@ def roughness_map() -> SceneSpec:
         "sensor": _sensor([0, 1.6, 4.2], [0, 0.2, 0], 50.0, 320, 240),
         "floor": _rect(
             T().rotate([1, 0, 0], -90).scale(2.5),
-            {"type": "roughconductor", "material": "Al", "alpha": _alpha_texture(floor_alpha)},
+            {"type": "roughconductor", "distribution": "ggx", "material": "Al",
+             "alpha": _alpha_texture(floor_alpha)},
         ),
         "wall": _rect(
             T().translate([0, 1.5, -2.5]).scale([2.5, 1.5, 1]),
             # Mitsuba's roughplastic takes no roughness texture: a conductor does
-            {"type": "roughconductor", "material": "Cu", "alpha": _alpha_texture(wall_alpha)},
+            {"type": "roughconductor", "distribution": "ggx", "material": "Cu",
+             "alpha": _alpha_texture(wall_alpha)},
         ),
         "block_red": {
             "type": "cube",
@@ -246,7 +250,8 @@ def glossy_spheres() -> SceneSpec:
             "type": "sphere",
             "center": [-0.75 + 0.75 * k, 0.35, -0.5],
             "radius": 0.33,
-            "bsdf": {"type": "roughconductor", "material": "Ag", "alpha": phong_to_alpha(s)},
+            "bsdf": {"type": "roughconductor", "distribution": "ggx", "material": "Ag",
+                     "alpha": phong_to_alpha(s)},
         }
     return SceneSpec(scene, max_depth=3)
 

@@ -1,0 +1,140 @@
+"""The two microfacet distributions Mitsuba 3 renders, GGX and Beckmann, as the renderer
+evaluates them (``include/mitsuba/render/microfacet.h``, ``MicrofacetDistribution``).
+
+Mitsuba's ``roughconductor`` and ``roughplastic`` default to **Beckmann** when the scene sets no
+``distribution``; glossrt reads the distribution of every BSDF
+(:func:`glossrt.render.materials.describe_bsdf`) and records it per pixel in the Frame's
+``distribution`` channel (:data:`GGX` = 0, :data:`BECKMANN` = 1; docs/FORMATS.md).
+
+Everything here is generic over the distribution: ``beckmann`` is a Python ``bool`` (one
+distribution, traced once) or a per-lane Dr.Jit ``Bool`` (both evaluated, selected per lane).
+
+* ``D``: GGX (Walter et al. 2007, eq. 33) or Beckmann (Walter et al. 2007, eq. 25), isotropic;
+* ``G1``: Smith's masking term as Mitsuba computes it: GGX exactly (Walter et al. 2007,
+  eq. 34), Beckmann by the rational approximation of Walter et al. 2007, eq. 27 (< 0.35 %
+  from the exact erf form); the BRDF's shadowing-masking is the *separable* product
+  ``G1(wo) G1(wi)`` (Walter et al. 2007, eq. 23), which Mitsuba renders;
+* sampling: GGX visible normals (Heitz 2018, :func:`glossrt.brdf.ggx.sample_vndf`, the same
+  distribution as Mitsuba's ``sample_visible``), Beckmann normals from ``D(h) cos(theta_h)``
+  (Walter et al. 2007, eqs. 28-29: ``tan^2 theta_h = -alpha^2 ln(1 - u1)``), with
+  :func:`pdf_h` the density of either.
+
+The specular lobe with Fresnel 1 is ``f cos(theta_i) = D(h) G1(wo) G1(wi) / (4 cos_o)``
+(Walter et al. 2007, eq. 20 times ``cos_i``): :func:`specular_cos`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .. import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+
+__all__ = ["GGX", "BECKMANN", "NAMES", "code", "D", "G1", "specular_cos", "sample_h", "pdf_h"]
+
+#: ``distribution`` channel values
+GGX = 0
+BECKMANN = 1
+#: names as Mitsuba's ``distribution`` parameter spells them, by code
+NAMES = ("ggx", "beckmann")
+
+
+def code(name: str) -> int:
+    """:data:`GGX` or :data:`BECKMANN` for Mitsuba's name of a distribution."""
+    return NAMES.index(name.lower())
+
+
+def _pick(beckmann: Any, fb, fg):
+    """``fb()`` where ``beckmann``, else ``fg()``: one branch for a Python bool, a per-lane
+    select of both for a Dr.Jit mask."""
+    if isinstance(beckmann, bool):
+        return fb() if beckmann else fg()
+    return dr.select(beckmann, fb(), fg())
+
+
+def D(cos_h: Any, alpha: Any, beckmann: Any = False) -> Any:
+    """Isotropic normal distribution ``D(h)`` for ``cos_h = n.h`` (0 for ``cos_h <= 0``),
+    normalised so that ``integral D(h) cos(theta_h) dh = 1``."""
+    c2 = cos_h * cos_h
+    a2 = alpha * alpha
+
+    def beck():
+        # Walter et al. 2007, eq. 25: exp(-tan^2 / alpha^2) / (pi alpha^2 cos^4)
+        c2s = dr.maximum(c2, 1e-30)
+        return dr.exp(-(1.0 - c2) / (c2s * a2)) / (dr.pi * a2 * c2s * c2s)
+
+    def ggx():
+        # Walter et al. 2007, eq. 33, as c2 (a2 - 1) + 1 ordered against cancellation
+        d = (1.0 - c2) + c2 * a2
+        return a2 / (dr.pi * d * d)
+
+    return dr.select(cos_h > 0.0, _pick(beckmann, beck, ggx), 0.0)
+
+
+def G1(cos_theta: Any, alpha: Any, beckmann: Any = False) -> Any:
+    """Smith's masking ``G1(v)`` for ``cos_theta = n.v`` as Mitsuba's ``smith_g1`` (0 for
+    ``cos_theta <= 0``; callers check ``v.h > 0`` themselves, as for a reflection
+    ``wi.h = wo.h``)."""
+    c = dr.maximum(cos_theta, 0.0)
+    s2 = dr.maximum(1.0 - c * c, 0.0)
+
+    def beck():
+        # Walter et al. 2007, eq. 27: a = 1 / (alpha tan theta), rational approximation
+        a = c * dr.rsqrt(dr.maximum(alpha * alpha * s2, 1e-30))
+        r = (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
+        return dr.select((a >= 1.6) | (s2 <= 0.0), 1.0, r)
+
+    def ggx():
+        # Walter et al. 2007, eq. 34 as 2c / (c + sqrt(c^2 + alpha^2 s^2)): finite at c = 0
+        return 2.0 * c / (c + dr.sqrt(c * c + alpha * alpha * s2))
+
+    return dr.select(c > 0.0, _pick(beckmann, beck, ggx), 0.0)
+
+
+def specular_cos(cos_o: Any, cos_i: Any, cos_h: Any, alpha: Any, beckmann: Any = False) -> Any:
+    """``f cos(theta_i)`` of the specular lobe with Fresnel 1 and Mitsuba's separable Smith
+    term: ``D(h) G1(wo) G1(wi) / (4 cos_o)`` (Walter et al. 2007, eqs. 20 and 23); 0 when
+    either direction is below the surface. (For a reflection ``wo.h = wi.h``, positive
+    whenever both are above it.)"""
+    g = G1(cos_o, alpha, beckmann) * G1(cos_i, alpha, beckmann)
+    val = D(cos_h, alpha, beckmann) * g / (4.0 * dr.maximum(cos_o, 1e-8))
+    return dr.select((cos_o > 0.0) & (cos_i > 0.0), val, 0.0)
+
+
+def sample_h(wo_x: Any, wo_y: Any, wo_z: Any, alpha: Any, u1: Any, u2: Any,
+             beckmann: Any = False) -> tuple[Any, Any, Any]:
+    """A half vector (local frame, ``z`` = normal) for the view ``wo`` (``wo_z > 0``): GGX
+    visible normals (Heitz 2018) or Beckmann ``D(h) cos(theta_h)`` (Walter et al. 2007,
+    eqs. 28-29); :func:`pdf_h` is its density."""
+    from .ggx import sample_vndf
+
+    def beck():
+        # Walter et al. 2007, eq. 28: tan^2 theta_h = -alpha^2 ln(1 - u1); eq. 29: phi
+        t2 = -alpha * alpha * dr.log(dr.maximum(1.0 - u1, 1e-30))
+        cz = dr.rsqrt(1.0 + t2)
+        sz = dr.sqrt(dr.maximum(1.0 - cz * cz, 0.0))
+        sp, cp = dr.sincos(2.0 * dr.pi * u2)
+        return sz * cp, sz * sp, cz
+
+    if isinstance(beckmann, bool):
+        return beck() if beckmann else sample_vndf(wo_x, wo_y, wo_z, alpha, u1, u2)
+    b = beck()
+    g = sample_vndf(wo_x, wo_y, wo_z, alpha, u1, u2)
+    return tuple(dr.select(beckmann, bb, gg) for bb, gg in zip(b, g, strict=True))
+
+
+def pdf_h(wo_z: Any, wo_h: Any, h_z: Any, alpha: Any, beckmann: Any = False) -> Any:
+    """Density (per steradian of ``h``) of :func:`sample_h`: GGX visible normals
+    ``G1(wo) max(0, wo.h) D(h) / cos_o`` (Heitz 2018), Beckmann ``D(h) cos(theta_h)``."""
+    d = D(h_z, alpha, beckmann)
+
+    def beck():
+        return d * dr.maximum(h_z, 0.0)
+
+    def ggx():
+        return G1(wo_z, alpha, False) * dr.maximum(wo_h, 0.0) * d / dr.maximum(wo_z, 1e-8)
+
+    return _pick(beckmann, beck, ggx)

@@ -1,0 +1,386 @@
+"""Microfacet distributions on the user's own scenes (GGX and Beckmann).
+
+Mitsuba's ``roughconductor`` / ``roughplastic`` default to Beckmann. These tests check that
+glossrt reads the distribution (``describe_bsdf``), records it in the G-buffer
+(``distribution`` channel), evaluates and samples both as Mitsuba does
+(``glossrt.brdf.microfacet``, against Mitsuba's own ``MicrofacetDistribution`` and
+independent quadrature / chi-square), and that LTC shading of a Beckmann surface written the
+usual way (no ``distribution`` in the XML) agrees with Mitsuba's own ``direct`` integrator on
+the same file: before, every rough surface was shaded as GGX (relative L1 0.28 on the scene
+below, against 0.06 for the same scene declared GGX).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate, stats
+
+from glossrt import backend
+
+backend.ensure()
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+from glossrt import render, scenes  # noqa: E402
+from glossrt.brdf import microfacet as mf  # noqa: E402
+from glossrt.errors import GlossrtError  # noqa: E402
+from glossrt.render.materials import describe_bsdf  # noqa: E402
+
+F64 = dr.float64_array_t(mi.Float)
+MI_TYPE = {"ggx": mi.MicrofacetType.GGX, "beckmann": mi.MicrofacetType.Beckmann}
+
+
+# ----------------------------------------------------------------------------------------------
+# D, G1 and sampling
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
+@pytest.mark.parametrize("alpha", [0.02, 0.15, 0.6, 1.0])
+def test_d_and_g1_match_mitsuba(distribution, alpha):
+    """D and G1 equal Mitsuba's MicrofacetDistribution (isotropic) at random directions."""
+    rng = np.random.default_rng(3)
+    th = rng.uniform(0.0, 0.5 * math.pi * 0.999, 2000)
+    ph = rng.uniform(0.0, 2 * math.pi, 2000)
+    v = mi.Vector3f(np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th))
+    md = mi.MicrofacetDistribution(MI_TYPE[distribution], alpha, True)
+    beck = distribution == "beckmann"
+    d_ref = np.array(md.eval(v))
+    d = np.array(mf.D(v.z, mi.Float(alpha), beck))
+    np.testing.assert_allclose(d, d_ref, rtol=5e-4, atol=1e-6 * d_ref.max())  # float32
+    g_ref = np.array(md.smith_g1(v, mi.Vector3f(0, 0, 1)))
+    np.testing.assert_allclose(np.array(mf.G1(v.z, mi.Float(alpha), beck)), g_ref, atol=1e-6)
+    # a per-lane mask selects the same values
+    mask = mi.Bool(np.full(2000, beck))
+    np.testing.assert_allclose(np.array(mf.D(v.z, mi.Float(alpha), mask)), d, rtol=1e-6)
+
+
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
+@pytest.mark.parametrize("alpha", [0.05, 0.3, 0.9])
+def test_d_is_normalised(distribution, alpha):
+    """integral D(h) cos(theta_h) dh = 1 (SciPy quadrature over theta, independent)."""
+    beck = distribution == "beckmann"
+
+    def f(t):
+        c = F64(math.cos(t))
+        return float(mf.D(c, F64(alpha), beck)[0]) * math.cos(t) * math.sin(t) * 2 * math.pi
+
+    pts = [math.atan(alpha * k) for k in (0.5, 1, 2, 4, 8)]
+    total, _ = integrate.quad(f, 0.0, 0.5 * math.pi, points=pts, limit=400)
+    assert total == pytest.approx(1.0, abs=2e-4)
+
+
+@pytest.mark.parametrize("alpha", [0.1, 0.5])
+def test_beckmann_sampler_chi_square(alpha):
+    """Beckmann half vectors from sample_h follow pdf_h: chi-square over 16 theta x 8 phi
+    bins whose probabilities come from quadrature of pdf_h (not from the sampler's inverse)."""
+    n = 200_000
+    rng = np.random.default_rng(9)
+    u1, u2 = mi.Float(rng.random(n)), mi.Float(rng.random(n))
+    wo = (math.sin(0.7), 0.0, math.cos(0.7))
+    hx, hy, hz = mf.sample_h(*(mi.Float(c) for c in wo), mi.Float(alpha), u1, u2, True)
+    th = np.arccos(np.clip(np.array(hz), -1, 1))
+    ph = np.mod(np.arctan2(np.array(hy), np.array(hx)), 2 * math.pi)
+    t_edges = np.arctan(alpha * np.tan(np.linspace(0, 0.5 * math.pi, 17)[:-1] * 0.999))
+    t_edges = np.append(t_edges, 0.5 * math.pi)
+    p_edges = np.linspace(0, 2 * math.pi, 9)
+    obs, _, _ = np.histogram2d(th, ph, [t_edges, p_edges])
+
+    def dens(t):  # pdf_h per steradian times sin(theta): independent of phi for Beckmann
+        c = F64(math.cos(t))
+        return float(mf.pdf_h(F64(wo[2]), F64(1.0), c, F64(alpha), True)[0]) \
+            * math.sin(t)
+
+    bins = zip(t_edges[:-1], t_edges[1:], strict=True)
+    p_th = np.array([integrate.quad(dens, a, b)[0] for a, b in bins])
+    expected = n * np.outer(p_th, np.diff(p_edges))
+    assert expected.sum() == pytest.approx(n, rel=1e-3)
+    keep = expected > 5
+    chi2, p = stats.chisquare(obs[keep], expected[keep] * obs[keep].sum() / expected[keep].sum())
+    assert p > 1e-3, (chi2, p)
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading the distribution of a BSDF, and the G-buffer channel
+# ----------------------------------------------------------------------------------------------
+
+
+def test_describe_bsdf_reads_the_distribution():
+    tex = mi.TensorXf(np.full((2, 2, 3), 0.5, np.float32))
+    cases = [
+        ({"type": "roughconductor", "alpha": 0.3}, "beckmann"),  # Mitsuba's default
+        ({"type": "roughplastic", "alpha": 0.3}, "beckmann"),
+        ({"type": "roughconductor", "alpha": 0.3, "distribution": "ggx"}, "ggx"),
+        ({"type": "twosided", "b": {"type": "roughplastic", "alpha": 0.2,
+                                    "distribution": "ggx"}}, "ggx"),
+        ({"type": "normalmap", "normalmap": {"type": "bitmap", "raw": True, "data": tex},
+          "b": {"type": "roughconductor", "alpha": 0.2}}, "beckmann"),
+        ({"type": "diffuse"}, None),
+        ({"type": "conductor"}, None),
+        ({"type": "plastic"}, None),
+    ]
+    for d, want in cases:
+        m = describe_bsdf(mi.load_dict(d))
+        assert m.distribution == want, d
+        assert m.beckmann == (want == "beckmann")
+    aniso = describe_bsdf(mi.load_dict({"type": "roughconductor", "alpha_u": 0.1,
+                                        "alpha_v": 0.4, "distribution": "ggx"}))
+    assert aniso.anisotropic == pytest.approx((0.1, 0.4))
+    assert aniso.alpha == pytest.approx(0.2)
+    assert describe_bsdf(mi.load_dict({"type": "roughconductor", "alpha": 0.2})).anisotropic \
+        is None
+
+
+QUAD_XML = """<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="50"/>
+    <transform name="to_world">
+      <lookat origin="0, 2.2, 3.2" target="0, 0, -0.2" up="0, 1, 0"/>
+    </transform>
+    <film type="hdrfilm">
+      <integer name="width" value="48"/><integer name="height" value="36"/>
+    </film>
+  </sensor>
+  <shape type="rectangle" id="floor">
+    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="2.5"/></transform>
+    <bsdf type="roughconductor"><float name="alpha" value="{alpha}"/>{dist}</bsdf>
+  </shape>
+  <shape type="rectangle" id="light">
+    <transform name="to_world">
+      <scale x="0.6" y="0.35"/><rotate x="1" angle="70"/><translate x="0.2" y="0.9" z="-1.2"/>
+    </transform>
+    <emitter type="area"><rgb name="radiance" value="6, 6, 6"/></emitter>
+  </shape>
+</scene>
+"""
+
+
+def quad_scene(tmp_path, alpha: float, distribution: str | None):
+    """A rough conductor (Mitsuba's default eta = 0, k = 1: Fresnel 1) under a quad light,
+    written as users write it: ``distribution`` only when given."""
+    dist = "" if distribution is None else f'<string name="distribution" value="{distribution}"/>'
+    path = tmp_path / f"quad_{alpha}_{distribution}.xml"
+    path.write_text(QUAD_XML.format(alpha=alpha, dist=dist))
+    return scenes.load(str(path))
+
+
+def test_gbuffer_records_the_distribution(tmp_path):
+    """A scene that sets no distribution renders Beckmann, and its G-buffer says so; the
+    built-in scenes declare GGX (they said GGX but rendered Mitsuba's Beckmann default)."""
+    setup = quad_scene(tmp_path, 0.15, None)
+    frame = render.Renderer(setup).render(0)
+    d, ids = frame.numpy("distribution")[..., 0], frame.numpy("mesh_id")[..., 0]
+    floor = ids == np.bincount(ids.astype(int).ravel()).argmax()
+    assert floor.sum() > 100
+    assert np.all(d[floor] == mf.BECKMANN) and np.all(d[~floor] == mf.GGX)
+    ggx = render.Renderer(quad_scene(tmp_path, 0.15, "ggx")).render(0)
+    assert np.all(ggx.numpy("distribution") == mf.GGX)
+    for name in ("glossy-cornell", "roughness-map", "glossy-spheres"):
+        s = scenes.load(name, size=(16, 12))
+        for shape in s.shapes:
+            m = describe_bsdf(shape.bsdf())
+            assert m.distribution in (None, "ggx"), (name, shape.id(), m)
+
+
+def test_specular_albedo_follows_the_distribution(tmp_path):
+    """``albedo_specular`` reads the table of the pixel's distribution: on a Beckmann floor
+    it equals Mitsuba's own albedo of the BSDF (F = 1) at the pixel's view, estimated from
+    bsdf.sample weights (independent of glossrt's tables)."""
+    setup = quad_scene(tmp_path, 0.4, None)
+    frame = render.Renderer(setup).render(0)
+    ids = frame.numpy("mesh_id")[..., 0]
+    floor = ids == np.bincount(ids.astype(int).ravel()).argmax()
+    cam = frame.camera.position
+    pos = frame.numpy("position")[floor][::37]
+    wo = cam - pos
+    cos_o = wo[:, 1] / np.linalg.norm(wo, axis=1)
+    got = frame.numpy("albedo_specular")[floor][::37, 0]
+    bsdf = mi.load_dict({"type": "roughconductor", "alpha": 0.4})
+    n = 1 << 16
+    k = len(cos_o)
+    si = dr.zeros(mi.SurfaceInteraction3f, k * n)
+    c = dr.repeat(mi.Float(cos_o.astype(np.float32)), n)
+    si.wi = mi.Vector3f(dr.sqrt(1 - c * c), 0.0, c)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    rng = mi.PCG32(k * n, 11)
+    _, w = bsdf.sample(mi.BSDFContext(), si, rng.next_float32(),
+                       mi.Point2f(rng.next_float32(), rng.next_float32()))
+    ref = np.array(dr.block_sum(w[0], n)) / n
+    np.testing.assert_allclose(got, ref, atol=6e-3)
+    # the GGX table would be far off here (the lobes' albedos differ by > 0.05)
+    assert np.abs(got - ref).max() < 0.5 * 0.05
+
+
+# ----------------------------------------------------------------------------------------------
+# LTC shading against Mitsuba's own direct integrator
+# ----------------------------------------------------------------------------------------------
+
+
+def _lit_and_reference(setup, spp: int = 1024):
+    from glossrt.lights.ltc import shade_frame
+    from glossrt.lights.mc import render_mc
+    from glossrt.lights.scene import polygon_lights
+    from glossrt.lights.shading import f0_image
+
+    r = render.Renderer(setup)
+    gb = r.render(0)
+    lights, f0 = polygon_lights(setup, 0), f0_image(setup, gb)
+    lit = shade_frame(gb, lights, f0=f0)
+    mc = render_mc(gb, lights, 256, f0=f0, seed=3)
+    ref = np.array(r.render_mitsuba(0, spp, integrator="direct"))
+    ids = gb.numpy("mesh_id")[..., 0]
+    floor = ids == np.bincount(ids.astype(int).ravel()).argmax()
+    return lit, mc, ref, floor
+
+
+def _rel_l1(a, b, mask) -> float:
+    return float(np.abs(a - b)[mask].sum() / np.abs(b)[mask].sum())
+
+
+@pytest.mark.parametrize("alpha, distribution, ltc_max", [
+    (0.15, None, 0.21),     # Beckmann, by Mitsuba's default: 0.28 when shaded as GGX
+    (0.4, None, 0.20),      # 0.36 when shaded as GGX
+    (0.15, "ggx", 0.08),
+])
+def test_ltc_matches_mitsuba_direct(tmp_path, alpha, distribution, ltc_max):
+    """Mitsuba's ``direct`` integrator on the same XML is the yardstick. glossrt's Monte
+    Carlo of its BRDF agrees with it to the pixel filter and noise (<= 0.07), for either
+    distribution (the BRDF is the one Mitsuba renders); LTC adds its approximation: about
+    0.06 for GGX, 0.16-0.17 for Beckmann, whose lobe no LTC fits as closely (measured in
+    docs/RESULTS.md). Relative L1 over the floor's pixels."""
+    setup = quad_scene(tmp_path, alpha, distribution)
+    lit, mc, ref, floor = _lit_and_reference(setup)
+    e_mc, e_ltc = _rel_l1(mc, ref, floor), _rel_l1(lit, ref, floor)
+    print(f"\nalpha {alpha} {distribution or 'beckmann (default)'}: relative L1 vs Mitsuba "
+          f"direct: mc {e_mc:.4f}, ltc {e_ltc:.4f}")
+    assert e_mc <= 0.07
+    assert e_ltc <= ltc_max
+
+
+def test_polygon_integral_takes_the_distribution():
+    """polygon_integral(distribution=) against the float64 area quadrature of that lobe."""
+    from glossrt.lights.ltc import polygon_integral
+    from glossrt.lights.quadrature import polygon_quadrature
+
+    quad = np.array([[-0.6, -0.4, 1.5], [0.6, -0.4, 1.5], [0.6, 0.4, 1.5], [-0.6, 0.4, 1.5]])
+    quad = quad + [0.3, 0.0, 0.0]
+    n = np.array([0.0, 0.0, 1.0])
+    wo = np.array([-0.5, 0.1, 0.8])
+    wo = wo / np.linalg.norm(wo)
+    for dist in ("ggx", "beckmann"):
+        want = polygon_quadrature(quad, wo, n, 0.3, m=256, one_sided=False,
+                                  distribution=dist)
+        got = float(polygon_integral(quad, n, wo, 0.3, two_sided=True, distribution=dist))
+        assert got == pytest.approx(want, rel=0.1), dist
+    with pytest.raises(GlossrtError, match="distribution"):
+        polygon_integral(quad, n, wo, 0.3, distribution="phong")
+
+
+def test_anisotropic_materials_are_refused_by_name(tmp_path):
+    """Analytic light shading takes one alpha per pixel: an anisotropic rough lobe is a clear
+    error naming the shape and the BSDF, before any output (the CLI writes nothing)."""
+    import subprocess
+    import sys
+
+    from glossrt.lights.shading import f0_image
+
+    xml = QUAD_XML.format(alpha=0.2, dist="").replace(
+        '<float name="alpha" value="0.2"/>',
+        '<float name="alpha_u" value="0.1"/><float name="alpha_v" value="0.4"/>')
+    path = tmp_path / "aniso.xml"
+    path.write_text(xml)
+    setup = scenes.load(str(path))
+    frame = render.Renderer(setup).render(0)  # the path tracer renders it (Mitsuba's BSDF)
+    with pytest.raises(GlossrtError, match=r"'floor'.*RoughConductor.*anisotropic"):
+        f0_image(setup, frame)
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "glossrt.cli", "light", str(path), "--method",
+                        "ltc", "--out", str(out)], capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "'floor'" in r.stderr and "anisotropic" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def _box_over_floor(distribution: str | None, alpha: float = 0.25, size=(48, 36)):
+    """A tessellated rough-conductor floor (Beckmann unless ``distribution``), a box above
+    it casting a shadow, a quad light."""
+    from glossrt.scenes.teapot import grid_mesh, mesh_shape
+
+    T = mi.ScalarTransform4f
+    bsdf = {"type": "roughconductor", "alpha": alpha}
+    if distribution:
+        bsdf["distribution"] = distribution
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "fov": 50.0,
+                    "to_world": T().look_at([0, 2.0, 2.5], [0, 0, 0], [0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": size[0], "height": size[1]}},
+         "floor": mesh_shape("floor", *grid_mesh(16), T().rotate([1, 0, 0], -90).scale(1.5),
+                             bsdf),
+         "box": {"type": "cube", "to_world": T().translate([0.0, 0.35, -0.3])
+                 .scale([0.25, 0.1, 0.25]), "bsdf": {"type": "diffuse"}},
+         "light": {"type": "rectangle", "to_world": T().translate([0, 1.2, -0.7])
+                   .rotate([1, 0, 0], 60).scale(0.4),
+                   "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}}}
+    return scenes.from_spec("box-over-floor", scenes.SceneSpec(d), size=size)
+
+
+@pytest.mark.parametrize("distribution, bspvt_max", [(None, 0.24), ("ggx", 0.09)])
+def test_bspvt_matches_mitsuba_direct(distribution, bspvt_max):
+    """BSPVT shadows (per pixel, 16 x 16 cube maps) of a box over a floor against Mitsuba's
+    ``direct`` integrator: 0.31 on the Beckmann floor when shaded as GGX (0.08 declared
+    GGX); measured 0.20 and 0.07 now (the rest: LTC's fit of the lobe, the trees' 16 x 16
+    visibility and the pixel filter)."""
+    from glossrt.lights.scene import polygon_lights
+    from glossrt.lights.shading import f0_image
+    from glossrt.lights.shadows import build_scene_trees, shade_bspvt
+
+    setup = _box_over_floor(distribution)
+    r = render.Renderer(setup)
+    gb = r.render(0)
+    trees = build_scene_trees(setup.scene, resolution=16)
+    img = np.array(shade_bspvt(setup.scene, gb, trees, polygon_lights(setup, 0), mode="pixel",
+                               f0=f0_image(setup, gb)))
+    ref = np.array(r.render_mitsuba(0, 1024, integrator="direct"))
+    floor_id = 1 + [s.id() for s in scenes.stable_shapes(setup.scene)].index("floor")
+    floor = gb.numpy("mesh_id")[..., 0] == floor_id
+    err = _rel_l1(img, ref, floor)
+    print(f"\nBSPVT, {distribution or 'beckmann (default)'}: relative L1 vs Mitsuba direct "
+          f"{err:.4f}")
+    assert err <= bspvt_max
+
+
+def test_exact_fresnel_matches_mitsuba_direct(tmp_path):
+    """Mitsuba's exact conductor Fresnel (gold, GGX alpha 0.05 under a quad light): with
+    ``fresnel_image`` glossrt's Monte Carlo and LTC match the floor's per-channel mean of
+    Mitsuba's ``direct`` integrator within 1.5%; Schlick's form with the same F0 is 5% dark
+    in blue (measured: blue 0.0904 Schlick, 0.0959 exact, 0.0961 Mitsuba at 64x48)."""
+    from glossrt.lights.ltc import shade_frame
+    from glossrt.lights.mc import render_mc
+    from glossrt.lights.scene import polygon_lights
+    from glossrt.lights.shading import f0_image, fresnel_image
+
+    xml = QUAD_XML.format(alpha=0.05, dist='<string name="material" value="Au"/>'
+                          '<string name="distribution" value="ggx"/>')
+    path = tmp_path / "gold.xml"
+    path.write_text(xml)
+    setup = scenes.load(str(path))
+    r = render.Renderer(setup)
+    gb = r.render(0)
+    lights = polygon_lights(setup, 0)
+    ref = np.array(r.render_mitsuba(0, 1024, integrator="direct"))
+    ids = gb.numpy("mesh_id")[..., 0]
+    floor = ids == np.bincount(ids.astype(int).ravel()).argmax()
+    want = ref[floor].mean(0)
+    exact = fresnel_image(setup, gb)
+    assert exact.shape[-1] == 13
+    np.testing.assert_array_equal(f0_image(setup, gb), exact[..., -3:])
+    for img in (render_mc(gb, lights, 256, f0=exact, seed=3), shade_frame(gb, lights, f0=exact)):
+        np.testing.assert_allclose(img[floor].mean(0), want, rtol=0.015)
+    schlick = render_mc(gb, lights, 256, f0=f0_image(setup, gb), seed=3)[floor].mean(0)
+    assert schlick[2] < 0.97 * want[2]
