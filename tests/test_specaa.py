@@ -498,8 +498,9 @@ def test_textured_polygon_lights_shade_like_ltc():
 
 
 def test_material_masking_swaps_only_the_shadowing_term():
-    # masking="material": D of the filtered A, G2 of the material's alpha. The specular ratio
-    # material / filtered must be G2(alpha^2 I) / G2(A) from the NumPy covariance GGX.
+    # masking="material": D of the filtered A, G1 G1 of the material's alpha. The specular
+    # ratio material / filtered must be G1 G1(alpha^2 I) / G1 G1(A) from the NumPy
+    # covariance GGX.
     from glossrt import render
     from glossrt.brdf import covariance_ggx as cg
     from glossrt.lights.analytic import DirectionalLight
@@ -530,7 +531,9 @@ def test_material_masking_swaps_only_the_shadowing_term():
                        np.stack([A.reshape(-1, 3)[:, 1], A.reshape(-1, 3)[:, 2]], -1)], -2)
         Ai = alpha2[:, None, None] * np.eye(2)
         wo_u, wi_u = _unit(wo_l[sel]), _unit(wi_l[sel])
-        want = cg.G2(wo_u, wi_u, Ai[sel]) / cg.G2(wo_u, wi_u, Am[sel])
+        # Mitsuba's separable Smith term: G1(wo) G1(wi) of each roughness
+        want = (cg.G1(wo_u, Ai[sel]) * cg.G1(wi_u, Ai[sel])
+                / (cg.G1(wo_u, Am[sel]) * cg.G1(wi_u, Am[sel])))
         got = b.reshape(-1, 3)[sel, 0] / a.reshape(-1, 3)[sel, 0]
         np.testing.assert_allclose(got, want, rtol=2e-3)
         assert np.all(want >= 1.0 - 1e-9) and want.max() > 1.01

@@ -31,6 +31,7 @@ from glossrt.frame import RADIANCE, Frame  # noqa: E402
 from test_bilateral import (  # noqa: E402
     CAM_POS,
     _camera,
+    beck,
     np_lobe,
     np_lobe_weight,
     random_frame,
@@ -60,7 +61,8 @@ def np_upsample(frame, low, weight, channels, radius=2, sigma_s=1.0, sigma_n2=0.
                 u, v = (x + 0.5) / f - 0.5 - jx, (y + 0.5) / f - 0.5 - jy
                 ni, zi = F["normal"][y, x], F["depth"][y, x, 0]
                 wo = CAM_POS - F["position"][y, x]
-                li = np_lobe(ni, wo / np.linalg.norm(wo), F["roughness"][y, x, 0])
+                li = np_lobe(ni, wo / np.linalg.norm(wo), F["roughness"][y, x, 0],
+                             beck(F, y, x))
                 num, den = np.zeros(3), 0.0
                 for qy in range(math.floor(v) - radius + 1, math.floor(v) + radius + 1):
                     for qx in range(math.floor(u) - radius + 1, math.floor(u) + radius + 1):
@@ -75,7 +77,7 @@ def np_upsample(frame, low, weight, channels, radius=2, sigma_s=1.0, sigma_n2=0.
                             if weight == "lobe" and c.endswith("specular"):
                                 wj = CAM_POS - L["position"][qy, qx]
                                 lj = np_lobe(nj, wj / np.linalg.norm(wj),
-                                             L["roughness"][qy, qx, 0])
+                                             L["roughness"][qy, qx, 0], beck(L, qy, qx))
                                 wt *= np_lobe_weight(*li, *lj, beta, kappa, approx)
                             else:
                                 wt *= math.exp(-np.sum((ni - nj) ** 2) / (2 * sigma_n2))

@@ -169,7 +169,7 @@ class Fig4Result:
 
 def _screen_sigma_image(frame, **kwargs) -> np.ndarray:
     """Per-pixel adapted sigma of ``weight="screen"`` (H, W) with ``kwargs``' parameters."""
-    from .brdf.sg import WANG_SG, ggx_lobe_to_sg
+    from .brdf.sg import lobe_to_sg
     from .denoise.bilateral import (
         K_S,
         SIGMA_MIN,
@@ -183,8 +183,10 @@ def _screen_sigma_image(frame, **kwargs) -> np.ndarray:
     n = mi.Vector3f(*split(frame["normal"]))
     pos = split(frame["position"])
     alpha = split(frame["roughness"])[0]
-    _, lam = ggx_lobe_to_sg(n, view_directions(frame, pos), alpha,
-                            kwargs.get("ndf_sharpness", WANG_SG))
+    from .denoise.common import beckmann_mask
+
+    _, lam = lobe_to_sg(n, view_directions(frame, pos), alpha, beckmann_mask(frame),
+                        kwargs.get("ndf_sharpness"))
     sig = screen_sigma(lam, pixel_angle(frame), kwargs.get("k_s", K_S),
                        kwargs.get("sigma_min", SIGMA_MIN), kwargs.get("sigma_s", SIGMA_S))
     return np.array(sig).reshape(frame.height, frame.width)

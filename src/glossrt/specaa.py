@@ -48,8 +48,11 @@ Conventions:
   normal to the pixel's (:func:`transport`), so differences do not depend on how tangent
   frames are chosen and the normal map's variation is seen through it. ``A`` is in that frame.
 * Lights: point and directional lights (:mod:`glossrt.lights.analytic`) shade with the
-  covariance GGX (:func:`glossrt.brdf.covariance_ggx.brdf_dr`; height-correlated ``G2`` and
-  Schlick Fresnel, like :mod:`glossrt.lights.shading`); polygon lights with LTC
+  pixel's distribution (the Frame's ``distribution`` channel): the covariance GGX (Tokuyoshi,
+  appendix A.1) or the Beckmann NDF with the same roughness matrix, for which Kaplanyan et
+  al.'s ``A = alpha^2 I + 2 Sigma`` is exact in slope space
+  (:func:`glossrt.brdf.covariance_ggx.brdf_separable_dr`), with Mitsuba's separable Smith
+  term and the pixel's Fresnel term, like :mod:`glossrt.lights.shading`; polygon lights with LTC
   (:mod:`glossrt.lights.ltc`), whose table is isotropic: anisotropic methods pass
   ``alpha = sqrt(lambda_max(A))`` (their ``-eig`` reduction), and the half vector of a polygon
   light points to its centroid. No shadows (direct light only, as LTC). ``masking=
@@ -83,13 +86,13 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from .brdf import covariance_ggx as cggx  # noqa: E402
-from .brdf.ggx import fresnel_schlick  # noqa: E402
+from .brdf import microfacet as mf  # noqa: E402
 from .denoise.common import check_frame, merge, split  # noqa: E402
 from .errors import FrameError, GlossrtError  # noqa: E402
 from .jit import no_gc, opaque  # noqa: E402
 from .lights import analytic  # noqa: E402
 from .lights import ltc as _ltc  # noqa: E402
-from .lights.shading import NEEDS, ShadingPoints, f0_tensor  # noqa: E402
+from .lights.shading import NEEDS, ShadingPoints, f0_tensor, shading_channels  # noqa: E402
 
 #: the methods glossrt evaluates (any ``halfvector|avgnormal`` + ``-cov|-bbox|-max|-eig`` works)
 METHODS = ("none", "halfvector", "halfvector-bbox", "avgnormal", "avgnormal-max",
@@ -425,17 +428,26 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
 
 def _specular(wo: mi.Vector3f, wi: mi.Vector3f, a: tuple, sp: ShadingPoints,
               masking: str) -> mi.Color3f:
-    """The covariance GGX (local directions) with roughness ``a``; ``masking="material"``:
-    ``G2`` of the material's isotropic alpha instead (:data:`MASKING`)."""
-    if masking == "filtered":
-        return cggx.brdf_dr(wo, wi, a[0], a[1], a[2], sp.f0)
+    """The pixel's lobe (local directions) with the roughness matrix ``a``: covariance GGX
+    (Tokuyoshi, appendix A.1) or, on Beckmann pixels, the Beckmann NDF with that matrix
+    (Kaplanyan et al. 2016's own case, where ``A = alpha^2 I + 2 Sigma`` is exact in slope
+    space), with Mitsuba's separable Smith term and the pixel's Fresnel term;
+    ``masking="material"``: ``G1 G1`` of the material's isotropic alpha instead
+    (:data:`MASKING`)."""
     h = dr.normalize(wo + wi)
-    a2 = dr.square(sp.alpha)
-    # Tokuyoshi, appendix A.1, eq. A.1-1 with D(m; A) (eq. A.1-3) and G2 of alpha^2 I
-    val = cggx.D_dr(h, a[0], a[1], a[2]) * cggx.G2_dr(wo, wi, a2, 0.0, a2) / (
-        4.0 * wo.z * wi.z)
+    fr = sp.fresnel_at(dr.dot(wo, h))
+    if masking == "filtered":
+        return fr * cggx.brdf_separable_dr(wo, wi, a[0], a[1], a[2], sp.beckmann)
+    beck = sp.beckmann
+    d_g = cggx.D_dr(h, a[0], a[1], a[2])
+    d_b = cggx.D_beckmann_dr(h, a[0], a[1], a[2]) if not (isinstance(beck, bool)
+                                                           and not beck) else d_g
+    d = d_b if isinstance(beck, bool) and beck else dr.select(beck, d_b, d_g)
+    # D of the filtered A (Tokuyoshi, eq. A.1-3 / Beckmann), G1 G1 of alpha^2 I
+    g = mf.G1(wo.z, sp.alpha, beck) * mf.G1(wi.z, sp.alpha, beck)
+    val = d * g / (4.0 * dr.maximum(wo.z * wi.z, 1e-30))
     ok = (wo.z > 0.0) & (wi.z > 0.0)
-    return fresnel_schlick(dr.dot(wo, h), sp.f0) * dr.select(ok, val, 0.0)
+    return fr * dr.select(ok, val, 0.0)
 
 
 def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sided: tuple,
@@ -498,7 +510,7 @@ def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: 
     m = parse_method(method, kappa, masking)
     dev = analytic.device_lights(list(lights))
     polys, two = _ltc._device_lights(list(polygons))
-    ch = {k: frame[k] for k in NEEDS}
+    ch = shading_channels(frame)
     ch["f0"] = f0_tensor(frame, f0)
     size = (frame.height, frame.width)
     cam = opaque(frame.camera.position)
@@ -525,7 +537,8 @@ def shade(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "
     prefiltered as in :mod:`glossrt.lights.ltc`), shaded by LTC with the filtered roughness;
     ``f0`` (H, W, 3) per-pixel Fresnel F0 (:func:`glossrt.lights.shading.f0_image`, default
     0); ``kappa``: clamp of the added
-    roughness (module docstring). Diffuse (Lambert, ``albedo_diffuse``) plus GGX specular,
+    roughness (module docstring). Diffuse (Lambert, ``albedo_diffuse``) plus GGX or Beckmann
+    specular (the ``distribution`` channel),
     unshadowed. The frame needs position, normal, roughness, albedo_diffuse, mesh_id and
     its camera. ``textures``: see :func:`shade_tensor`; ``masking``: :data:`MASKING`."""
     out = shade_tensor(frame, lights, polygons, method, f0, kappa, frozen, textures, masking)

@@ -93,6 +93,9 @@ __all__ = [
     "G2_dr",
     "brdf_dr",
     "sample_vndf_dr",
+    "D_beckmann_dr",
+    "G1_beckmann_dr",
+    "brdf_separable_dr",
 ]
 
 #: Allowed deviation of ``|v|`` from 1 for the unit-vector inputs of the NumPy functions.
@@ -464,3 +467,61 @@ def sample_vndf_dr(wo: mi.Vector3f, a11: Any, a12: Any, a22: Any, u1: Any, u2: A
     nx, ny, nz = ggx.sample_vndf(vx, vy, wo.z, 1.0, u1, u2)
     m = type(wo)(l11 * nx, l21 * nx + l22 * ny, nz)
     return dr.normalize(m)
+
+
+# ----------------------------------------------------------------------------------------------
+# Beckmann with a roughness matrix (Kaplanyan et al. 2016's own distribution)
+# ----------------------------------------------------------------------------------------------
+
+
+def D_beckmann_dr(m: mi.Vector3f, a11: Any, a12: Any, a22: Any) -> Any:
+    """Dr.Jit Beckmann NDF with the roughness matrix ``A``: the slopes ``s = (x, y) / z`` of
+    the normals are Gaussian with covariance ``A / 2``, ``D(m; A) = exp(-s^T A^-1 s) / (pi
+    sqrt(det A) z^4)`` (Walter et al. 2007, eq. 25, with ``alpha^2`` replaced by ``A``; the
+    form Kaplanyan et al. 2016 filter: a Gaussian of slope covariance ``Sigma`` convolved
+    with it gives ``A + 2 Sigma``, their eq. 9). ``a11 = a22 = alpha^2``, ``a12 = 0`` is
+    isotropic Beckmann; 0 for ``m.z <= 0``."""
+    x, y, z = m.x, m.y, m.z
+    det = a11 * a22 - a12 * a12
+    z2 = dr.maximum(z * z, 1e-30)
+    q = (a22 * x * x - 2.0 * a12 * x * y + a11 * y * y) / (det * z2)
+    return dr.select(z > 0.0, dr.exp(-q) / (dr.pi * dr.sqrt(det) * z2 * z2), 0.0)
+
+
+def G1_beckmann_dr(w: mi.Vector3f, a11: Any, a12: Any, a22: Any) -> Any:
+    """Dr.Jit Smith masking of the Beckmann NDF with roughness matrix ``A`` as Mitsuba
+    evaluates it (Walter et al. 2007, eq. 27, rational approximation) with the projected
+    roughness ``alpha_w^2 = [x, y] A [x, y]^T / (x^2 + y^2)`` (stretch invariance, Heitz
+    2014): ``a = z / sqrt([x, y] A [x, y]^T)``; 1 at normal incidence, 0 for ``w.z <= 0``."""
+    x, y, z = w.x, w.y, w.z
+    r2 = a11 * x * x + 2.0 * a12 * x * y + a22 * y * y
+    a = z * dr.rsqrt(dr.maximum(r2, 1e-30))
+    g = (3.535 * a + 2.181 * a * a) / (1.0 + 2.276 * a + 2.577 * a * a)
+    g = dr.select((a >= 1.6) | (r2 <= 0.0), 1.0, g)
+    return dr.select(z > 0.0, g, 0.0)
+
+
+def brdf_separable_dr(wo: mi.Vector3f, wi: mi.Vector3f, a11: Any, a12: Any, a22: Any,
+                      beckmann: Any = False) -> Any:
+    """``D(h; A) G1(wo; A) G1(wi; A) / (4 wo.z wi.z)`` (no Fresnel, no cosine): the
+    covariance GGX (eqs. A.1-3, A.1-4) or Beckmann (:func:`D_beckmann_dr`) lobe with
+    Mitsuba's *separable* Smith term, per lane by ``beckmann`` (a mask or a bool); 0 unless
+    both directions lie above the surface. With ``A = alpha^2 I`` it is the lobe Mitsuba
+    renders (:func:`glossrt.brdf.microfacet.specular_cos` over ``cos_i``)."""
+    h = wo + wi
+    hn2 = dr.squared_norm(h)
+    h = h * dr.rsqrt(dr.maximum(hn2, 1e-30))
+
+    def ggx_():
+        return D_dr(h, a11, a12, a22) * G1_dr(wo, a11, a12, a22) * G1_dr(wi, a11, a12, a22)
+
+    def beck_():
+        return (D_beckmann_dr(h, a11, a12, a22) * G1_beckmann_dr(wo, a11, a12, a22)
+                * G1_beckmann_dr(wi, a11, a12, a22))
+
+    if isinstance(beckmann, bool):
+        val = beck_() if beckmann else ggx_()
+    else:
+        val = dr.select(beckmann, beck_(), ggx_())
+    ok = (wo.z > 0.0) & (wi.z > 0.0) & (hn2 > 0.0)
+    return dr.select(ok, val / (4.0 * dr.maximum(wo.z * wi.z, 1e-30)), 0.0)

@@ -58,6 +58,7 @@ __all__ = [
     "sg_product_integral",
     "sg_product_integral_approx",
     "smoothed_sharpness",
+    "lobe_to_sg",
 ]
 
 #: Smallest roughness used by the lobe constructors (Mitsuba's microfacet ``ALPHA_MIN``).
@@ -201,6 +202,21 @@ def ggx_lobe_to_sg(n, wo, alpha, ndf_sharpness=WANG_SG):
     """
     a = dr.maximum(alpha, ALPHA_MIN)
     return _warped_lobe(n, wo, ndf_sharpness / dr.square(a))
+
+
+def lobe_to_sg(n, wo, alpha, beckmann=False, ndf_sharpness=None):
+    """SG ``(axis, lambda)`` of a pixel's specular lobe with the NDF sharpness of its own
+    distribution: ``lambda_h = GGX_SG_PEAK / alpha^2`` for GGX and ``WANG_SG / alpha^2`` for
+    Beckmann, each matching its NDF's curvature at the peak (the criterion Wang et al.'s 2
+    meets for Beckmann), warped as :func:`ggx_lobe_to_sg`. ``beckmann``: a per-lane mask (the
+    Frame's ``distribution`` channel) or a bool; ``ndf_sharpness``: one value for every
+    pixel instead (experiments)."""
+    if ndf_sharpness is None:
+        if isinstance(beckmann, bool):
+            ndf_sharpness = WANG_SG if beckmann else GGX_SG_PEAK
+        else:
+            ndf_sharpness = dr.select(beckmann, WANG_SG, GGX_SG_PEAK)
+    return ggx_lobe_to_sg(n, wo, alpha, ndf_sharpness)
 
 
 def beckmann_lobe_to_sg(n, wo, alpha):

@@ -78,7 +78,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from ..brdf.sg import WANG_SG, ggx_lobe_to_sg, smoothed_sharpness
+from ..brdf.sg import lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from ..jit import exp_weight
@@ -146,7 +146,7 @@ def bilateral(frame, weight: str = "normal",
               radius: int = RADIUS, sigma_s: float = SIGMA_S, sigma_n2: float = SIGMA_N2,
               beta: float = BETA, kappa: float | None = KAPPA, approx: bool = True,
               sigma_z2: float | None = SIGMA_Z2, k_s: float = K_S,
-              sigma_min: float = SIGMA_MIN, ndf_sharpness: float = WANG_SG) -> mi.TensorXf:
+              sigma_min: float = SIGMA_MIN, ndf_sharpness: float | None = None) -> mi.TensorXf:
     """Denoise ``frame`` with the cross-bilateral filter of Tokuyoshi 2015 (see the module
     docstring for the weights) and return the RGB image (H, W, 3).
 
@@ -156,8 +156,9 @@ def bilateral(frame, weight: str = "normal",
     components, ``k_s`` / ``sigma_min``: glossrt's form of the fig. 4(c) baseline).
     ``channels``: the radiance components to demodulate / filter / remodulate; the others are
     added unfiltered. ``sigma_z2=None`` disables the depth weight. ``ndf_sharpness``: the NDF
-    SG sharpness times ``alpha^2`` used to build the lobes of ``"lobe"`` and ``"screen"`` (see
-    :func:`glossrt.brdf.sg.ggx_lobe_to_sg`; default Wang et al.'s 2)."""
+    SG sharpness times ``alpha^2`` used to build the lobes of ``"lobe"`` and ``"screen"``
+    (default: each pixel's distribution's own, :func:`glossrt.brdf.sg.lobe_to_sg`: 4 for GGX,
+    Wang et al.'s 2 for Beckmann)."""
     if weight not in WEIGHTS:
         raise GlossrtError(f"bilateral: unknown weight {weight!r}; choose one of "
                            f"{', '.join(WEIGHTS)}")
@@ -187,7 +188,7 @@ def bilateral(frame, weight: str = "normal",
     if use_lobe or use_screen:
         wo = pixel_view_directions(frame, grid, "weight='lobe' or 'screen'")
         # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
-        xi_p, lam_p = ggx_lobe_to_sg(n_p, wo, g.roughness, ndf_sharpness)
+        xi_p, lam_p = lobe_to_sg(n_p, wo, g.roughness, g.beckmann, ndf_sharpness)
         xi_p = dr.select(hit, xi_p, mi.Vector3f(0.0, 0.0, 1.0))
         lam_p = dr.select(hit, lam_p, 1.0)
     if use_lobe:

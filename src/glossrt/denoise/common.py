@@ -132,6 +132,9 @@ class GBuffer:
     mesh: mi.Float
     position: Img | None = None
     roughness: mi.Float | None = None
+    #: per pixel: the lobe is Beckmann (the ``distribution`` channel; ``False``: every pixel
+    #: GGX, frames without that channel)
+    beckmann: mi.Bool | bool = False
 
     @property
     def hit(self) -> mi.Bool:
@@ -160,6 +163,13 @@ def _guides(frame, with_position: bool, with_roughness: bool) -> tuple:
     return n, z, m, pos, rough, finite_guides(n, z, m, pos, rough)
 
 
+def beckmann_mask(frame) -> mi.Bool | bool:
+    """Where the frame's ``distribution`` channel says Beckmann (``False`` without it)."""
+    if "distribution" not in frame.names:
+        return False
+    return split(frame["distribution"])[0] == 1.0
+
+
 def gbuffer(frame, grid: Grid, with_position: bool = False,
             with_roughness: bool = False) -> GBuffer:
     """The frame's G-buffer (normal, 1/z and its gradient, mesh id; ``position`` and
@@ -175,7 +185,8 @@ def gbuffer(frame, grid: Grid, with_position: bool = False,
     return GBuffer([dr.select(ok, c, 0.0) for c in n], inv_z, dzdx, dzdy,
                    dr.select(ok, m, 0.0),
                    None if pos is None else [dr.select(ok, c, 0.0) for c in pos],
-                   None if rough is None else dr.select(ok, rough, 0.0))
+                   None if rough is None else dr.select(ok, rough, 0.0),
+                   beckmann_mask(frame) if with_roughness else False)
 
 
 @dataclass
@@ -186,6 +197,7 @@ class PixelGuides:
     z: mi.Float  # the depth, -1 on background
     normal: Img
     roughness: mi.Float | None = None
+    beckmann: mi.Bool | bool = False  # as GBuffer.beckmann
 
 
 def pixel_guides(frame, lobes: bool) -> PixelGuides:
@@ -196,7 +208,8 @@ def pixel_guides(frame, lobes: bool) -> PixelGuides:
     normal, z, mesh, _, alpha, ok = _guides(frame, False, lobes)
     hit = (mesh > 0) & (z > 0) & ok
     return PixelGuides(hit, dr.select(hit, z, -1.0), [dr.select(hit, c, 0.0) for c in normal],
-                       None if alpha is None else dr.select(hit, alpha, 0.0))
+                       None if alpha is None else dr.select(hit, alpha, 0.0),
+                       beckmann_mask(frame) if lobes else False)
 
 
 def require_camera(frame, who: str) -> None:

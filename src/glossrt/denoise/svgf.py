@@ -398,14 +398,15 @@ class SVGF:
                     abs(self._camera.fov - frame.prev_camera.fov) < 1e-6)
 
     def _lobes(self, frame, grid: Grid, gb: GBuffer) -> dict:
-        """Each pixel's GGX lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009), from
-        the G-buffer's (hygienic) normal and roughness and the pixels' camera rays
+        """Each pixel's specular lobe as an SG (Tokuyoshi 2015 sec. 4.2; Wang et al. 2009)
+        with its distribution's sharpness, from the G-buffer's (hygienic) normal, roughness
+        and distribution and the pixels' camera rays
         (:func:`~glossrt.denoise.common.pixel_view_directions`)."""
-        from ..brdf.sg import ggx_lobe_to_sg
+        from ..brdf.sg import lobe_to_sg
 
         wo = pixel_view_directions(frame, grid, "weights='lobe'")
         n = mi.Vector3f(*gb.normal)
-        axis, lam = ggx_lobe_to_sg(n, wo, gb.roughness)
+        axis, lam = lobe_to_sg(n, wo, gb.roughness, gb.beckmann)
         return {"lobe_axis": [axis[0], axis[1], axis[2]], "lobe_sharpness": lam,
                 "specular": [1.0 if "specular" in rad[0] else 0.0
                              for rad, _ in SIGNAL_SETS[self.params.signals]]}

@@ -62,7 +62,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..brdf.sg import ggx_lobe_to_sg, smoothed_sharpness
+from ..brdf.sg import lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
 from ..jit import exp_weight
@@ -143,7 +143,7 @@ class _Guides:
         g = _Guides(hit, pg.z, n)
         if lobes:
             wo = pixel_view_directions(frame, grid, "weight='lobe'")
-            xi, lam = ggx_lobe_to_sg(n, wo, pg.roughness)
+            xi, lam = lobe_to_sg(n, wo, pg.roughness, pg.beckmann)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
             # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
             g.lam = smoothed_sharpness(dr.select(hit, lam, 1.0), kappa)
