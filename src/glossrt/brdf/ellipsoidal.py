@@ -271,8 +271,22 @@ def ellipsoidal_sample(u: Any, ratio: Any) -> Any:
 # ----------------------------------------------------------------------------------------------
 
 
-def ratio_from_alpha(alpha: Any) -> np.ndarray:
-    """The ratio ``R_r`` whose median microfacet angle equals GGX's for roughness ``alpha``.
+def median_alpha(alpha: Any, distribution: str = "ggx") -> np.ndarray:
+    """The GGX roughness with the same median microfacet angle as ``distribution``'s
+    ``alpha``: GGX itself, or for Beckmann ``alpha sqrt(ln 2)`` (its projected NDF has
+    ``P(tan^2 theta_h < x) = 1 - exp(-x / alpha^2)`` (Walter et al. 2007, eq. 28), median
+    ``tan theta_m = alpha sqrt(ln 2)``, GGX's median is ``tan theta_m = alpha``)."""
+    a = _np_array("alpha", alpha)
+    if distribution == "beckmann":
+        return a * math.sqrt(math.log(2.0))
+    if distribution != "ggx":
+        raise GlossrtError(f"distribution must be 'ggx' or 'beckmann', got {distribution!r}")
+    return a
+
+
+def ratio_from_alpha(alpha: Any, distribution: str = "ggx") -> np.ndarray:
+    """The ratio ``R_r`` whose median microfacet angle equals that of the microfacet
+    ``distribution`` (GGX, or Beckmann through :func:`median_alpha`) for roughness ``alpha``.
 
     GGX normals sampled with the projected NDF ``D(h) cos(theta_h)`` have ``P(tan theta_h < x)
     = x^2 / (alpha^2 + x^2)``, median ``theta_m = atan(alpha)``. The folded ellipsoidal angle has
@@ -290,6 +304,7 @@ def ratio_from_alpha(alpha: Any) -> np.ndarray:
     a = _np_array("alpha", alpha)
     if np.any(a <= 0.0):
         raise GlossrtError("alpha must be > 0 (alpha = 0 is a mirror: R_r = infinity)")
+    a = median_alpha(a, distribution)
     r = np.sqrt(1.0 + a * a) / a - 1.0
     return np.maximum(r, 1.0)
 

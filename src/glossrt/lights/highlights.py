@@ -10,22 +10,28 @@ For a pixel with normal ``n``, view ``v`` (towards the eye) and ``N`` microfacet
 
 * ``distribution="ellipsoidal"`` (the paper): ``h_k`` from the ellipsoidal distribution
   ``D_s(delta; R_r)`` with ``theta`` uniform on ``[0, pi)`` (:mod:`glossrt.brdf.ellipsoidal`;
-  ``R_r`` from the pixel's GGX alpha by matching the median microfacet angle), ``w_k = 1/N``
+  ``R_r`` from the pixel's alpha by matching the median microfacet angle of its own
+  distribution, GGX or Beckmann: :func:`glossrt.brdf.ellipsoidal.median_alpha`), ``w_k = 1/N``
   for random samples (the microfacet-normal texture with embedded random numbers, secs. 5.1,
   5.3, or a per-pixel hash generator) or the 13-point regular pattern's ``D_s`` weights
   (sec. 7.2); ``G = min(1, G_m, G_s)`` (sec. 4.2);
-* ``distribution="ggx"`` (beyond the paper): GGX visible-normal sampling (Heitz 2018) with
-  filtered importance sampling (Colbert & Krivanek 2007): each sample reads the pre-filtered
-  level of the map chosen from its pdf; ``w_k = G2 / G1(v) / N``.
+* ``distribution="ggx"`` (beyond the paper; the name predates Beckmann support): the pixel's
+  own microfacet lobe, GGX visible-normal sampling (Heitz 2018) or Beckmann ``D cos`` (the
+  Frame's ``distribution`` channel), with filtered importance sampling (Colbert & Krivanek
+  2007): each sample reads the pre-filtered level of the map chosen from its pdf; ``w_k =
+  f cos / pdf / N`` with the shared BRDF (Mitsuba's separable Smith term).
 
-``F`` is Schlick's Fresnel with the material's ``F0`` (glossrt's addition; the paper's
-highlights are the reflected light alone, i.e. ``F = 1``). ``L_env`` holds the lights only
+``F`` is the pixel's Fresnel term (Schlick's with ``F0``, or Mitsuba's exact one with
+:func:`glossrt.lights.shading.fresnel_image`; glossrt's addition: the paper's highlights are
+the reflected light alone, i.e. ``F = 1``). ``L_env`` holds the lights only
 (the paper's light environment map), so the method gives the specular reflection of the
 lights; diffuse light is not part of it. Bounding-sphere culling (sec. 6) skips pixels whose
 mirror direction misses every light's sphere enlarged by the lobe's spread.
 """
 
 from __future__ import annotations
+
+import math
 
 from .. import backend
 
@@ -40,7 +46,13 @@ from ..brdf.ggx import ALPHA_MIN  # noqa: E402
 from ..denoise.common import check_frame, merge, split  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..jit import opaque  # noqa: E402
-from .shading import NEEDS, ShadingPoints, f0_tensor, light_vertices  # noqa: E402
+from .shading import (  # noqa: E402
+    NEEDS,
+    ShadingPoints,
+    f0_tensor,
+    light_vertices,
+    shading_channels,
+)
 
 
 def shade_plain(frame, lights: list, f0: np.ndarray | None = None) -> np.ndarray:
@@ -78,16 +90,31 @@ DISTRIBUTIONS = ("ellipsoidal", "ggx")
 SAMPLINGS = ("texture", "hash", "regular")
 
 
-def _groups(alpha: np.ndarray, hit: np.ndarray) -> list[tuple[float, np.ndarray]]:
-    """Pixels grouped by material roughness (the paper's normal texture, regular pattern and
-    bounding-sphere enlargement are per material): (alpha, flat pixel indices)."""
-    vals = np.unique(alpha[hit])
-    return [(float(a), np.flatnonzero(hit & (alpha == a))) for a in vals]
+def _groups(alpha: np.ndarray, hit: np.ndarray,
+            beckmann: np.ndarray) -> list[tuple[float, bool, np.ndarray]]:
+    """Pixels grouped by material roughness and distribution (the paper's normal texture,
+    regular pattern and bounding-sphere enlargement are per material): (alpha, Beckmann?,
+    flat pixel indices)."""
+    out = []
+    for b in (False, True):
+        sel = hit & (beckmann == b)
+        out += [(float(a), b, np.flatnonzero(sel & (alpha == a))) for a in np.unique(alpha[sel])]
+    return out
+
+
+def _ratio(alpha: float, beckmann: bool) -> float:
+    """The ellipsoidal ratio whose median microfacet angle is the material's (GGX or
+    Beckmann; :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha`)."""
+    from ..brdf import ellipsoidal as el
+
+    a = float(el.median_alpha(alpha, "beckmann" if beckmann else "ggx"))
+    return float(el.ratio_from_alpha(min(a, el.ALPHA_MAX)))
 
 
 def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, samples: int,
               distribution: str, sampling: str, frame_index: int, texture=None,
-              level0: int = 128, offset=0, fis_samples: int | None = None) -> mi.Color3f:
+              level0: int = 128, offset=0, fis_samples: int | None = None,
+              beckmann: bool = False) -> mi.Color3f:
     """The module docstring's estimator for one material (scalar ``alpha``); hash samples
     use sample indices ``offset + k`` (``offset`` an opaque ``mi.UInt32`` for references
     summed over batches, so one kernel serves every batch); ``fis_samples``: the sample
@@ -97,8 +124,9 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     n, v = sp.n, sp.wo
     total = dr.zeros(mi.Color3f, dr.width(n))
     if distribution == "ellipsoidal":
-        ratio = (float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
-                 if isinstance(alpha, float) else _ratio_dr(alpha))
+        # a scalar alpha: one material (``beckmann`` its distribution); per lane: sp's
+        ratio = (_ratio(alpha, beckmann) if isinstance(alpha, float)
+                 else _ratio_dr(alpha, sp.beckmann))
         if sampling == "regular":
             hs = el.regular_normals(n, ratio)
         elif sampling == "texture":
@@ -142,11 +170,16 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     return total
 
 
-def _ratio_dr(alpha: mi.Float) -> mi.Float:
+def _ratio_dr(alpha: mi.Float, beckmann=False) -> mi.Float:
     """Per lane :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha` (its closed form
-    ``R = sqrt(1 + alpha^2) / alpha - 1``, alpha clamped to ``(0, ALPHA_MAX]``, so R >= 1)."""
+    ``R = sqrt(1 + alpha^2) / alpha - 1`` of the median-matched GGX alpha, ``alpha sqrt(ln 2)``
+    on Beckmann lanes, clamped to ``(0, ALPHA_MAX]``, so R >= 1)."""
     from ..brdf.ellipsoidal import ALPHA_MAX
 
+    if isinstance(beckmann, bool):
+        alpha = alpha * math.sqrt(math.log(2.0)) if beckmann else alpha
+    else:
+        alpha = dr.select(beckmann, alpha * math.sqrt(math.log(2.0)), alpha)
     a = dr.clip(alpha, 1e-6, ALPHA_MAX)
     return dr.maximum(dr.sqrt(1.0 + a * a) / a - 1.0, 1.0)
 
@@ -179,18 +212,21 @@ def _fast_kernel(ch: dict, cam: list, data, base, has, tables, n_ids: int, n_lev
 _fast_frozen = dr.freeze(_fast_kernel, warn_after=16)
 
 
-def spread_angle(alpha: float, distribution: str, q: float = 0.99) -> float:
+def spread_angle(alpha: float, distribution: str, q: float = 0.99,
+                 beckmann: bool = False) -> float:
     """The angle (radians) from the normal within which a fraction ``q`` of the microfacet
     normals lie, for the bounding-sphere enlargement (Kimura & Tokoi, sec. 6): ellipsoidal
-    ``|delta|`` quantile (``D_s`` is symmetric: ``delta(1/2 + q/2)``), GGX ``theta_h``
-    quantile of the projected NDF (``P(tan^2 theta < x) = x / (alpha^2 + x)``)."""
+    ``|delta|`` quantile (``D_s`` is symmetric: ``delta(1/2 + q/2)``), else the material's
+    ``theta_h`` quantile of the projected NDF: GGX ``P(tan^2 theta < x) = x / (alpha^2 + x)``,
+    Beckmann (``beckmann``) ``1 - exp(-x / alpha^2)``."""
     from ..brdf import ellipsoidal as el
 
     if distribution == "ellipsoidal":
-        ratio = (float(el.ratio_from_alpha(min(alpha, el.ALPHA_MAX)))
-                 if isinstance(alpha, float) else _ratio_dr(alpha))
-        return float(el.ellipsoidal_sample(0.5 + 0.5 * q, ratio))
-    return float(np.arctan(max(alpha, ALPHA_MIN) * np.sqrt(q / (1.0 - q))))
+        return float(el.ellipsoidal_sample(0.5 + 0.5 * q, _ratio(alpha, beckmann)))
+    a = max(alpha, ALPHA_MIN)
+    if beckmann:
+        return float(np.arctan(a * np.sqrt(-np.log(1.0 - q))))
+    return float(np.arctan(a * np.sqrt(q / (1.0 - q))))
 
 
 class HighlightRenderer:
@@ -258,7 +294,7 @@ class HighlightRenderer:
         check_frame(frame, NEEDS)
         if frame.camera is None:
             raise GlossrtError(f"{frame.where}: highlights need the camera")
-        ch = {k: frame[k] for k in NEEDS}
+        ch = shading_channels(frame)
         ch["f0"] = f0_tensor(frame, f0)
         with no_gc():
             out = _fast_frozen(ch, opaque(frame.camera.position), maps.data, maps._base,
@@ -288,15 +324,17 @@ class HighlightRenderer:
         sp = ShadingPoints.of(frame, f0)
         alpha = frame.numpy("roughness")[..., 0].ravel()
         hit = np.array(sp.hit)
+        beck = (frame.numpy("distribution")[..., 0].ravel() == 1.0
+                if "distribution" in frame.names else np.zeros_like(hit))
         mesh_id = mi.UInt32(split(frame["mesh_id"])[0])
         centres, radii = light_spheres(lights)
         total = dr.zeros(mi.Color3f, w * h)
         stats = {"pixels": int(hit.sum()), "shaded": 0}
-        for a, idx_np in _groups(alpha, hit):
+        for a, b, idx_np in _groups(alpha, hit, beck):
             idx = mi.UInt32(idx_np.astype(np.uint32))
             sub = sp.take(idx)
             if self.cull and len(lights):
-                spread = lobe_spread(spread_angle(a, self.distribution))
+                spread = lobe_spread(spread_angle(a, self.distribution, beckmann=b))
                 keep = cull_mask(sub.p, el.reflect(sub.wo, sub.n), centres, radii, spread)
                 sel = dr.compress(keep)
                 if dr.width(sel) == 0:
@@ -311,10 +349,10 @@ class HighlightRenderer:
 
             tex = None
             if self.distribution == "ellipsoidal" and self.sampling == "texture":
-                tex = self._texture(float(el.ratio_from_alpha(min(a, el.ALPHA_MAX))))
+                tex = self._texture(_ratio(a, b))
             col = _estimate(sub, env, idx % w, idx // w, idx, a, self.samples,
                             self.distribution, self.sampling, frame_index, tex,
-                            int(maps.resolutions[0]), offset, fis_samples)
+                            int(maps.resolutions[0]), offset, fis_samples, b)
             dr.scatter(total, col, idx)
         self.last_stats = stats
         out = merge([total[0], total[1], total[2]], h, w)
