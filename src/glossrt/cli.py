@@ -319,6 +319,7 @@ def _experiment_bspvt(out, size, spp: int, resolution: int) -> int:
     rows = be.table1(resolution=resolution, progress=print)
     md = (f"## shadows vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp, R = {resolution})\n\n"
           f"mean absolute error (time per frame)\n\n{res.markdown()}\n\n"
+          f"## against Mitsuba's direct integrator ({spp} spp)\n\n{res.direct_markdown()}\n\n"
           f"## Table 1\n\n{be.table1_markdown(rows, resolution)}")
     return _finish_experiment(out, "bspvt", md, "bspvt_images.png",
                               {"rows": res.rows, "table1": rows})

@@ -266,6 +266,8 @@ def section_bspvt(ctx: DemoContext, report: Report) -> None:
         "per frame; the error split as in the paper's fig. 8 into LTC's (unshadowed LTC vs "
         "unshadowed Monte Carlo) and the visibility's. See docs/RESULTS.md for 64x64 maps.")
     _markdown_table(s, out.markdown(), "mean absolute error (ms per frame)")
+    _markdown_table(s, out.direct_markdown(),
+                    "against Mitsuba's own direct integrator (mean absolute error)")
     for k, im in out.images.items():
         s.images_row([(f"{k}: Monte Carlo", im["reference"]),
                       ("BSPVT per pixel", im["bspvt-pixel"]),
