@@ -73,7 +73,6 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..brdf.fresnel import ROW  # noqa: E402
 from ..errors import GlossrtError  # noqa: E402
 from ..frame import RADIANCE, Frame  # noqa: E402
 from .ltc import shade_frame  # noqa: E402
@@ -143,7 +142,9 @@ def _check_f0(frame, f0):
         arr = np.asarray(f0, np.float32)
     except (TypeError, ValueError) as e:
         raise GlossrtError(f"f0 must be a numeric (H, W, 3) array: {e}") from e
-    wants = [(frame.height, frame.width, c) for c in (3, ROW)]
+    from .shading import MATERIAL_ROW
+
+    wants = [(frame.height, frame.width, c) for c in (3, MATERIAL_ROW)]
     if arr.shape not in wants:
         raise GlossrtError(f"f0 has shape {arr.shape} but the frame needs {wants[0]} "
                            f"({frame.width}x{frame.height} pixels, RGB F0) or {wants[1]} "

@@ -77,32 +77,77 @@ def check_isotropic(setup) -> None:
                 "'glossrt render --mitsuba')")
 
 
-def fresnel_image(setup, frame) -> np.ndarray:
-    """The Fresnel term of every pixel's material, (H, W, 13) float32 rows of
-    :meth:`glossrt.brdf.fresnel.Fresnel.row` (kind, eta, k, specular_reflectance, F0), from
-    the materials of ``setup``'s shapes through the frame's ``mesh_id`` (0 = background: a
-    Schlick row with F0 0). Pass it as ``f0`` to the shading functions to shade with
-    Mitsuba's exact conductor / dielectric terms (the CLI does); refuses anisotropic
-    materials (:func:`check_isotropic`)."""
-    from ..brdf.fresnel import ROW
-    from ..render.materials import describe_bsdf
+#: columns of :func:`fresnel_image`: the Fresnel row (kind, eta, k, scale, F0), then the
+#: diffuse scale (RGB)
+MATERIAL_ROW = ROW + 3
+#: where F0 sits in a :func:`fresnel_image` row
+F0_COLUMNS = slice(ROW - 3, ROW)
+
+
+def _material_rows(setup) -> tuple[np.ndarray, np.ndarray]:
+    """Per mesh id (0 = background): the Fresnel rows ``(n, ROW)`` and the diffuse-scale
+    tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials."""
+    from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf, diffuse_scale
     from ..scenes import stable_shapes
 
+    shapes = stable_shapes(setup.scene)
+    rows = np.zeros((len(shapes) + 1, ROW))
+    scales = np.ones((len(shapes) + 1, DIFFUSE_SCALE_NODES, 3))
+    cache: dict = {}
+    for i, s in enumerate(shapes):
+        bsdf = s.bsdf()
+        rows[i + 1] = describe_bsdf(bsdf).fresnel.row()
+        key = id(bsdf)
+        if key not in cache:
+            cache[key] = diffuse_scale(bsdf)
+        scales[i + 1] = cache[key]
+    return rows, scales
+
+
+def fresnel_image(setup, frame) -> np.ndarray:
+    """Every pixel's material as Mitsuba renders it, (H, W, 16) float32: the Fresnel term,
+    :meth:`glossrt.brdf.fresnel.Fresnel.row` (kind, eta, k, specular_reflectance, F0), then
+    the diffuse scale at the pixel's view (:func:`glossrt.render.materials.diffuse_scale`:
+    Mitsuba's diffuse lobe integrated over the light directions over its reflectance; 1 for
+    Lambert, 0.47-0.96 for plastic coatings of eta 1.5), from the materials of ``setup``'s
+    shapes through the frame's ``mesh_id`` (0 = background). Pass it as ``f0`` to the
+    shading functions to shade with Mitsuba's exact Fresnel terms and coated diffuse lobes
+    (the CLI does); refuses anisotropic materials (:func:`check_isotropic`)."""
+    from ..render.materials import DIFFUSE_SCALE_NODES
+
     check_isotropic(setup)
-    table = np.zeros((len(setup.shapes) + 1, ROW))
-    for i, s in enumerate(stable_shapes(setup.scene)):
-        table[i + 1] = describe_bsdf(s.bsdf()).fresnel.row()
+    rows, scales = _material_rows(setup)
     ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
-    if ids.min() < 0 or ids.max() >= len(table):
+    if ids.min() < 0 or ids.max() >= len(rows):
         raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
-                         f"({ids.max()} >= {len(table)})")
-    return table[ids].astype(np.float32)
+                         f"({ids.max()} >= {len(rows)})")
+    out = np.zeros(ids.shape + (MATERIAL_ROW,), np.float32)
+    out[..., :ROW] = rows[ids]
+    if frame.camera is not None and "position" in frame.names and "normal" in frame.names:
+        v = np.asarray(frame.camera.position, np.float64) - frame.numpy("position")
+        v /= np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+        cos_o = np.clip(np.sum(v * frame.numpy("normal"), -1), 0.0, 1.0)
+    else:
+        cos_o = np.ones(ids.shape)
+    # the table's nodes are uniform in sqrt(cos_o): linear interpolation there
+    x = np.sqrt(cos_o) * (DIFFUSE_SCALE_NODES - 1)
+    i0 = np.minimum(x.astype(np.int64), DIFFUSE_SCALE_NODES - 2)
+    t = (x - i0)[..., None]
+    out[..., ROW:] = (1 - t) * scales[ids, i0] + t * scales[ids, i0 + 1]
+    return out
 
 
 def f0_image(setup, frame) -> np.ndarray:
-    """Specular F0 (H, W, 3) per pixel (the last three columns of :func:`fresnel_image`), for
-    shading with Schlick's Fresnel; refuses anisotropic materials (:func:`check_isotropic`)."""
-    return np.ascontiguousarray(fresnel_image(setup, frame)[..., -3:])
+    """Specular F0 (H, W, 3) per pixel (:func:`fresnel_image`'s F0 columns), for shading
+    with Schlick's Fresnel and Lambert's diffuse reflectance as the G-buffer's
+    ``albedo_diffuse``; refuses anisotropic materials (:func:`check_isotropic`)."""
+    check_isotropic(setup)
+    rows, _ = _material_rows(setup)
+    ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
+    if ids.min() < 0 or ids.max() >= len(rows):
+        raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
+                         f"({ids.max()} >= {len(rows)})")
+    return np.ascontiguousarray(rows[ids][..., F0_COLUMNS]).astype(np.float32)
 
 
 @dataclass
@@ -139,7 +184,8 @@ class ShadingPoints:
     @staticmethod
     def of(frame, f0: np.ndarray | None = None) -> ShadingPoints:
         """From a Frame's G-buffer (and its camera); ``f0`` (H, W, 3) F0 for Schlick's
-        Fresnel, or (H, W, 13) from :func:`fresnel_image` for the exact terms; default 0."""
+        Fresnel, or (H, W, 16) from :func:`fresnel_image` for the exact terms and Mitsuba's
+        coated diffuse lobes; default 0."""
         check_frame(frame, NEEDS)
         p = mi.Point3f(*split(frame["position"]))
         wo = view_directions(frame, p, "polygon-light shading")
@@ -152,7 +198,7 @@ class ShadingPoints:
     @staticmethod
     def of_channels(ch: dict, wo: mi.Vector3f, f0: mi.TensorXf) -> ShadingPoints:
         """From G-buffer tensors ``ch`` (the :data:`NEEDS` channels and, when present,
-        ``distribution``), view directions and an (H, W, 3) F0 or (H, W, 13) Fresnel tensor
+        ``distribution``), view directions and an (H, W, 3) F0 or (H, W, 16) material tensor
         (:func:`f0_tensor`): only Dr.Jit operations (usable inside ``dr.freeze``)."""
         p = mi.Point3f(*split(ch["position"]))
         n = mi.Vector3f(*split(ch["normal"]))
@@ -162,11 +208,15 @@ class ShadingPoints:
                     if "distribution" in ch else False)
         f = split(f0)
         fresnel = None
-        if len(f) == ROW:
+        albedo = mi.Color3f(*split(ch["albedo_diffuse"]))
+        f0_rgb = mi.Color3f(*f) if len(f) == 3 else None
+        if len(f) == MATERIAL_ROW:
             fresnel = FresnelLanes(mi.UInt32(f[0]), mi.Color3f(*f[1:4]), mi.Color3f(*f[4:7]),
                                    mi.Color3f(*f[7:10]))
-        return ShadingPoints(p, n, wo, alpha, mi.Color3f(*split(ch["albedo_diffuse"])),
-                             mi.Color3f(*f[-3:]), hit & (dr.dot(n, wo) > 0), beckmann, fresnel)
+            albedo = albedo * mi.Color3f(*f[ROW:])  # Mitsuba's coated diffuse lobe
+            f0_rgb = mi.Color3f(*f[F0_COLUMNS])
+        return ShadingPoints(p, n, wo, alpha, albedo, f0_rgb, hit & (dr.dot(n, wo) > 0),
+                             beckmann, fresnel)
 
     def spec_weight(self, norm: mi.Float, fres: mi.Float) -> mi.Color3f:
         """``integral f F cos`` per unit LTC mass from a split-sum table's ``norm`` and
@@ -212,16 +262,16 @@ def shading_channels(frame) -> dict:
 
 
 def f0_tensor(frame, f0: np.ndarray | None) -> mi.TensorXf:
-    """``f0`` (H, W, 3) F0 or (H, W, 13) :func:`fresnel_image` as a tensor of the frame's
+    """``f0`` (H, W, 3) F0 or (H, W, 16) :func:`fresnel_image` as a tensor of the frame's
     size (zeros for ``None``); a clear error when its size does not match."""
     h, w = frame.height, frame.width
     if f0 is None:
         return dr.zeros(mi.TensorXf, (h, w, 3))
     f0 = np.asarray(f0, np.float32)
     c = f0.shape[-1] if f0.ndim == 3 else 3
-    if f0.size != h * w * c or c not in (3, ROW):
+    if f0.size != h * w * c or c not in (3, MATERIAL_ROW):
         raise FrameError(f"{frame.where}: F0 image has shape {f0.shape}, expected ({h}, {w}, 3) "
-                         f"or ({h}, {w}, {ROW}) (fresnel_image)")
+                         f"or ({h}, {w}, {MATERIAL_ROW}) (fresnel_image)")
     # in Dr.Jit's own memory: an input of the frozen LTC shading (see jit.owned_float)
     return mi.TensorXf(owned_float(f0), (h, w, c))
 

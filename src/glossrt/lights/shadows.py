@@ -264,8 +264,10 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     (Okuno & Iwasaki, eq. 2 per vertex tree; see the module docstring for ``mode``).
 
     ``trees`` must have been built for ``scene``'s vertices (:func:`build_scene_trees`);
-    ``f0`` (H, W, 3) is the per-pixel F0 of the ``pixel`` mode (the ``vertex`` mode takes
-    materials per mesh, :func:`vertex_materials`); ``traversal``: how the trees are walked
+    ``f0`` is the ``pixel`` mode's per-pixel F0 (H, W, 3) or, for Mitsuba's exact Fresnel
+    terms and coated diffuse lobes, :func:`glossrt.lights.shading.fresnel_image` (H, W, 16);
+    the ``vertex`` mode takes materials per mesh (:func:`vertex_materials`: Schlick's F0 and
+    the raw diffuse reflectance, not the exact terms); ``traversal``: how the trees are walked
     (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result); ``frozen``: replay recorded
     kernels (:func:`glossrt.lights.bspvt_shade.shade_points`). Pixels on shapes without
     trees (the lights themselves, analytic shapes) and background pixels get 0. Trees of

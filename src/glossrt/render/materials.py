@@ -10,6 +10,7 @@ import re
 import warnings
 from dataclasses import dataclass, field
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -103,6 +104,47 @@ def bsdf_distribution(bsdf: mi.BSDF) -> str | None:
     the plugin's string form."""
     m = _DISTRIBUTION.search(str(bsdf))
     return m.group(1).lower() if m else None
+
+
+#: view cosines of :func:`diffuse_scale`'s table: ``(i / (n - 1))^2``, uniform in sqrt(cos)
+DIFFUSE_SCALE_NODES = 33
+
+
+def diffuse_scale(bsdf: mi.BSDF, samples: int = 32) -> np.ndarray:
+    """Mitsuba's diffuse lobe of ``bsdf`` integrated over the light directions, divided by its
+    diffuse reflectance: ``s(cos_o) = integral f_d(wo, wi) cos_i dwi / rho`` per RGB channel
+    at :data:`DIFFUSE_SCALE_NODES` view cosines ``(i / (n - 1))^2`` (``(n, 3)``), from
+    Mitsuba's own ``eval`` with ``type_mask = DiffuseReflection`` on ``samples^2``
+    cosine-stratified directions. 1 for Lambert; ``plastic`` and ``roughplastic`` scale their
+    diffuse reflectance by the coating's transmission in and out (``(1 - F_i)(1 - F_o) /
+    eta^2`` and internal reflections): for ``eta = 1.49`` 0.96 at normal incidence for
+    ``plastic``, 0.66 (normal) to 0.47 (grazing) for ``roughplastic`` (alpha 0.3). Zeros
+    for a BSDF without a diffuse lobe; ones for a normal-mapped one (``Material.normal_map``),
+    whose canonical evaluation would read its texture (not modelled)."""
+    n = DIFFUSE_SCALE_NODES
+    cos_o = (np.arange(n) / (n - 1.0)) ** 2
+    if not int(bsdf.flags()) & int(mi.BSDFFlags.DiffuseReflection):
+        return np.zeros((n, 3))
+    if _normal_map_kind(bsdf, set(mi.traverse(bsdf).keys())) != NORMAL_MAP_NONE:
+        return np.ones((n, 3))
+    m = samples * samples
+    k = np.arange(m)
+    u = mi.Point2f(mi.Float(np.tile(((k % samples) + 0.5) / samples, n)),
+                   mi.Float(np.tile(((k // samples) + 0.5) / samples, n)))
+    wi = mi.warp.square_to_cosine_hemisphere(u)
+    c = np.repeat(np.maximum(cos_o, 1e-4), m)
+    si = dr.zeros(mi.SurfaceInteraction3f, n * m)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    si.wi = mi.Vector3f(mi.Float(np.sqrt(1 - c * c)), 0.0, mi.Float(c))
+    si.uv = mi.Point2f(0.5, 0.5)
+    ctx = mi.BSDFContext()
+    ctx.type_mask = int(mi.BSDFFlags.DiffuseReflection)
+    val = np.array(bsdf.eval(ctx, si, wi), np.float64).reshape(3, n, m)
+    # cosine sampling: pdf cos / pi, and eval includes the cosine: weight pi eval / cos
+    e = (val * np.pi / np.maximum(np.array(wi.z), 1e-8).reshape(n, m)).mean(-1)
+    rho = np.array(bsdf.eval_diffuse_reflectance(si), np.float64).reshape(3, -1)
+    rho = np.broadcast_to(rho, (3, n * m)).reshape(3, n, m)[..., 0]  # constant: width 1
+    return np.where(rho > 0, e / np.maximum(rho, 1e-12), 1.0).T
 
 
 def describe_bsdf(bsdf: mi.BSDF) -> Material:
