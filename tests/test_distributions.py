@@ -221,20 +221,28 @@ def test_specular_albedo_follows_the_distribution(tmp_path):
 # ----------------------------------------------------------------------------------------------
 
 
-def _lit_and_reference(setup, spp: int = 1024):
-    from glossrt.lights.ltc import shade_frame
-    from glossrt.lights.mc import render_mc
+def _direct(setup, spp: int = 1024):
+    """The G-buffer, polygon lights, Mitsuba's ``direct`` render and the floor's pixels (the
+    most frequent mesh id) of a quad-light scene."""
     from glossrt.lights.scene import polygon_lights
-    from glossrt.lights.shading import f0_image
 
     r = render.Renderer(setup)
     gb = r.render(0)
-    lights, f0 = polygon_lights(setup, 0), f0_image(setup, gb)
-    lit = shade_frame(gb, lights, f0=f0)
-    mc = render_mc(gb, lights, 256, f0=f0, seed=3)
     ref = np.array(r.render_mitsuba(0, spp, integrator="direct"))
     ids = gb.numpy("mesh_id")[..., 0]
     floor = ids == np.bincount(ids.astype(int).ravel()).argmax()
+    return gb, polygon_lights(setup, 0), ref, floor
+
+
+def _lit_and_reference(setup, spp: int = 1024):
+    from glossrt.lights.ltc import shade_frame
+    from glossrt.lights.mc import render_mc
+    from glossrt.lights.shading import f0_image
+
+    gb, lights, ref, floor = _direct(setup, spp)
+    f0 = f0_image(setup, gb)
+    lit = shade_frame(gb, lights, f0=f0)
+    mc = render_mc(gb, lights, 256, f0=f0, seed=3)
     return lit, mc, ref, floor
 
 
@@ -362,7 +370,6 @@ def test_exact_fresnel_matches_mitsuba_direct(tmp_path):
     in blue (measured: blue 0.0904 Schlick, 0.0959 exact, 0.0961 Mitsuba at 64x48)."""
     from glossrt.lights.ltc import shade_frame
     from glossrt.lights.mc import render_mc
-    from glossrt.lights.scene import polygon_lights
     from glossrt.lights.shading import f0_image, fresnel_image
 
     xml = QUAD_XML.format(alpha=0.05, dist='<string name="material" value="Au"/>'
@@ -370,12 +377,7 @@ def test_exact_fresnel_matches_mitsuba_direct(tmp_path):
     path = tmp_path / "gold.xml"
     path.write_text(xml)
     setup = scenes.load(str(path))
-    r = render.Renderer(setup)
-    gb = r.render(0)
-    lights = polygon_lights(setup, 0)
-    ref = np.array(r.render_mitsuba(0, 1024, integrator="direct"))
-    ids = gb.numpy("mesh_id")[..., 0]
-    floor = ids == np.bincount(ids.astype(int).ravel()).argmax()
+    gb, lights, ref, floor = _direct(setup)
     want = ref[floor].mean(0)
     exact = fresnel_image(setup, gb)
     assert exact.shape[-1] == 16
@@ -592,7 +594,6 @@ def test_roughplastic_matches_mitsuba_direct(tmp_path):
     is 50% too bright (0.48 / 0.52)."""
     from glossrt.lights.ltc import shade_frame
     from glossrt.lights.mc import render_mc
-    from glossrt.lights.scene import polygon_lights
     from glossrt.lights.shading import f0_image, fresnel_image
 
     xml = QUAD_XML.format(alpha=0.3, dist="").replace(
@@ -604,12 +605,7 @@ def test_roughplastic_matches_mitsuba_direct(tmp_path):
     path = tmp_path / "plastic.xml"
     path.write_text(xml)
     setup = scenes.load(str(path))
-    r = render.Renderer(setup)
-    gb = r.render(0)
-    lights = polygon_lights(setup, 0)
-    ref = np.array(r.render_mitsuba(0, 1024, integrator="direct"))
-    ids = gb.numpy("mesh_id")[..., 0]
-    floor = ids == np.bincount(ids.astype(int).ravel()).argmax()
+    gb, lights, ref, floor = _direct(setup)
     mat = fresnel_image(setup, gb)
     assert _rel_l1(render_mc(gb, lights, 256, f0=mat, seed=3), ref, floor) <= 0.06
     assert _rel_l1(shade_frame(gb, lights, f0=mat), ref, floor) <= 0.08

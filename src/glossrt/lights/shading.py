@@ -84,24 +84,31 @@ MATERIAL_ROW = ROW + 3
 F0_COLUMNS = slice(ROW - 3, ROW)
 
 
-def _material_rows(setup) -> tuple[np.ndarray, np.ndarray]:
-    """Per mesh id (0 = background): the Fresnel rows ``(n, ROW)`` and the diffuse-scale
-    tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials."""
+def _material_rows(setup, frame,
+                   with_scale: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Per mesh id (0 = background): the Fresnel rows ``(n, ROW)`` and (``with_scale``) the
+    diffuse-scale tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials, and the
+    frame's mesh ids (H, W), checked against them; refuses anisotropic materials."""
     from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf, diffuse_scale
     from ..scenes import stable_shapes
 
+    check_isotropic(setup)
     shapes = stable_shapes(setup.scene)
     rows = np.zeros((len(shapes) + 1, ROW))
-    scales = np.ones((len(shapes) + 1, DIFFUSE_SCALE_NODES, 3))
+    scales = np.ones((len(shapes) + 1, DIFFUSE_SCALE_NODES, 3)) if with_scale else None
     cache: dict = {}
     for i, s in enumerate(shapes):
         bsdf = s.bsdf()
         rows[i + 1] = describe_bsdf(bsdf).fresnel.row()
-        key = id(bsdf)
-        if key not in cache:
-            cache[key] = diffuse_scale(bsdf)
-        scales[i + 1] = cache[key]
-    return rows, scales
+        if with_scale:
+            if id(bsdf) not in cache:
+                cache[id(bsdf)] = diffuse_scale(bsdf)
+            scales[i + 1] = cache[id(bsdf)]
+    ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
+    if ids.min() < 0 or ids.max() >= len(rows):
+        raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
+                         f"({ids.max()} >= {len(rows)})")
+    return rows, scales, ids
 
 
 def fresnel_image(setup, frame) -> np.ndarray:
@@ -115,12 +122,7 @@ def fresnel_image(setup, frame) -> np.ndarray:
     (the CLI does); refuses anisotropic materials (:func:`check_isotropic`)."""
     from ..render.materials import DIFFUSE_SCALE_NODES
 
-    check_isotropic(setup)
-    rows, scales = _material_rows(setup)
-    ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
-    if ids.min() < 0 or ids.max() >= len(rows):
-        raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
-                         f"({ids.max()} >= {len(rows)})")
+    rows, scales, ids = _material_rows(setup, frame)
     out = np.zeros(ids.shape + (MATERIAL_ROW,), np.float32)
     out[..., :ROW] = rows[ids]
     if frame.camera is not None and "position" in frame.names and "normal" in frame.names:
@@ -141,12 +143,7 @@ def f0_image(setup, frame) -> np.ndarray:
     """Specular F0 (H, W, 3) per pixel (:func:`fresnel_image`'s F0 columns), for shading
     with Schlick's Fresnel and Lambert's diffuse reflectance as the G-buffer's
     ``albedo_diffuse``; refuses anisotropic materials (:func:`check_isotropic`)."""
-    check_isotropic(setup)
-    rows, _ = _material_rows(setup)
-    ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
-    if ids.min() < 0 or ids.max() >= len(rows):
-        raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
-                         f"({ids.max()} >= {len(rows)})")
+    rows, _, ids = _material_rows(setup, frame, with_scale=False)
     return np.ascontiguousarray(rows[ids][..., F0_COLUMNS]).astype(np.float32)
 
 
