@@ -84,26 +84,39 @@ MATERIAL_ROW = ROW + 3
 F0_COLUMNS = slice(ROW - 3, ROW)
 
 
+#: diffuse_scale per BSDF description (its parameters: the scale does not depend on a
+#: texture's values), so that a frame's fresnel_image does not integrate it again
+_SCALES: dict[str, np.ndarray] = {}
+
+
+def _diffuse_scale_cached(bsdf) -> np.ndarray:
+    from ..render.materials import diffuse_scale
+
+    key = f"{mi.variant()} {bsdf}"
+    if key not in _SCALES:
+        if len(_SCALES) > 256:
+            _SCALES.clear()
+        _SCALES[key] = diffuse_scale(bsdf)
+    return _SCALES[key]
+
+
 def _material_rows(setup, frame,
                    with_scale: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Per mesh id (0 = background): the Fresnel rows ``(n, ROW)`` and (``with_scale``) the
     diffuse-scale tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials, and the
     frame's mesh ids (H, W), checked against them; refuses anisotropic materials."""
-    from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf, diffuse_scale
+    from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf
     from ..scenes import stable_shapes
 
     check_isotropic(setup)
     shapes = stable_shapes(setup.scene)
     rows = np.zeros((len(shapes) + 1, ROW))
     scales = np.ones((len(shapes) + 1, DIFFUSE_SCALE_NODES, 3)) if with_scale else None
-    cache: dict = {}
     for i, s in enumerate(shapes):
         bsdf = s.bsdf()
         rows[i + 1] = describe_bsdf(bsdf).fresnel.row()
         if with_scale:
-            if id(bsdf) not in cache:
-                cache[id(bsdf)] = diffuse_scale(bsdf)
-            scales[i + 1] = cache[id(bsdf)]
+            scales[i + 1] = _diffuse_scale_cached(bsdf)
     ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
     if ids.min() < 0 or ids.max() >= len(rows):
         raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
@@ -123,19 +136,21 @@ def fresnel_image(setup, frame) -> np.ndarray:
     from ..render.materials import DIFFUSE_SCALE_NODES
 
     rows, scales, ids = _material_rows(setup, frame)
-    out = np.zeros(ids.shape + (MATERIAL_ROW,), np.float32)
-    out[..., :ROW] = rows[ids]
+    out = np.empty(ids.shape + (MATERIAL_ROW,), np.float32)
+    out[..., :ROW] = rows.astype(np.float32)[ids]
     if frame.camera is not None and "position" in frame.names and "normal" in frame.names:
-        v = np.asarray(frame.camera.position, np.float64) - frame.numpy("position")
-        v /= np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
-        cos_o = np.clip(np.sum(v * frame.numpy("normal"), -1), 0.0, 1.0)
+        v = np.asarray(frame.camera.position, np.float32) - frame.numpy("position")
+        d = np.einsum("...i,...i->...", v, frame.numpy("normal"))
+        cos_o = np.clip(d / np.maximum(np.sqrt(np.einsum("...i,...i->...", v, v)), 1e-12),
+                        0.0, 1.0)
     else:
-        cos_o = np.ones(ids.shape)
+        cos_o = np.ones(ids.shape, np.float32)
     # the table's nodes are uniform in sqrt(cos_o): linear interpolation there
-    x = np.sqrt(cos_o) * (DIFFUSE_SCALE_NODES - 1)
+    x = np.sqrt(cos_o) * np.float32(DIFFUSE_SCALE_NODES - 1)
     i0 = np.minimum(x.astype(np.int64), DIFFUSE_SCALE_NODES - 2)
     t = (x - i0)[..., None]
-    out[..., ROW:] = (1 - t) * scales[ids, i0] + t * scales[ids, i0 + 1]
+    sc = scales.astype(np.float32)
+    out[..., ROW:] = (1 - t) * sc[ids, i0] + t * sc[ids, i0 + 1]
     return out
 
 
