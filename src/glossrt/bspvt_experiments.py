@@ -141,8 +141,8 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
             ref_u = render_mc(gb, lights, ref_spp, f0=f0, seed=11)
             shade_bspvt(setup.scene, gb, trees, lights, "pixel", f0=f0)  # warm kernels
             runs = {
-                "bspvt-vertex": lambda s=setup, g=gb, lt=lights, t=trees: shade_bspvt(
-                    s.scene, g, t, lt, "vertex"),
+                "bspvt-vertex": lambda s=setup, g=gb, lt=lights, f=f0, t=trees: shade_bspvt(
+                    s.scene, g, t, lt, "vertex", f0=f),
                 "bspvt-pixel": lambda s=setup, g=gb, lt=lights, f=f0, t=trees: shade_bspvt(
                     s.scene, g, t, lt, "pixel", f0=f),
                 "ratio": lambda s=setup, g=gb, lt=lights, f=f0, k=fi: render_ratio(

@@ -133,14 +133,26 @@ def fresnel_image(setup, frame) -> np.ndarray:
     shapes through the frame's ``mesh_id`` (0 = background). Pass it as ``f0`` to the
     shading functions to shade with Mitsuba's exact Fresnel terms and coated diffuse lobes
     (the CLI does); refuses anisotropic materials (:func:`check_isotropic`)."""
+    rows, scales, ids = _material_rows(setup, frame)
+    if frame.camera is not None and "position" in frame.names and "normal" in frame.names:
+        return material_rows_at(rows, scales, ids, frame.numpy("position"),
+                                frame.numpy("normal"), frame.camera.position)
+    return material_rows_at(rows, scales, ids)
+
+
+def material_rows_at(rows: np.ndarray, scales: np.ndarray, ids: np.ndarray, positions=None,
+                     normals=None, camera=None) -> np.ndarray:
+    """The :func:`fresnel_image` rows (..., 16) float32 of points with material ``ids``
+    (indices into ``rows`` (n, ROW) and ``scales`` (n, DIFFUSE_SCALE_NODES, 3)), the
+    diffuse scale taken at each point's view cosine towards ``camera`` (normal incidence
+    without positions)."""
     from ..render.materials import DIFFUSE_SCALE_NODES
 
-    rows, scales, ids = _material_rows(setup, frame)
     out = np.empty(ids.shape + (MATERIAL_ROW,), np.float32)
     out[..., :ROW] = rows.astype(np.float32)[ids]
-    if frame.camera is not None and "position" in frame.names and "normal" in frame.names:
-        v = np.asarray(frame.camera.position, np.float32) - frame.numpy("position")
-        d = np.einsum("...i,...i->...", v, frame.numpy("normal"))
+    if positions is not None:
+        v = np.asarray(camera, np.float32) - np.asarray(positions, np.float32)
+        d = np.einsum("...i,...i->...", v, np.asarray(normals, np.float32))
         cos_o = np.clip(d / np.maximum(np.sqrt(np.einsum("...i,...i->...", v, v)), 1e-12),
                         0.0, 1.0)
     else:
@@ -152,6 +164,30 @@ def fresnel_image(setup, frame) -> np.ndarray:
     sc = scales.astype(np.float32)
     out[..., ROW:] = (1 - t) * sc[ids, i0] + t * sc[ids, i0 + 1]
     return out
+
+
+def mesh_material_tables(meshes) -> tuple[np.ndarray, np.ndarray]:
+    """Fresnel rows (n, ROW) and diffuse-scale tables (n, DIFFUSE_SCALE_NODES, 3) of a list
+    of shapes' BSDFs (:func:`material_rows_at`'s ``rows`` and ``scales``)."""
+    from ..render.materials import describe_bsdf
+
+    rows = np.stack([describe_bsdf(m.bsdf()).fresnel.row() for m in meshes])
+    scales = np.stack([_diffuse_scale_cached(m.bsdf()) for m in meshes])
+    return rows, scales
+
+
+def points_with_materials(p, n, wo, alpha, albedo, hit, beckmann, mat: np.ndarray
+                          ) -> ShadingPoints:
+    """ShadingPoints of device fields and a (N, 16) :func:`material_rows_at` array: exact
+    Fresnel lanes, F0 and the diffuse reflectance ``albedo`` scaled as Mitsuba's coated
+    diffuse lobes."""
+    from ..jit import owned_float
+
+    f = [mi.Float(owned_float(np.ascontiguousarray(mat[:, c]))) for c in range(MATERIAL_ROW)]
+    fres = FresnelLanes(mi.UInt32(f[0]), mi.Color3f(*f[1:4]), mi.Color3f(*f[4:7]),
+                        mi.Color3f(*f[7:10]))
+    return ShadingPoints(p, n, wo, alpha, albedo * mi.Color3f(*f[ROW:]),
+                         mi.Color3f(*f[F0_COLUMNS]), hit, beckmann, fres)
 
 
 def f0_image(setup, frame) -> np.ndarray:

@@ -28,7 +28,13 @@ import numpy as np  # noqa: E402
 from ..denoise.common import check_frame, merge, split  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
 from ..jit import opaque, owned  # noqa: E402
-from .shading import ShadingPoints, _take  # noqa: E402
+from .shading import (  # noqa: E402
+    ShadingPoints,
+    _take,
+    material_rows_at,
+    mesh_material_tables,
+    points_with_materials,
+)
 
 MODES = ("vertex", "pixel")
 #: :func:`check_trees_match` tolerances: stored vertex positions against the scene's, as a
@@ -228,8 +234,20 @@ def _shade_pixel_mode(frame, dev, lights: list, triangles: tuple, f0, textures,
     return merge([out[0], out[1], out[2]], frame.height, frame.width)
 
 
+def _vertex_material_rows(scene: mi.Scene, dev, camera) -> np.ndarray:
+    """Per tree vertex: its mesh's :func:`glossrt.lights.shading.material_rows_at` row at
+    the vertex's view towards ``camera`` (V, 16)."""
+    meshes = scene_meshes(scene)
+    rows, scales = mesh_material_tables(meshes)
+    ids = np.concatenate([np.full(m.vertex_count(), k) for k, m in enumerate(meshes)])
+    pos = np.stack([np.asarray(dev.positions[c]) for c in range(3)], -1)
+    nrm = np.stack([np.asarray(dev.normals[c]) for c in range(3)], -1)
+    return material_rows_at(rows, scales, ids, pos, nrm, camera)
+
+
 def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, triangles: tuple,
-                       textures, traversal: str, frozen: bool) -> mi.TensorXf:
+                       textures, traversal: str, frozen: bool,
+                       materials: bool = False) -> mi.TensorXf:
     """Per-vertex mode on the device: every tree vertex shaded at its own position and normal
     towards the camera (:func:`glossrt.lights.bspvt_shade.shade_points`), then blended per
     pixel by the barycentrics of the triangle it sees."""
@@ -241,12 +259,18 @@ def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, triangles: tup
     to_cam = cam - dev.positions
     wo = to_cam / dr.maximum(dr.norm(to_cam), 1e-12)
     alpha, albedo, vf0 = vertex_materials(scene)
-    beckmann = vertex_beckmann(scene)
+    beckmann = bspvt_shade._beckmann_lanes(vertex_beckmann(scene), nv)
     # as shade_vertices: views at or below a vertex's tangent plane shade it black
-    sp = ShadingPoints(dev.positions, dev.normals, wo, owned(mi.Float, alpha),
-                       bspvt_shade._dr_vec(mi.Color3f, albedo),
-                       bspvt_shade._dr_vec(mi.Color3f, vf0), dr.dot(dev.normals, wo) > 0,
-                       bspvt_shade._beckmann_lanes(beckmann, nv))
+    hit = dr.dot(dev.normals, wo) > 0
+    if materials:
+        # the exact Fresnel terms and coated diffuse lobes (as fresnel_image per pixel)
+        sp = points_with_materials(dev.positions, dev.normals, wo, owned(mi.Float, alpha),
+                                   bspvt_shade._dr_vec(mi.Color3f, albedo), hit, beckmann,
+                                   _vertex_material_rows(scene, dev, frame.camera.position))
+    else:
+        sp = ShadingPoints(dev.positions, dev.normals, wo, owned(mi.Float, alpha),
+                           bspvt_shade._dr_vec(mi.Color3f, albedo),
+                           bspvt_shade._dr_vec(mi.Color3f, vf0), hit, beckmann)
     d, s = bspvt_shade.shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)],
                                     textures=textures, traversal=traversal, frozen=frozen)
     col = d + s
@@ -264,10 +288,11 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     (Okuno & Iwasaki, eq. 2 per vertex tree; see the module docstring for ``mode``).
 
     ``trees`` must have been built for ``scene``'s vertices (:func:`build_scene_trees`);
-    ``f0`` is the ``pixel`` mode's per-pixel F0 (H, W, 3) or, for Mitsuba's exact Fresnel
-    terms and coated diffuse lobes, :func:`glossrt.lights.shading.fresnel_image` (H, W, 16);
-    the ``vertex`` mode takes materials per mesh (:func:`vertex_materials`: Schlick's F0 and
-    the raw diffuse reflectance, not the exact terms); ``traversal``: how the trees are walked
+    ``f0`` is the per-pixel F0 (H, W, 3) or, for Mitsuba's exact Fresnel terms and coated
+    diffuse lobes, :func:`glossrt.lights.shading.fresnel_image` (H, W, 16); the ``vertex``
+    mode takes materials per mesh (:func:`vertex_materials`), with the exact terms at each
+    vertex's view when ``f0`` is a :func:`~glossrt.lights.shading.fresnel_image`, Schlick's
+    and the raw diffuse reflectance otherwise; ``traversal``: how the trees are walked
     (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result); ``frozen``: replay recorded
     kernels (:func:`glossrt.lights.bspvt_shade.shade_points`). Pixels on shapes without
     trees (the lights themselves, analytic shapes) and background pixels get 0. Trees of
@@ -289,7 +314,11 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     # (vertex indices, barycentrics, valid) of the triangle each pixel sees
     tri = _pixel_triangles(scene, frame, meshes, offsets[:-1])
     if mode == "vertex":
-        img = _shade_vertex_mode(scene, frame, dev, lights, tri, textures, traversal, frozen)
+        from .shading import MATERIAL_ROW
+
+        exact = f0 is not None and np.asarray(f0).shape[-1] == MATERIAL_ROW
+        img = _shade_vertex_mode(scene, frame, dev, lights, tri, textures, traversal, frozen,
+                                 exact)
     else:
         img = _shade_pixel_mode(frame, dev, lights, tri, f0, textures, traversal, frozen)
     return np.array(img, np.float32).reshape(frame.height, frame.width, 3)
