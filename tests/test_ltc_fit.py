@@ -593,6 +593,22 @@ def test_main_writes_a_small_table(tmp_path):
     assert t.n_r == t.n_u == 3
 
 
+def test_cli_fits_a_beckmann_table(tmp_path):
+    """``glossrt ltc-fit --distribution beckmann`` writes a Beckmann table (the norm at
+    normal incidence of the roughest row is Beckmann's, not GGX's albedo)."""
+    from glossrt.cli import main
+
+    out = tmp_path / "b.npz"
+    assert main(["ltc-fit", "--distribution", "beckmann", "--size", "3", "--out", str(out)]) == 0
+    with np.load(out) as f:
+        assert str(f["distribution"]) == "beckmann" and str(f["metric"]) == "l1"
+        norm = float(f["norm"][2, 0])
+    want = {d: float(ltc_fit.brdf_moments([1.0], [1.0], 1 << 12, d)["norm"][0])
+            for d in ("ggx", "beckmann")}
+    assert norm == pytest.approx(want["beckmann"], abs=1e-3)
+    assert abs(want["beckmann"] - want["ggx"]) > 0.05
+
+
 # ----------------------------------------------------------------------------------------------
 # (6) The Beckmann table (Mitsuba's default distribution)
 # ----------------------------------------------------------------------------------------------

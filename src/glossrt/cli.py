@@ -505,7 +505,8 @@ def cmd_bspvt(args) -> int:
 def cmd_ltc_fit(args) -> int:
     from .lights import ltc_fit
 
-    argv = ["--out", args.out] + (["--size", str(args.size)] if args.size else [])
+    argv = ["--out", args.out, "--distribution", args.distribution, "--metric", args.metric]
+    argv += ["--size", str(args.size)] if args.size else []
     return ltc_fit.main(argv)
 
 
@@ -646,10 +647,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="array engine of the batched search: NumPy threads, or Dr.Jit (the "
                         "device of --device; the same trees)")
 
-    p = add("ltc-fit", cmd_ltc_fit, "fit glossrt's GGX LTC table (minutes)",
-            "glossrt ltc-fit --out ltc_ggx.npz")
+    p = add("ltc-fit", cmd_ltc_fit,
+            "fit glossrt's LTC table of a microfacet distribution (minutes)",
+            "glossrt ltc-fit --distribution beckmann --out ltc_beckmann.npz")
     p.add_argument("--out", required=True, help="output .npz")
     p.add_argument("--size", type=int, default=None, help="table resolution (default 64)")
+    p.add_argument("--distribution", choices=("ggx", "beckmann"), default="ggx",
+                   help="the lobe's microfacet distribution (default ggx; Mitsuba's rough "
+                        "plugins default to beckmann)")
+    p.add_argument("--metric", choices=("l1", "l3"), default="l1",
+                   help="error the fit minimises (default l1; l3: Heitz et al.'s)")
 
     p = add("denoise", cmd_denoise,
             "denoise an EXR sequence (writes frames with the denoised color)",
