@@ -636,3 +636,28 @@ def test_bspvt_vertex_mode_takes_the_exact_materials():
     for name in ("exact", "schlick"):
         np.testing.assert_allclose(means[name, "vertex"], means[name, "pixel"], rtol=0.03)
     assert np.all(means["schlick", "pixel"] > 1.5 * means["exact", "pixel"])
+
+
+def test_monte_carlo_handles_near_mirror_lobes(tmp_path):
+    """A smooth conductor (alpha clamped to 1e-4) under a quad light: glossrt's Monte Carlo
+    agrees with LTC and with Mitsuba's direct integrator up to the pixel-centre aliasing of
+    the sharp reflection (measured relative L1 0.126 for both; 6.5 for the Monte Carlo
+    before D took sin^2 from the tangential components: in float32 1 - cos^2 vanished and
+    every direction within 3e-4 rad read the lobe's peak)."""
+    from glossrt.lights.ltc import shade_frame
+    from glossrt.lights.mc import render_mc
+    from glossrt.lights.shading import fresnel_image
+
+    xml = QUAD_XML.format(alpha=0.2, dist="").replace(
+        '<bsdf type="roughconductor"><float name="alpha" value="0.2"/></bsdf>',
+        '<bsdf type="conductor"/>')
+    assert '<bsdf type="conductor"/>' in xml
+    path = tmp_path / "mirror.xml"
+    path.write_text(xml)
+    setup = scenes.load(str(path))
+    gb, lights, ref, floor = _direct(setup)
+    mat = fresnel_image(setup, gb)
+    mc = render_mc(gb, lights, 64, f0=mat, seed=3)
+    ltc = shade_frame(gb, lights, f0=mat)
+    assert _rel_l1(mc, ref, floor) <= 0.2
+    assert mc[floor].mean() == pytest.approx(ltc[floor].mean(), rel=0.03)

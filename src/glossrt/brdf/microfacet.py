@@ -55,20 +55,24 @@ def _pick(beckmann: Any, fb, fg):
     return dr.select(beckmann, fb(), fg())
 
 
-def D(cos_h: Any, alpha: Any, beckmann: Any = False) -> Any:
+def D(cos_h: Any, alpha: Any, beckmann: Any = False, sin2_h: Any = None) -> Any:
     """Isotropic normal distribution ``D(h)`` for ``cos_h = n.h`` (0 for ``cos_h <= 0``),
-    normalised so that ``integral D(h) cos(theta_h) dh = 1``."""
+    normalised so that ``integral D(h) cos(theta_h) dh = 1``. ``sin2_h``: ``1 - cos_h^2``
+    computed from the tangential components (``|n x h|^2``): in float32 ``1 - cos^2``
+    vanishes for angles below ~3e-4 rad, so near-mirror lobes (alpha ~1e-4, Mitsuba's smooth
+    plugins) need it, or every direction within that angle reads the peak."""
     c2 = cos_h * cos_h
+    s2 = (1.0 - c2) if sin2_h is None else sin2_h
     a2 = alpha * alpha
 
     def beck():
         # Walter et al. 2007, eq. 25: exp(-tan^2 / alpha^2) / (pi alpha^2 cos^4)
         c2s = dr.maximum(c2, 1e-30)
-        return dr.exp(-(1.0 - c2) / (c2s * a2)) / (dr.pi * a2 * c2s * c2s)
+        return dr.exp(-s2 / (c2s * a2)) / (dr.pi * a2 * c2s * c2s)
 
     def ggx():
         # Walter et al. 2007, eq. 33, as c2 (a2 - 1) + 1 ordered against cancellation
-        d = (1.0 - c2) + c2 * a2
+        d = s2 + c2 * a2
         return a2 / (dr.pi * d * d)
 
     return dr.select(cos_h > 0.0, _pick(beckmann, beck, ggx), 0.0)
@@ -94,13 +98,14 @@ def G1(cos_theta: Any, alpha: Any, beckmann: Any = False) -> Any:
     return dr.select(c > 0.0, _pick(beckmann, beck, ggx), 0.0)
 
 
-def specular_cos(cos_o: Any, cos_i: Any, cos_h: Any, alpha: Any, beckmann: Any = False) -> Any:
+def specular_cos(cos_o: Any, cos_i: Any, cos_h: Any, alpha: Any, beckmann: Any = False,
+                 sin2_h: Any = None) -> Any:
     """``f cos(theta_i)`` of the specular lobe with Fresnel 1 and Mitsuba's separable Smith
     term: ``D(h) G1(wo) G1(wi) / (4 cos_o)`` (Walter et al. 2007, eqs. 20 and 23); 0 when
     either direction is below the surface. (For a reflection ``wo.h = wi.h``, positive
-    whenever both are above it.)"""
+    whenever both are above it.) ``sin2_h``: see :func:`D`."""
     g = G1(cos_o, alpha, beckmann) * G1(cos_i, alpha, beckmann)
-    val = D(cos_h, alpha, beckmann) * g / (4.0 * dr.maximum(cos_o, 1e-8))
+    val = D(cos_h, alpha, beckmann, sin2_h) * g / (4.0 * dr.maximum(cos_o, 1e-8))
     return dr.select((cos_o > 0.0) & (cos_i > 0.0), val, 0.0)
 
 
@@ -126,10 +131,12 @@ def sample_h(wo_x: Any, wo_y: Any, wo_z: Any, alpha: Any, u1: Any, u2: Any,
     return tuple(dr.select(beckmann, bb, gg) for bb, gg in zip(b, g, strict=True))
 
 
-def pdf_h(wo_z: Any, wo_h: Any, h_z: Any, alpha: Any, beckmann: Any = False) -> Any:
+def pdf_h(wo_z: Any, wo_h: Any, h_z: Any, alpha: Any, beckmann: Any = False,
+          sin2_h: Any = None) -> Any:
     """Density (per steradian of ``h``) of :func:`sample_h`: GGX visible normals
-    ``G1(wo) max(0, wo.h) D(h) / cos_o`` (Heitz 2018), Beckmann ``D(h) cos(theta_h)``."""
-    d = D(h_z, alpha, beckmann)
+    ``G1(wo) max(0, wo.h) D(h) / cos_o`` (Heitz 2018), Beckmann ``D(h) cos(theta_h)``.
+    ``sin2_h``: see :func:`D`."""
+    d = D(h_z, alpha, beckmann, sin2_h)
 
     def beck():
         return d * dr.maximum(h_z, 0.0)

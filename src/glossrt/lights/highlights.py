@@ -160,10 +160,11 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
         ok = (ll.z > 0) & (vl.z > 0)
         vh = dr.maximum(dr.dot(vl, hl), 1e-8)
         # pdf of l: p_h(h) / (4 v.h)
-        pdf = mf.pdf_h(vl.z, vh, hz, a, sp.beckmann) / (4.0 * vh)
+        s2 = hx * hx + hy * hy  # the exact sin^2 of h (a near-mirror's D needs it)
+        pdf = mf.pdf_h(vl.z, vh, hz, a, sp.beckmann, s2) / (4.0 * vh)
         lod = fis_lod(pdf, fis_samples or samples, level0)
         # weight f cos / pdf with the shared BRDF (Mitsuba's D and separable Smith term)
-        fc = mf.specular_cos(vl.z, ll.z, hz, a, sp.beckmann)
+        fc = mf.specular_cos(vl.z, ll.z, hz, a, sp.beckmann, s2)
         f = sp.fresnel_at(vh)
         w = dr.select(ok & (pdf > 0), fc / dr.maximum(pdf, 1e-30), 0.0) / samples
         total += f * w * env(frame.to_world(ll), lod)

@@ -208,7 +208,8 @@ def _pdf_brdf(sp: ShadingPoints, frame: mi.Frame3f, wo_l: mi.Vector3f, q: mi.Flo
     h = dr.normalize(wl + wo_l)
     wo_h = dr.dot(wo_l, h)
     # the half vector's density (Heitz 2018 / Walter et al. 2007); Jacobian 1 / (4 wo.h)
-    p_s = mf.pdf_h(wo_l.z, wo_h, h.z, sp.alpha, sp.beckmann) / dr.maximum(4.0 * wo_h, 1e-8)
+    p_s = mf.pdf_h(wo_l.z, wo_h, h.z, sp.alpha, sp.beckmann,
+                   dr.square(h.x) + dr.square(h.y)) / dr.maximum(4.0 * wo_h, 1e-8)
     return dr.select(cos_i > 0, q * cos_i / dr.pi + (1.0 - q) * p_s, 0.0)
 
 

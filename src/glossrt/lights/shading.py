@@ -341,6 +341,7 @@ def brdf_cos(sp: ShadingPoints, wi: mi.Vector3f) -> tuple[mi.Color3f, mi.Color3f
     h = dr.normalize(sp.wo + wi)
     f = sp.fresnel_at(dr.dot(sp.wo, h))
     # Walter et al. 2007, eqs. 20 and 23 times cos_i: D G1(wo) G1(wi) / (4 cos_o)
-    spec = f * mf.specular_cos(cos_o, cos_i, dr.dot(sp.n, h), sp.alpha, sp.beckmann)
+    spec = f * mf.specular_cos(cos_o, cos_i, dr.dot(sp.n, h), sp.alpha, sp.beckmann,
+                               dr.squared_norm(dr.cross(sp.n, h)))
     diff = sp.albedo * (cos_i / dr.pi)
     return dr.select(ok, diff, 0.0), dr.select(ok, spec, 0.0)
