@@ -333,10 +333,12 @@ def _experiment_highlights(out, size, spp: int) -> int:
     conv.montage(out / "highlights.png")
     t = he.timing(size=size)
     md = (f"## RMSE against the same model's reference ({size[0]}x{size[1]}, {spp} samples)"
-          f"\n\n{conv.markdown()}\n\n## Table 1 (ratios to plain shading)\n\n"
+          f"\n\n{conv.markdown()}\n\n## against Mitsuba's direct integrator ({spp} spp, "
+          f"the spheres' specular reflection alone; mean absolute error over the mean)\n\n"
+          f"{conv.direct_markdown()}\n\n## Table 1 (ratios to plain shading)\n\n"
           f"{he.timing_markdown(t)}")
     return _finish_experiment(out, "highlights", md, "highlights.png",
-                              {"rows": conv.rows, "timing": t})
+                              {"rows": conv.rows, "direct": conv.direct_rows, "timing": t})
 
 
 def _experiment_specaa(out, size, spp: int, frames: int) -> int:

@@ -5,6 +5,10 @@
   ellipsoidal distribution with the normal texture and the hash generator at 1-64 samples,
   the 13-point regular pattern, and GGX visible-normal sampling with filtered importance
   sampling (against the GGX reference);
+* :func:`convergence` also scores the converged references and the paper's 4-sample method
+  against Mitsuba's own ``direct`` integrator on the same scene with the spheres' diffuse
+  reflectance set to 0 (their specular reflection of the lights alone: the yardstick of the
+  BRDF and of the light map's probe approximation), per sphere;
 * :func:`timing`: the paper's Table 1 as ratios measured side by side in one run: plain
   shading (point lights, no shape), regular sampling, random sampling (4), each with and
   without bounding-sphere culling.
@@ -40,6 +44,16 @@ class Convergence:
     alphas: list[float]
     rows: list[dict] = field(default_factory=list)
     images: dict[str, np.ndarray] = field(default_factory=dict)
+    direct_rows: list[dict] = field(default_factory=list)
+
+    def direct_markdown(self) -> str:
+        """Mean absolute error over the mean against Mitsuba's ``direct`` (specular only)."""
+        head = "| method | " + " | ".join(f"alpha {a:g}" for a in self.alphas) + " |"
+        lines = [head, "|" + "---|" * (len(self.alphas) + 1)]
+        for r in self.direct_rows:
+            lines.append(f"| {r['method']} | " + " | ".join(f"{v:.3f}" for v in r["rel"])
+                         + " |")
+        return "\n".join(lines)
 
     def markdown(self) -> str:
         head = "| method | samples | " + " | ".join(f"alpha {a:g}" for a in self.alphas) + \
@@ -114,7 +128,34 @@ def convergence(size=(320, 180), ref_samples: int = 2048, counts=SAMPLE_COUNTS,
     res.images["ellipsoidal, 13-point regular"] = img
     res.images[f"ellipsoidal reference ({ref_samples})"] = refs["ellipsoidal"]
     res.images[f"GGX reference ({ref_samples})"] = refs["ggx"]
+    say(f"Mitsuba's direct integrator ({ref_samples} spp), spheres' diffuse reflectance 0")
+    direct = _specular_direct(size, ref_samples)
+    paper = res.images["ellipsoidal, normal texture, 4 samples (the paper)"] \
+        if "ellipsoidal, normal texture, 4 samples (the paper)" in res.images else None
+    for method, img in (("GGX reference (the pixel's own lobe)", refs["ggx"]),
+                        ("ellipsoidal reference", refs["ellipsoidal"]),
+                        ("ellipsoidal, normal texture, 4 (the paper)", paper)):
+        if img is not None:
+            res.direct_rows.append({"method": method, "rel": [
+                float(np.mean(np.abs(img - direct)[m]) / max(np.mean(direct[m]), 1e-12))
+                for m in masks]})
     return res
+
+
+def _specular_direct(size, spp: int) -> np.ndarray:
+    """Mitsuba's ``direct`` integrator on ``light-shapes`` with the spheres' diffuse
+    reflectance 0: the spheres show their specular reflection of the lights alone (what the
+    highlight methods compute), frame 0."""
+    from . import render
+    from .scenes import from_spec
+    from .scenes.library import light_shapes
+
+    spec = light_shapes()
+    for key, shape in spec.scene_dict.items():
+        if key.startswith("sphere"):
+            shape["bsdf"]["diffuse_reflectance"] = {"type": "rgb", "value": [0.0, 0.0, 0.0]}
+    r = render.Renderer(from_spec("light-shapes-specular", spec, size=size))
+    return np.array(r.render_mitsuba(0, spp, integrator="direct"))
 
 
 def timing(size=(640, 360), repeats: int = 5) -> dict:
