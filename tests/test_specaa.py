@@ -384,6 +384,12 @@ def test_filtering_approaches_the_supersampled_reference():
                                                                abs=1e-5)
     assert rows["halfvector"]["flat_bias"] > rows["none"]["flat_bias"] + 0.01
     assert rows["avgnormal-eig"]["flicker"] < rows["none"]["flicker"]
+    # the reference (with Mitsuba's exact Fresnel terms) against Mitsuba's own direct
+    # integrator (256 spp): the same light on average, up to the few glint pixels that
+    # dominate the mean at this size (measured 1.059; 1.02 at 96x54). With Schlick's F0 the
+    # reference is 1.146 here (1.13 at 96x54): the bound separates the two
+    print(f"\nreference vs Mitsuba direct: {res.reference_vs_direct}")
+    assert res.reference_vs_direct["mean_ratio"] == pytest.approx(1.0, abs=0.09)
 
 
 def test_bad_input(plane):

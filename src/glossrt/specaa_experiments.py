@@ -49,6 +49,9 @@ class SpecAAResults:
     images: dict[str, np.ndarray] = field(default_factory=dict)
     reference_temporal: float = 0.0
     seconds: float = 0.0
+    #: the supersampled reference of frame 0 against Mitsuba's direct integrator: relative L1
+    #: and the ratio of the means over the pixels that see a non-emitting surface
+    reference_vs_direct: dict = field(default_factory=dict)
 
     def markdown(self) -> str:
         lines = [
@@ -65,7 +68,8 @@ class SpecAAResults:
     def as_dict(self) -> dict:
         return {"size": list(self.size), "spp": self.spp, "temporal_spp": self.temporal_spp,
                 "frames": self.frames, "reference_temporal": self.reference_temporal,
-                "rows": self.rows, "seconds": self.seconds}
+                "rows": self.rows, "seconds": self.seconds,
+                "reference_vs_direct": self.reference_vs_direct}
 
     def montage(self, path: str | Path, crop: tuple[slice, slice] | None = None) -> Path:
         """The paper's figs. 1-3 side by side: every method and the reference (tone-mapped),
@@ -135,7 +139,7 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
     from . import metrics, render, scenes, specaa
     from .lights.analytic import analytic_lights
     from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
+    from .lights.shading import fresnel_image
 
     say = progress or (lambda _m: None)
     methods = tuple(methods or (specaa.METHODS + EXTRA))
@@ -146,25 +150,35 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
     def lights_of(i):
         return analytic_lights(setup, i), polygon_lights(setup, i)
 
+    def materials(fr):  # Mitsuba's exact Fresnel terms (the one BRDF)
+        return fresnel_image(setup, fr)
+
     res = SpecAAResults(tuple(size), spp, temporal_spp, frames)
     say(f"reference, frame 0 ({spp} sub-pixel samples)")
-    ref = specaa.reference(rend, 0, *lights_of(0), spp=spp)
+    ref = specaa.reference(rend, 0, *lights_of(0), f0_of=materials, spp=spp)
+    # the reference against Mitsuba's own direct integrator (box pixel filter, 4x the spp)
+    say(f"Mitsuba's direct integrator, frame 0 ({4 * spp} spp)")
+    direct = np.array(rend.render_mitsuba(0, 4 * spp, integrator="direct"))
     seqs: dict[str, list] = {m: [] for m in methods}
     seqs["reference"] = []
     for t in range(frames):
         say(f"frame {t + 1}/{frames}")
         lt, pl = lights_of(t)
         g = rend.render(t)
-        f0_t = f0_image(setup, g)
+        f0_t = materials(g)
         if t == 0:
             flat = _flat_mask(setup, g)
             hit = g.numpy("mesh_id")[..., 0] > 0
+            surf = hit & ~(g.numpy("emission").max(-1) > 0)
+            res.reference_vs_direct = {
+                "rel_l1": float(np.abs(ref - direct)[surf].sum() / np.abs(direct)[surf].sum()),
+                "mean_ratio": float(ref[surf].mean() / max(direct[surf].mean(), 1e-12))}
         for m in methods:
             meth, masking = _variant(m)
             seqs[m].append(specaa.shade(g, lt, pl, meth, f0_t, frozen=True, masking=masking))
         seqs["reference"].append(
             ref if t == 0 and temporal_spp == spp
-            else specaa.reference(rend, t, lt, pl, spp=temporal_spp))
+            else specaa.reference(rend, t, lt, pl, f0_of=materials, spp=temporal_spp))
     res.reference_temporal = metrics.temporal_error(seqs["reference"])
     ref_flat = float(ref[flat].mean()) if flat.any() else float("nan")
     for m in methods:
