@@ -70,7 +70,7 @@ def test_schema_order_and_components():
     assert list(CHANNELS) == [
         "color", "emission", "direct_diffuse", "direct_specular", "indirect_diffuse",
         "indirect_specular", "albedo_diffuse", "albedo_specular", "normal", "position",
-        "depth", "roughness", "distribution", "mesh_id", "motion",
+        "depth", "roughness", "roughness_uv", "tangent", "distribution", "mesh_id", "motion",
     ]  # fmt: skip
     assert set(RADIANCE) < set(CHANNELS)
     assert CHANNELS["normal"] == ("X", "Y", "Z") and CHANNELS["motion"] == ("X", "Y")

@@ -32,7 +32,7 @@ from glossrt.scenes import SceneSetup  # noqa: E402
 
 W, H = 64, 48
 GBUFFER = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "roughness",
-           "distribution", "mesh_id", "motion")
+           "roughness_uv", "tangent", "distribution", "mesh_id", "motion")
 
 # A small XML scene with the plugins the built-ins do not use: smooth plastic, rough plastic,
 # smooth conductor, twosided, a point light and a constant environment. max_depth = 6 also

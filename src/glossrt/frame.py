@@ -63,6 +63,8 @@ CHANNELS: dict[str, tuple[str, ...]] = {
     "position": _XYZ,
     "depth": ("Z",),
     "roughness": ("Y",),
+    "roughness_uv": ("X", "Y"),
+    "tangent": _XYZ,
     "distribution": ("Y",),
     "mesh_id": ("Y",),
     "motion": ("X", "Y"),

@@ -92,7 +92,13 @@ from .errors import FrameError, GlossrtError  # noqa: E402
 from .jit import no_gc, opaque  # noqa: E402
 from .lights import analytic  # noqa: E402
 from .lights import ltc as _ltc  # noqa: E402
-from .lights.shading import NEEDS, ShadingPoints, f0_tensor, shading_channels  # noqa: E402
+from .lights.shading import (  # noqa: E402
+    NEEDS,
+    ShadingPoints,
+    f0_tensor,
+    refuse_anisotropic,
+    shading_channels,
+)
 
 #: the methods glossrt evaluates (any ``halfvector|avgnormal`` + ``-cov|-bbox|-max|-eig`` works)
 METHODS = ("none", "halfvector", "halfvector-bbox", "avgnormal", "avgnormal-max",
@@ -505,6 +511,7 @@ def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: 
     kernels are traced anew (as :func:`glossrt.lights.ltc.shade_tensor`). ``textures``: a
     cache {id(texture): prefiltered} reused across frames."""
     check_frame(frame, NEEDS)
+    refuse_anisotropic(frame, "specular antialiasing")
     if frame.camera is None:
         raise FrameError(f"{frame.where}: specular antialiasing needs the camera")
     m = parse_method(method, kappa, masking)
@@ -550,6 +557,7 @@ def roughness_image(frame, method: str, light=None, kappa: float | None = None) 
     pixel's frame ``mi.Frame3f(n)``; per-light methods need ``light`` (a point or directional
     light). For inspection and tests; 0 on the background."""
     check_frame(frame, NEEDS)
+    refuse_anisotropic(frame, "specular antialiasing")
     m = parse_method(method, kappa)
     if m.per_light and light is None:
         raise GlossrtError(f"method {method!r} filters per light: pass light=")

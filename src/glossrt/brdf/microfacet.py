@@ -33,7 +33,8 @@ backend.ensure()
 
 import drjit as dr  # noqa: E402
 
-__all__ = ["GGX", "BECKMANN", "NAMES", "code", "D", "G1", "specular_cos", "sample_h", "pdf_h"]
+__all__ = ["GGX", "BECKMANN", "NAMES", "code", "D", "G1", "specular_cos", "sample_h", "pdf_h",
+           "aniso_specular_cos", "sample_h_aniso", "pdf_h_aniso"]
 
 #: ``distribution`` channel values
 GGX = 0
@@ -145,3 +146,77 @@ def pdf_h(wo_z: Any, wo_h: Any, h_z: Any, alpha: Any, beckmann: Any = False,
         return G1(wo_z, alpha, False) * dr.maximum(wo_h, 0.0) * d / dr.maximum(wo_z, 1e-8)
 
     return _pick(beckmann, beck, ggx)
+
+
+# ----------------------------------------------------------------------------------------------
+# Anisotropic lobes (Mitsuba's alpha_u, alpha_v along its shading frame's s and t)
+# ----------------------------------------------------------------------------------------------
+
+
+def _aniso_terms(beckmann):
+    from . import covariance_ggx as cg
+
+    def d(h, a11, a22):
+        if isinstance(beckmann, bool):
+            return (cg.D_beckmann_dr if beckmann else cg.D_dr)(h, a11, 0.0, a22)
+        return dr.select(beckmann, cg.D_beckmann_dr(h, a11, 0.0, a22), cg.D_dr(h, a11, 0.0, a22))
+
+    def g1(v, a11, a22):
+        if isinstance(beckmann, bool):
+            return (cg.G1_beckmann_dr if beckmann else cg.G1_dr)(v, a11, 0.0, a22)
+        return dr.select(beckmann, cg.G1_beckmann_dr(v, a11, 0.0, a22),
+                         cg.G1_dr(v, a11, 0.0, a22))
+
+    return d, g1
+
+
+def aniso_specular_cos(wo, wi, alpha_u, alpha_v, beckmann: Any = False) -> Any:
+    """``f cos(theta_i)`` (Fresnel 1) of an anisotropic lobe, local directions in the frame
+    ``(s, t, n)`` whose axes carry ``alpha_u`` and ``alpha_v`` (Mitsuba's): ``D(h) G1(wo)
+    G1(wi) / (4 cos_o)`` with GGX's or Beckmann's ``D`` and Smith ``G1`` for the roughness
+    matrix ``diag(alpha_u^2, alpha_v^2)`` (Walter et al. 2007; Heitz 2014, sec. 5:
+    :mod:`glossrt.brdf.covariance_ggx`'s forms). Isotropic when ``alpha_u = alpha_v``."""
+    d, g1 = _aniso_terms(beckmann)
+    a11, a22 = alpha_u * alpha_u, alpha_v * alpha_v
+    h = wo + wi
+    h = h * dr.rsqrt(dr.maximum(dr.squared_norm(h), 1e-30))
+    val = d(h, a11, a22) * g1(wo, a11, a22) * g1(wi, a11, a22) / (4.0 * dr.maximum(wo.z, 1e-8))
+    return dr.select((wo.z > 0.0) & (wi.z > 0.0), val, 0.0)
+
+
+def sample_h_aniso(wo, alpha_u, alpha_v, u1, u2, beckmann: Any = False):
+    """A half vector (local frame) of an anisotropic lobe: GGX visible normals (Heitz 2018,
+    stretched by ``(alpha_u, alpha_v)``) or Beckmann normals from ``D(h) cos(theta_h)``
+    (Walter et al. 2007, eqs. 28-29 with the anisotropic phi of Ward 1992: ``tan phi =
+    (alpha_v / alpha_u) tan(2 pi u2)``); :func:`pdf_h_aniso` is its density. Returns a
+    3-vector of the type of ``wo``."""
+    from .ggx import sample_vndf
+
+    vt = type(wo)
+    # GGX: stretch the view by (alpha_u, alpha_v), sample the alpha = 1 hemisphere, unstretch
+    gx, gy, gz = sample_vndf(wo.x * alpha_u, wo.y * alpha_v, wo.z, 1.0, u1, u2)
+    g = dr.normalize(vt(gx * alpha_u, gy * alpha_v, dr.maximum(gz, 0.0)))
+    # Beckmann
+    phi = dr.atan2(alpha_v * dr.sin(2.0 * dr.pi * u2), alpha_u * dr.cos(2.0 * dr.pi * u2))
+    sp_, cp = dr.sincos(phi)
+    inv_a2 = cp * cp / (alpha_u * alpha_u) + sp_ * sp_ / (alpha_v * alpha_v)
+    t2 = -dr.log(dr.maximum(1.0 - u1, 1e-30)) / inv_a2
+    cz = dr.rsqrt(1.0 + t2)
+    sz = dr.sqrt(dr.maximum(1.0 - cz * cz, 0.0))
+    b = vt(sz * cp, sz * sp_, cz)
+    if isinstance(beckmann, bool):
+        return b if beckmann else g
+    return dr.select(beckmann, b, g)
+
+
+def pdf_h_aniso(wo, h, alpha_u, alpha_v, beckmann: Any = False) -> Any:
+    """Density (per steradian of ``h``) of :func:`sample_h_aniso`: GGX visible normals
+    ``G1(wo) max(0, wo.h) D(h) / cos_o``, Beckmann ``D(h) cos(theta_h)``."""
+    d, g1 = _aniso_terms(beckmann)
+    a11, a22 = alpha_u * alpha_u, alpha_v * alpha_v
+    dh = d(h, a11, a22)
+    beck = dh * dr.maximum(h.z, 0.0)
+    ggx = g1(wo, a11, a22) * dr.maximum(dr.dot(wo, h), 0.0) * dh / dr.maximum(wo.z, 1e-8)
+    if isinstance(beckmann, bool):
+        return beck if beckmann else ggx
+    return dr.select(beckmann, beck, ggx)

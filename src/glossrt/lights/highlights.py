@@ -51,6 +51,7 @@ from .shading import (  # noqa: E402
     ShadingPoints,
     f0_tensor,
     light_vertices,
+    refuse_anisotropic,
     shading_channels,
 )
 
@@ -293,6 +294,7 @@ class HighlightRenderer:
         if not self.frozen:
             raise GlossrtError("shade_tensor is the frozen path: HighlightRenderer(frozen=True)")
         check_frame(frame, NEEDS)
+        refuse_anisotropic(frame, "the light-shape highlights")
         if frame.camera is None:
             raise GlossrtError(f"{frame.where}: highlights need the camera")
         ch = shading_channels(frame)
@@ -316,6 +318,7 @@ class HighlightRenderer:
         from .envmap import cull_mask, light_spheres, lobe_spread
 
         check_frame(frame, NEEDS)
+        refuse_anisotropic(frame, "the light-shape highlights")
         h, w = frame.height, frame.width
         if self.frozen and offset == 0 and fis_samples is None:
             out = self.shade_tensor(frame, maps, f0, frame_index)

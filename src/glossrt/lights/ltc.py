@@ -47,6 +47,7 @@ from .shading import (  # noqa: E402
     ShadingPoints,
     f0_tensor,
     light_vertices,
+    refuse_anisotropic,
     shading_channels,
 )
 
@@ -358,6 +359,7 @@ def shade_tensor(frame, lights: list, f0: np.ndarray | None = None,
     positions change): the real-time path, without Python's per-frame tracing overhead.
     Textured lights are always traced anew (their prefiltered textures are not frozen)."""
     check_frame(frame, NEEDS)
+    refuse_anisotropic(frame, "LTC shading")
     dev, two = _device_lights(lights)
     f0_t = f0_tensor(frame, f0)
     has_tex = any(getattr(lt, "texture", None) is not None for lt in lights)

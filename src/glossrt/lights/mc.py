@@ -170,8 +170,11 @@ def strategies(sp: ShadingPoints, lt, frame: mi.Frame3f, wo_l: mi.Vector3f, q: m
     # -- strategy 2: BRDF sampling
     u0, u1, u2 = rng.next_float32(), rng.next_float32(), rng.next_float32()
     wd = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u1, u2))
-    hx, hy, hz = mf.sample_h(wo_l.x, wo_l.y, wo_l.z, sp.alpha, u1, u2, sp.beckmann)
-    h = mi.Vector3f(hx, hy, hz)
+    if sp.alpha_uv is not None:
+        h = mf.sample_h_aniso(wo_l, sp.alpha_uv.x, sp.alpha_uv.y, u1, u2, sp.beckmann)
+    else:
+        hx, hy, hz = mf.sample_h(wo_l.x, wo_l.y, wo_l.z, sp.alpha, u1, u2, sp.beckmann)
+        h = mi.Vector3f(hx, hy, hz)
     wl = dr.select(u0 < q, wd, 2.0 * dr.dot(wo_l, h) * h - wo_l)
     w2 = frame.to_world(wl)
     t, y2 = lt.intersect(sp.p, w2)
@@ -186,7 +189,7 @@ def strategies(sp: ShadingPoints, lt, frame: mi.Frame3f, wo_l: mi.Vector3f, q: m
 def estimate(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) -> mi.Color3f:
     """One two-strategy MIS sample per lane of the direct light from ``lights`` (diffuse +
     specular summed); ``scene`` given: with shadows."""
-    frame = mi.Frame3f(sp.n)
+    frame = sp.local_frame()  # anisotropic lobes: the axes of alpha_u, alpha_v
     wo_l = frame.to_local(sp.wo)
     q = _spec_weight(sp)
     total = dr.zeros(mi.Color3f, dr.width(sp.p))
@@ -208,8 +211,11 @@ def _pdf_brdf(sp: ShadingPoints, frame: mi.Frame3f, wo_l: mi.Vector3f, q: mi.Flo
     h = dr.normalize(wl + wo_l)
     wo_h = dr.dot(wo_l, h)
     # the half vector's density (Heitz 2018 / Walter et al. 2007); Jacobian 1 / (4 wo.h)
-    p_s = mf.pdf_h(wo_l.z, wo_h, h.z, sp.alpha, sp.beckmann,
-                   dr.square(h.x) + dr.square(h.y)) / dr.maximum(4.0 * wo_h, 1e-8)
+    if sp.alpha_uv is not None:
+        p_h = mf.pdf_h_aniso(wo_l, h, sp.alpha_uv.x, sp.alpha_uv.y, sp.beckmann)
+    else:
+        p_h = mf.pdf_h(wo_l.z, wo_h, h.z, sp.alpha, sp.beckmann, dr.square(h.x) + dr.square(h.y))
+    p_s = p_h / dr.maximum(4.0 * wo_h, 1e-8)
     return dr.select(cos_i > 0, q * cos_i / dr.pi + (1.0 - q) * p_s, 0.0)
 
 

@@ -104,11 +104,10 @@ def _material_rows(setup, frame,
                    with_scale: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Per mesh id (0 = background): the Fresnel rows ``(n, ROW)`` and (``with_scale``) the
     diffuse-scale tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials, and the
-    frame's mesh ids (H, W), checked against them; refuses anisotropic materials."""
+    frame's mesh ids (H, W), checked against them."""
     from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf
     from ..scenes import stable_shapes
 
-    check_isotropic(setup)
     shapes = stable_shapes(setup.scene)
     rows = np.zeros((len(shapes) + 1, ROW))
     scales = np.ones((len(shapes) + 1, DIFFUSE_SCALE_NODES, 3)) if with_scale else None
@@ -132,7 +131,7 @@ def fresnel_image(setup, frame) -> np.ndarray:
     Lambert, 0.47-0.96 for plastic coatings of eta 1.5), from the materials of ``setup``'s
     shapes through the frame's ``mesh_id`` (0 = background). Pass it as ``f0`` to the
     shading functions to shade with Mitsuba's exact Fresnel terms and coated diffuse lobes
-    (the CLI does); refuses anisotropic materials (:func:`check_isotropic`)."""
+    (the CLI does)."""
     rows, scales, ids = _material_rows(setup, frame)
     if frame.camera is not None and "position" in frame.names and "normal" in frame.names:
         return material_rows_at(rows, scales, ids, frame.numpy("position"),
@@ -193,7 +192,7 @@ def points_with_materials(p, n, wo, alpha, albedo, hit, beckmann, mat: np.ndarra
 def f0_image(setup, frame) -> np.ndarray:
     """Specular F0 (H, W, 3) per pixel (:func:`fresnel_image`'s F0 columns), for shading
     with Schlick's Fresnel and Lambert's diffuse reflectance as the G-buffer's
-    ``albedo_diffuse``; refuses anisotropic materials (:func:`check_isotropic`)."""
+    ``albedo_diffuse``."""
     rows, _, ids = _material_rows(setup, frame, with_scale=False)
     return np.ascontiguousarray(rows[ids][..., F0_COLUMNS]).astype(np.float32)
 
@@ -228,6 +227,10 @@ class ShadingPoints:
     hit: mi.Bool
     beckmann: mi.Bool | bool = False
     fresnel: FresnelLanes | None = None
+    #: anisotropic lobes: the unit tangent along which ``alpha_u`` applies, and
+    #: ``(alpha_u, alpha_v)`` (``None``: every lane isotropic with ``alpha``)
+    tangent: mi.Vector3f | None = None
+    alpha_uv: mi.Vector2f | None = None
 
     @staticmethod
     def of(frame, f0: np.ndarray | None = None) -> ShadingPoints:
@@ -256,6 +259,11 @@ class ShadingPoints:
                     if "distribution" in ch else False)
         f = split(f0)
         fresnel = None
+        tangent = alpha_uv = None
+        if "tangent" in ch and "roughness_uv" in ch:
+            tangent = mi.Vector3f(*split(ch["tangent"]))
+            auv = split(ch["roughness_uv"])
+            alpha_uv = mi.Vector2f(dr.maximum(auv[0], ALPHA_MIN), dr.maximum(auv[1], ALPHA_MIN))
         albedo = mi.Color3f(*split(ch["albedo_diffuse"]))
         f0_rgb = mi.Color3f(*f) if len(f) == 3 else None
         if len(f) == MATERIAL_ROW:
@@ -264,7 +272,18 @@ class ShadingPoints:
             albedo = albedo * mi.Color3f(*f[ROW:])  # Mitsuba's coated diffuse lobe
             f0_rgb = mi.Color3f(*f[F0_COLUMNS])
         return ShadingPoints(p, n, wo, alpha, albedo, f0_rgb, hit & (dr.dot(n, wo) > 0),
-                             beckmann, fresnel)
+                             beckmann, fresnel, tangent, alpha_uv)
+
+    def local_frame(self) -> mi.Frame3f:
+        """The lanes' shading frame: ``(tangent, n x tangent, n)`` for anisotropic lobes
+        (the axes of ``alpha_u``, ``alpha_v``), else Mitsuba's frame about ``n``."""
+        if self.tangent is None:
+            return mi.Frame3f(self.n)
+        t = self.tangent - self.n * dr.dot(self.n, self.tangent)
+        ok = dr.squared_norm(t) > 1e-12
+        fallback = mi.Frame3f(self.n)
+        t = dr.select(ok, dr.normalize(t), fallback.s)
+        return mi.Frame3f(t, dr.cross(self.n, t), self.n)
 
     def spec_weight(self, norm: mi.Float, fres: mi.Float) -> mi.Color3f:
         """``integral f F cos`` per unit LTC mass from a split-sum table's ``norm`` and
@@ -298,15 +317,31 @@ def _take(sp: ShadingPoints, index: mi.UInt32) -> ShadingPoints:
     if not isinstance(beck, bool):
         beck = dr.gather(mi.Bool, beck, index)
     fres = None if sp.fresnel is None else sp.fresnel.take(index)
+    aniso = [None if v is None else dr.gather(type(v), v, index)
+             for v in (sp.tangent, sp.alpha_uv)]
     return ShadingPoints(*(dr.gather(type(v), v, index) for v in (
-        sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)), beck, fres)
+        sp.p, sp.n, sp.wo, sp.alpha, sp.albedo, sp.f0, sp.hit)), beck, fres, *aniso)
 
 
 def shading_channels(frame) -> dict:
-    """The frame's :data:`NEEDS` channels, and ``distribution`` when it has one (frames
-    written before that channel existed shade as GGX)."""
+    """The frame's :data:`NEEDS` channels, ``distribution`` when it has one (frames written
+    before that channel existed shade as GGX), and ``tangent`` and ``roughness_uv`` when its
+    scene has anisotropic lobes (``meta["anisotropic"]``)."""
     names = NEEDS + (("distribution",) if "distribution" in frame.names else ())
+    if frame.meta.get("anisotropic") and {"tangent", "roughness_uv"} <= set(frame.names):
+        names += ("tangent", "roughness_uv")
     return {k: frame[k] for k in names}
+
+
+def refuse_anisotropic(frame, who: str) -> None:
+    """A clear :class:`GlossrtError` for a frame whose scene has anisotropic lobes, from a
+    method that shades isotropic lobes only (LTC's 2-D table and what builds on it, the
+    highlights, specular antialiasing); :func:`check_isotropic` names the shapes."""
+    if frame.meta.get("anisotropic"):
+        raise GlossrtError(
+            f"{frame.where}: its scene has anisotropic lobes (alpha_u != alpha_v); {who} "
+            "handles isotropic lobes only (the Monte Carlo reference, --method mc, shades "
+            "them; check_isotropic names the shapes)")
 
 
 def f0_tensor(frame, f0: np.ndarray | None) -> mi.TensorXf:
@@ -340,8 +375,14 @@ def brdf_cos(sp: ShadingPoints, wi: mi.Vector3f) -> tuple[mi.Color3f, mi.Color3f
     ok = sp.hit & (cos_i > 0) & (cos_o > 0)
     h = dr.normalize(sp.wo + wi)
     f = sp.fresnel_at(dr.dot(sp.wo, h))
-    # Walter et al. 2007, eqs. 20 and 23 times cos_i: D G1(wo) G1(wi) / (4 cos_o)
-    spec = f * mf.specular_cos(cos_o, cos_i, dr.dot(sp.n, h), sp.alpha, sp.beckmann,
-                               dr.squared_norm(dr.cross(sp.n, h)))
+    if sp.alpha_uv is not None:
+        # anisotropic lobes in the frame of their tangent (Mitsuba's alpha_u, alpha_v axes)
+        fr = sp.local_frame()
+        spec = f * mf.aniso_specular_cos(fr.to_local(sp.wo), fr.to_local(wi), sp.alpha_uv.x,
+                                         sp.alpha_uv.y, sp.beckmann)
+    else:
+        # Walter et al. 2007, eqs. 20 and 23 times cos_i: D G1(wo) G1(wi) / (4 cos_o)
+        spec = f * mf.specular_cos(cos_o, cos_i, dr.dot(sp.n, h), sp.alpha, sp.beckmann,
+                                   dr.squared_norm(dr.cross(sp.n, h)))
     diff = sp.albedo * (cos_i / dr.pi)
     return dr.select(ok, diff, 0.0), dr.select(ok, spec, 0.0)

@@ -34,6 +34,7 @@ from .shading import (  # noqa: E402
     material_rows_at,
     mesh_material_tables,
     points_with_materials,
+    refuse_anisotropic,
 )
 
 MODES = ("vertex", "pixel")
@@ -310,6 +311,7 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
         raise _count_mismatch(trees, trees.vertex_count, int(offsets[-1]))
     check_trees_match(scene, trees)
     check_frame(frame, NEEDS)
+    refuse_anisotropic(frame, "BSPVT shading")
     dev = bspvt_shade.DeviceTrees.of(trees)
     # (vertex indices, barycentrics, valid) of the triangle each pixel sees
     tri = _pixel_triangles(scene, frame, meshes, offsets[:-1])

@@ -41,8 +41,9 @@ from .pathtracer import (  # noqa: E402
 )
 
 GBUFFER_OUT = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "roughness",
-               "distribution", "mesh_id", "motion")
-COMPONENTS = {"depth": 1, "roughness": 1, "distribution": 1, "mesh_id": 1, "motion": 2}
+               "roughness_uv", "tangent", "distribution", "mesh_id", "motion")
+COMPONENTS = {"depth": 1, "roughness": 1, "roughness_uv": 2, "distribution": 1, "mesh_id": 1,
+              "motion": 2}
 REFERENCE_SALT = 0x5EED
 #: seeds of multi-sample pixel subsets (:meth:`Renderer.render_pixels` with spp > 1)
 PIXELS_SALT = 0xADA9
@@ -279,4 +280,6 @@ class Renderer:
             "render_seconds": seconds,
             "variant": mi.variant(),
         }
+        if self.shapes.any_anisotropic:
+            meta["anisotropic"] = True
         return Frame(channels=channels, camera=cam, prev_camera=prev, index=frame, meta=meta)

@@ -30,7 +30,8 @@ from .pathtracer import (
 AOV_LAYERS = (
     [(n, "RGB") for n in RADIANCE_OUT]
     + [("albedo_diffuse", "RGB"), ("albedo_specular", "RGB"), ("normal", "XYZ"),
-       ("position", "XYZ"), ("depth", "Z"), ("roughness", "Y"), ("distribution", "Y"),
+       ("position", "XYZ"), ("depth", "Z"), ("roughness", "Y"), ("roughness_uv", "XY"),
+       ("tangent", "XYZ"), ("distribution", "Y"),
        ("mesh_id", "Y")]
 )
 

@@ -299,6 +299,7 @@ class ShapeTable:
         "f0": mi.Color3f,
         "normal_map": mi.UInt32,
         "beckmann": mi.Bool,
+        "alpha_uv": mi.Vector2f,
         "fresnel_kind": mi.UInt32,
         "eta": mi.Color3f,
         "k": mi.Color3f,
@@ -316,6 +317,7 @@ class ShapeTable:
         normal_map = [0] * n
         beckmann = [False] * n
         fres = np.zeros((n, ROW))
+        alpha_uv = np.zeros((n, 2))
         self.materials = {}
         for i, (s, rid) in enumerate(zip(shapes, ids, strict=True)):
             m = describe_bsdf(s.bsdf())
@@ -326,6 +328,7 @@ class ShapeTable:
             normal_map[rid] = m.normal_map
             beckmann[rid] = m.beckmann
             fres[rid] = m.fresnel.row()
+            alpha_uv[rid] = m.anisotropic if m.anisotropic is not None else (m.alpha, m.alpha)
             for c in range(3):
                 f0[c][rid] = m.f0[c]
         self.index = mi.UInt32(index)
@@ -337,6 +340,11 @@ class ShapeTable:
         self.normal_map = mi.UInt32(normal_map)
         #: per shape: its rough lobe has Beckmann's distribution (else GGX or no rough lobe)
         self.beckmann = mi.Bool(beckmann)
+        #: per shape: (alpha_u, alpha_v) of its rough lobe (both alpha when isotropic)
+        self.alpha_uv = mi.Vector2f(*(alpha_uv[:, c].astype(np.float32) for c in range(2)))
+        #: whether any shape's rough lobe is anisotropic (a Python bool: the frames say so in
+        #: ``meta["anisotropic"]``, and the analytic shading reads the tangent frame then)
+        self.any_anisotropic = bool(np.any(alpha_uv[:, 0] != alpha_uv[:, 1]))
         #: per shape: its Fresnel term (:class:`glossrt.brdf.fresnel.Fresnel`)
         self.fresnel_kind = mi.UInt32(fres[:, 0].astype(np.uint32))
         self.eta = mi.Color3f(*(fres[:, 1 + c].astype(np.float32) for c in range(3)))
@@ -427,6 +435,15 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     e_spec = split_sum(ab.x + ab.y, ab.y, kind, eta, kk, scale, f0)
     albedo_s = dr.select(valid & has_s, e_spec, 0.0)
     albedo_s = dr.select(mapped & (cos_m <= 0), 0.0, albedo_s)
+    # the microfacet frame's first axis (Mitsuba's local x, where alpha_u applies) in the
+    # plane of the G-buffer normal
+    s = mi.Vector3f(si.sh_frame.s)
+    s = s - n * dr.dot(n, s)
+    tangent = dr.select(valid, dr.normalize(s), 0.0)
+    auv = dr.gather(mi.Vector2f, shapes.alpha_uv, rid, valid)
+    iso = auv.x == auv.y
+    # an isotropic lobe's (alpha, alpha) follows a textured alpha too
+    auv = dr.select(iso, mi.Vector2f(alpha, alpha), auv)
     origin, forward = camera_axes(sensor)
     # camera-space z (not si.t: Mitsuba's rays start on the near-clip plane)
     depth = dr.select(valid, dr.dot(si.p - origin, forward), dr.inf)
@@ -437,6 +454,8 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
         "position": dr.select(valid, mi.Vector3f(si.p), 0.0),
         "depth": depth,
         "roughness": dr.select(valid, alpha, 0.0),
+        "roughness_uv": dr.select(valid, auv, 0.0),
+        "tangent": tangent,
         "distribution": dr.select(beckmann, float(BECKMANN), float(GGX)),
         "mesh_id": mi.Float(index),
     }
