@@ -120,10 +120,6 @@ def cmd_render(args) -> int:
             raise GlossrtError("--specaa shades 1 spp frames; its supersampled reference is "
                                "`glossrt experiment --which specaa`")
     setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
-    if args.specaa is not None:
-        from .lights.shading import check_isotropic
-
-        check_isotropic(setup)  # before any frame is rendered
     r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
     out = _writable_dir(args.out)
     todo = list(range(args.start, args.start + args.frames, args.every))

@@ -96,7 +96,6 @@ from .lights.shading import (  # noqa: E402
     NEEDS,
     ShadingPoints,
     f0_tensor,
-    refuse_anisotropic,
     shading_channels,
 )
 
@@ -406,14 +405,38 @@ def _largest_eigenvalue_avgnormal(q: _Quad):
     return 2.0 * SIGMA2 * _eigen(*gram)[0]
 
 
+def material_matrix(q: _Quad) -> tuple | None:
+    """The material's own roughness matrix in the pixel's frame ``(q.t, q.b)`` for
+    anisotropic lobes: ``R diag(alpha_u^2, alpha_v^2) R^T`` with ``R`` the rotation from the
+    lobe's tangent to ``q.t``; ``None`` where every lane is isotropic (``alpha^2 I``)."""
+    sp = q.sp
+    if sp.alpha_uv is None:
+        return None
+    c, s = dr.dot(sp.tangent, q.t), dr.dot(sp.tangent, q.b)
+    inv = dr.rsqrt(dr.maximum(c * c + s * s, 1e-30))
+    c, s = c * inv, s * inv
+    u2, v2 = dr.square(sp.alpha_uv.x), dr.square(sp.alpha_uv.y)
+    return c * c * u2 + s * s * v2, c * s * (u2 - v2), s * s * u2 + c * c * v2
+
+
+def _add_clamped(am: tuple, k: tuple) -> tuple:
+    """``A_m + K`` with ``A``'s eigenvalues clamped to 1 (GGX's range)."""
+    a = (am[0] + k[0], am[1] + k[1], am[2] + k[2])
+    l1, l2 = _eigen(*a)
+    return _with_eigenvalues(*a, l1, l2, _minimum(l1, 1.0), _minimum(l2, 1.0))
+
+
 def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> tuple:
     """``(a11, a12, a22)`` per lane in the pixel's frame for ``method`` (``light``: the
     light's device value for per-light methods). Isotropic results have a literal-zero
-    ``a12`` (the shading kernel then simplifies as for unfiltered roughness)."""
+    ``a12`` (the shading kernel then simplifies as for unfiltered roughness). An anisotropic
+    material's own matrix (:func:`material_matrix`) takes the place of ``alpha^2 I``:
+    Kaplanyan et al. 2016 add the filter kernel to whatever roughness matrix the NDF has."""
     a2 = dr.square(q.sp.alpha)
     zero = dr.zeros(mi.Float, dr.width(a2))
+    am = material_matrix(q)
     if method.source == "none":
-        return a2, zero, a2
+        return (a2, zero, a2) if am is None else am
     if method.source == "projected":
         # Tokuyoshi & Kaplanyan 2021, eq. 14 (world-space normal differences)
         du, dv = q.nx - q.sp.n, q.ny - q.sp.n
@@ -424,22 +447,26 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
         du, dv = _differences(q, method, light, kind)
         k = kernel(du, dv, method.form)
         if not method.isotropic:
+            if am is not None:  # the kernel (eigenvalues clamped to kappa) on A_m
+                return _add_clamped(am, roughness_matrix(0.0, k, method.kappa))
             return roughness_matrix(a2, k, method.kappa)
         k = k[0]
     if method.kappa is not None:
         k = dr.minimum(k, method.kappa)
+    if am is not None:
+        return _add_clamped(am, (k, zero, k))
     a = dr.minimum(a2 + k, 1.0)  # Tokuyoshi, eq. 2 (isotropic kernel), clamped to alpha <= 1
     return a, zero, a
 
 
 def _specular(wo: mi.Vector3f, wi: mi.Vector3f, a: tuple, sp: ShadingPoints,
-              masking: str) -> mi.Color3f:
+              masking: str, am: tuple | None = None) -> mi.Color3f:
     """The pixel's lobe (local directions) with the roughness matrix ``a``: covariance GGX
     (Tokuyoshi, appendix A.1) or, on Beckmann pixels, the Beckmann NDF with that matrix
     (Kaplanyan et al. 2016's own case, where ``A = alpha^2 I + 2 Sigma`` is exact in slope
     space), with Mitsuba's separable Smith term and the pixel's Fresnel term;
-    ``masking="material"``: ``G1 G1`` of the material's isotropic alpha instead
-    (:data:`MASKING`)."""
+    ``masking="material"``: ``G1 G1`` of the material's own roughness instead (its
+    anisotropic matrix ``am`` when given; :data:`MASKING`)."""
     h = dr.normalize(wo + wi)
     fr = sp.fresnel_at(dr.dot(wo, h))
     if masking == "filtered":
@@ -449,8 +476,17 @@ def _specular(wo: mi.Vector3f, wi: mi.Vector3f, a: tuple, sp: ShadingPoints,
     d_b = cggx.D_beckmann_dr(h, a[0], a[1], a[2]) if not (isinstance(beck, bool)
                                                            and not beck) else d_g
     d = d_b if isinstance(beck, bool) and beck else dr.select(beck, d_b, d_g)
-    # D of the filtered A (Tokuyoshi, eq. A.1-3 / Beckmann), G1 G1 of alpha^2 I
-    g = mf.G1(wo.z, sp.alpha, beck) * mf.G1(wi.z, sp.alpha, beck)
+    # D of the filtered A (Tokuyoshi, eq. A.1-3 / Beckmann), G1 G1 of the material's roughness
+    if am is not None:
+        def g1(v):
+            gg = cggx.G1_dr(v, *am)
+            if isinstance(beck, bool):
+                return cggx.G1_beckmann_dr(v, *am) if beck else gg
+            return dr.select(beck, cggx.G1_beckmann_dr(v, *am), gg)
+
+        g = g1(wo) * g1(wi)
+    else:
+        g = mf.G1(wo.z, sp.alpha, beck) * mf.G1(wi.z, sp.alpha, beck)
     val = d * g / (4.0 * dr.maximum(wo.z * wi.z, 1e-30))
     ok = (wo.z > 0.0) & (wi.z > 0.0)
     return fr * dr.select(ok, val, 0.0)
@@ -462,6 +498,7 @@ def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sid
     total = dr.zeros(mi.Color3f, dr.width(sp.p))
     frame = mi.Frame3f(q.t, q.b, sp.n)
     wo_l = frame.to_local(sp.wo)
+    am = material_matrix(q) if method.masking == "material" else None
     shared = None if method.per_light else filtered_roughness(q, method)
     for light in lights:
         wi, e = analytic.incident(light, sp.p)
@@ -469,7 +506,7 @@ def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sid
         wi_l = frame.to_local(wi)
         cos_i = wi_l.z
         ok = sp.hit & (cos_i > 0) & (wo_l.z > 0)
-        spec = _specular(wo_l, wi_l, a, sp, method.masking) * cos_i
+        spec = _specular(wo_l, wi_l, a, sp, method.masking, am) * cos_i
         diff = sp.albedo * (cos_i / dr.pi)
         total += dr.select(ok, e * (spec + diff), 0.0)
     if polygons:
@@ -511,7 +548,6 @@ def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: 
     kernels are traced anew (as :func:`glossrt.lights.ltc.shade_tensor`). ``textures``: a
     cache {id(texture): prefiltered} reused across frames."""
     check_frame(frame, NEEDS)
-    refuse_anisotropic(frame, "specular antialiasing")
     if frame.camera is None:
         raise FrameError(f"{frame.where}: specular antialiasing needs the camera")
     m = parse_method(method, kappa, masking)
@@ -557,7 +593,6 @@ def roughness_image(frame, method: str, light=None, kappa: float | None = None) 
     pixel's frame ``mi.Frame3f(n)``; per-light methods need ``light`` (a point or directional
     light). For inspection and tests; 0 on the background."""
     check_frame(frame, NEEDS)
-    refuse_anisotropic(frame, "specular antialiasing")
     m = parse_method(method, kappa)
     if m.per_light and light is None:
         raise GlossrtError(f"method {method!r} filters per light: pass light=")

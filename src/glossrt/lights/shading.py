@@ -57,11 +57,10 @@ def light_vertices(light) -> np.ndarray:
 
 def check_isotropic(setup) -> None:
     """A clear :class:`GlossrtError` naming the first shape whose rough lobe is anisotropic
-    (``alpha_u != alpha_v``): glossrt's analytic shading (LTC, BSPVT, the ratio estimator,
-    highlights, specular antialiasing and their Monte Carlo reference) takes one ``alpha``
-    per pixel; an anisotropic LTC would need a table over two more dimensions. The path
-    tracer renders such BSDFs (Mitsuba's own), and ``glossrt render --mitsuba`` gives their
-    reference."""
+    (``alpha_u != alpha_v``), for the methods that take one ``alpha`` per pixel (LTC, BSPVT,
+    the ratio estimator, highlights): an anisotropic LTC would need a table over two more
+    dimensions. The Monte Carlo reference and specular antialiasing shade such lobes, the
+    path tracer renders them (Mitsuba's own BSDF)."""
     from ..render.materials import describe_bsdf
     from ..scenes import stable_shapes
 
@@ -72,8 +71,8 @@ def check_isotropic(setup) -> None:
             au, av = m.anisotropic
             raise GlossrtError(
                 f"{setup.name}: shape {name!r} ({m.kind}, {m.distribution}, alpha_u {au:g} != "
-                f"alpha_v {av:g}) is anisotropic; glossrt's analytic light shading handles "
-                "isotropic lobes only (set alpha_u = alpha_v, or render it with "
+                f"alpha_v {av:g}) is anisotropic; this method handles isotropic lobes only "
+                "(set alpha_u = alpha_v, or shade it with --method mc, or render it with "
                 "'glossrt render --mitsuba')")
 
 
@@ -335,8 +334,9 @@ def shading_channels(frame) -> dict:
 
 def refuse_anisotropic(frame, who: str) -> None:
     """A clear :class:`GlossrtError` for a frame whose scene has anisotropic lobes, from a
-    method that shades isotropic lobes only (LTC's 2-D table and what builds on it, the
-    highlights, specular antialiasing); :func:`check_isotropic` names the shapes."""
+    method that shades isotropic lobes only (LTC's 2-D table and what builds on it: BSPVT,
+    the ratio estimator; the highlights); :func:`check_isotropic` names the shapes. (The
+    Monte Carlo reference and specular antialiasing shade anisotropic lobes.)"""
     if frame.meta.get("anisotropic"):
         raise GlossrtError(
             f"{frame.where}: its scene has anisotropic lobes (alpha_u != alpha_v); {who} "
