@@ -160,6 +160,16 @@ QUAD_XML = """<scene version="3.0.0">
 """
 
 
+def floor_scene(tmp_path, bsdf: str, name: str):
+    """The quad-light scene with the floor's BSDF replaced by the XML element ``bsdf``."""
+    xml = QUAD_XML.format(alpha=0.3, dist="").replace(
+        '<bsdf type="roughconductor"><float name="alpha" value="0.3"/></bsdf>', bsdf)
+    assert bsdf in xml
+    path = tmp_path / f"{name}.xml"
+    path.write_text(xml)
+    return scenes.load(str(path))
+
+
 def quad_scene(tmp_path, alpha: float, distribution: str | None):
     """A rough conductor (Mitsuba's default eta = 0, k = 1: Fresnel 1) under a quad light,
     written as users write it: ``distribution`` only when given."""
@@ -603,15 +613,10 @@ def test_roughplastic_matches_mitsuba_direct(tmp_path):
     from glossrt.lights.mc import render_mc
     from glossrt.lights.shading import f0_image, fresnel_image
 
-    xml = QUAD_XML.format(alpha=0.3, dist="").replace(
-        '<bsdf type="roughconductor"><float name="alpha" value="0.3"/></bsdf>',
-        '<bsdf type="roughplastic"><float name="alpha" value="0.3"/>'
-        '<string name="distribution" value="ggx"/>'
-        '<rgb name="diffuse_reflectance" value="0.6, 0.3, 0.2"/></bsdf>')
-    assert "roughplastic" in xml
-    path = tmp_path / "plastic.xml"
-    path.write_text(xml)
-    setup = scenes.load(str(path))
+    setup = floor_scene(tmp_path, '<bsdf type="roughplastic"><float name="alpha" value="0.3"/>'
+                        '<string name="distribution" value="ggx"/>'
+                        '<rgb name="diffuse_reflectance" value="0.6, 0.3, 0.2"/></bsdf>',
+                        "plastic")
     gb, lights, ref, floor = _direct(setup)
     mat = fresnel_image(setup, gb)
     assert _rel_l1(render_mc(gb, lights, 256, f0=mat, seed=3), ref, floor) <= 0.06
@@ -655,13 +660,7 @@ def test_monte_carlo_handles_near_mirror_lobes(tmp_path):
     from glossrt.lights.mc import render_mc
     from glossrt.lights.shading import fresnel_image
 
-    xml = QUAD_XML.format(alpha=0.2, dist="").replace(
-        '<bsdf type="roughconductor"><float name="alpha" value="0.2"/></bsdf>',
-        '<bsdf type="conductor"/>')
-    assert '<bsdf type="conductor"/>' in xml
-    path = tmp_path / "mirror.xml"
-    path.write_text(xml)
-    setup = scenes.load(str(path))
+    setup = floor_scene(tmp_path, '<bsdf type="conductor"/>', "mirror")
     gb, lights, ref, floor = _direct(setup)
     mat = fresnel_image(setup, gb)
     mc = render_mc(gb, lights, 64, f0=mat, seed=3)
