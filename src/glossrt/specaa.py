@@ -472,19 +472,10 @@ def _specular(wo: mi.Vector3f, wi: mi.Vector3f, a: tuple, sp: ShadingPoints,
     if masking == "filtered":
         return fr * cggx.brdf_separable_dr(wo, wi, a[0], a[1], a[2], sp.beckmann)
     beck = sp.beckmann
-    d_g = cggx.D_dr(h, a[0], a[1], a[2])
-    d_b = cggx.D_beckmann_dr(h, a[0], a[1], a[2]) if not (isinstance(beck, bool)
-                                                           and not beck) else d_g
-    d = d_b if isinstance(beck, bool) and beck else dr.select(beck, d_b, d_g)
     # D of the filtered A (Tokuyoshi, eq. A.1-3 / Beckmann), G1 G1 of the material's roughness
+    d = cggx.D_lobe_dr(h, a[0], a[1], a[2], beck)
     if am is not None:
-        def g1(v):
-            gg = cggx.G1_dr(v, *am)
-            if isinstance(beck, bool):
-                return cggx.G1_beckmann_dr(v, *am) if beck else gg
-            return dr.select(beck, cggx.G1_beckmann_dr(v, *am), gg)
-
-        g = g1(wo) * g1(wi)
+        g = cggx.G1_lobe_dr(wo, *am, beck) * cggx.G1_lobe_dr(wi, *am, beck)
     else:
         g = mf.G1(wo.z, sp.alpha, beck) * mf.G1(wi.z, sp.alpha, beck)
     val = d * g / (4.0 * dr.maximum(wo.z * wi.z, 1e-30))

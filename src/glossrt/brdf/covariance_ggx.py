@@ -78,6 +78,7 @@ import mitsuba as mi  # noqa: E402
 
 from ..errors import GlossrtError  # noqa: E402
 from . import ggx  # noqa: E402
+from .microfacet import by_distribution  # noqa: E402
 
 __all__ = [
     "D",
@@ -95,6 +96,8 @@ __all__ = [
     "sample_vndf_dr",
     "D_beckmann_dr",
     "G1_beckmann_dr",
+    "D_lobe_dr",
+    "G1_lobe_dr",
     "brdf_separable_dr",
 ]
 
@@ -501,6 +504,20 @@ def G1_beckmann_dr(w: mi.Vector3f, a11: Any, a12: Any, a22: Any) -> Any:
     return dr.select(z > 0.0, g, 0.0)
 
 
+def D_lobe_dr(m: mi.Vector3f, a11: Any, a12: Any, a22: Any, beckmann: Any = False) -> Any:
+    """The NDF with roughness matrix ``A`` of the lane's distribution: :func:`D_dr` (GGX) or
+    :func:`D_beckmann_dr` where ``beckmann`` (a per-lane mask or a bool)."""
+    return by_distribution(beckmann, lambda: D_beckmann_dr(m, a11, a12, a22),
+                 lambda: D_dr(m, a11, a12, a22))
+
+
+def G1_lobe_dr(w: mi.Vector3f, a11: Any, a12: Any, a22: Any, beckmann: Any = False) -> Any:
+    """Smith masking with roughness matrix ``A`` of the lane's distribution: :func:`G1_dr`
+    (GGX) or :func:`G1_beckmann_dr` where ``beckmann`` (a per-lane mask or a bool)."""
+    return by_distribution(beckmann, lambda: G1_beckmann_dr(w, a11, a12, a22),
+                 lambda: G1_dr(w, a11, a12, a22))
+
+
 def brdf_separable_dr(wo: mi.Vector3f, wi: mi.Vector3f, a11: Any, a12: Any, a22: Any,
                       beckmann: Any = False) -> Any:
     """``D(h; A) G1(wo; A) G1(wi; A) / (4 wo.z wi.z)`` (no Fresnel, no cosine): the
@@ -511,17 +528,7 @@ def brdf_separable_dr(wo: mi.Vector3f, wi: mi.Vector3f, a11: Any, a12: Any, a22:
     h = wo + wi
     hn2 = dr.squared_norm(h)
     h = h * dr.rsqrt(dr.maximum(hn2, 1e-30))
-
-    def ggx_():
-        return D_dr(h, a11, a12, a22) * G1_dr(wo, a11, a12, a22) * G1_dr(wi, a11, a12, a22)
-
-    def beck_():
-        return (D_beckmann_dr(h, a11, a12, a22) * G1_beckmann_dr(wo, a11, a12, a22)
-                * G1_beckmann_dr(wi, a11, a12, a22))
-
-    if isinstance(beckmann, bool):
-        val = beck_() if beckmann else ggx_()
-    else:
-        val = dr.select(beckmann, beck_(), ggx_())
+    val = (D_lobe_dr(h, a11, a12, a22, beckmann) * G1_lobe_dr(wo, a11, a12, a22, beckmann)
+           * G1_lobe_dr(wi, a11, a12, a22, beckmann))
     ok = (wo.z > 0.0) & (wi.z > 0.0) & (hn2 > 0.0)
     return dr.select(ok, val / (4.0 * dr.maximum(wo.z * wi.z, 1e-30)), 0.0)

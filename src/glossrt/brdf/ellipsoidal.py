@@ -87,6 +87,7 @@ from ..errors import GlossrtError  # noqa: E402
 
 __all__ = [
     "ALPHA_MAX",
+    "BECKMANN_MEDIAN",
     "DEFAULT_RANDOM_SAMPLES",
     "DEFAULT_TEXTURE_SIZE",
     "REGULAR_SAMPLE_COUNT",
@@ -117,6 +118,8 @@ DEFAULT_TEXTURE_SIZE = 64
 #: GGX roughness whose median microfacet angle (30 degrees) equals that of ``R = 1``, the
 #: roughest ellipsoidal distribution: :func:`ratio_from_alpha` maps larger alphas to 1.
 ALPHA_MAX = 1.0 / math.sqrt(3.0)
+#: Beckmann's median ``tan theta_m`` per unit alpha, ``sqrt(ln 2)`` (:func:`median_alpha`).
+BECKMANN_MEDIAN = math.sqrt(math.log(2.0))
 
 _K_SERIES = 1e-3  # below this k the R -> 1 series replace the closed forms (error O(k^4))
 
@@ -278,7 +281,7 @@ def median_alpha(alpha: Any, distribution: str = "ggx") -> np.ndarray:
     ``tan theta_m = alpha sqrt(ln 2)``, GGX's median is ``tan theta_m = alpha``)."""
     a = _np_array("alpha", alpha)
     if distribution == "beckmann":
-        return a * math.sqrt(math.log(2.0))
+        return a * BECKMANN_MEDIAN
     if distribution != "ggx":
         raise GlossrtError(f"distribution must be 'ggx' or 'beckmann', got {distribution!r}")
     return a

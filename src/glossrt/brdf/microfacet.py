@@ -25,6 +25,7 @@ The specular lobe with Fresnel 1 is ``f cos(theta_i) = D(h) G1(wo) G1(wi) / (4 c
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from .. import backend
@@ -33,8 +34,8 @@ backend.ensure()
 
 import drjit as dr  # noqa: E402
 
-__all__ = ["GGX", "BECKMANN", "NAMES", "code", "D", "G1", "specular_cos", "sample_h", "pdf_h",
-           "aniso_specular_cos", "sample_h_aniso", "pdf_h_aniso"]
+__all__ = ["GGX", "BECKMANN", "NAMES", "code", "by_distribution", "D", "G1", "specular_cos",
+           "sample_h", "pdf_h", "aniso_specular_cos", "sample_h_aniso", "pdf_h_aniso"]
 
 #: ``distribution`` channel values
 GGX = 0
@@ -48,9 +49,10 @@ def code(name: str) -> int:
     return NAMES.index(name.lower())
 
 
-def _pick(beckmann: Any, fb, fg):
-    """``fb()`` where ``beckmann``, else ``fg()``: one branch for a Python bool, a per-lane
-    select of both for a Dr.Jit mask."""
+def by_distribution(beckmann: Any, fb: Callable[[], Any], fg: Callable[[], Any]) -> Any:
+    """``fb()`` (Beckmann's value) where ``beckmann``, else ``fg()`` (GGX's): one branch for a
+    Python bool (one distribution, traced once), a per-lane select of both for a Dr.Jit
+    mask."""
     if isinstance(beckmann, bool):
         return fb() if beckmann else fg()
     return dr.select(beckmann, fb(), fg())
@@ -76,7 +78,7 @@ def D(cos_h: Any, alpha: Any, beckmann: Any = False, sin2_h: Any = None) -> Any:
         d = s2 + c2 * a2
         return a2 / (dr.pi * d * d)
 
-    return dr.select(cos_h > 0.0, _pick(beckmann, beck, ggx), 0.0)
+    return dr.select(cos_h > 0.0, by_distribution(beckmann, beck, ggx), 0.0)
 
 
 def G1(cos_theta: Any, alpha: Any, beckmann: Any = False) -> Any:
@@ -96,7 +98,7 @@ def G1(cos_theta: Any, alpha: Any, beckmann: Any = False) -> Any:
         # Walter et al. 2007, eq. 34 as 2c / (c + sqrt(c^2 + alpha^2 s^2)): finite at c = 0
         return 2.0 * c / (c + dr.sqrt(c * c + alpha * alpha * s2))
 
-    return dr.select(c > 0.0, _pick(beckmann, beck, ggx), 0.0)
+    return dr.select(c > 0.0, by_distribution(beckmann, beck, ggx), 0.0)
 
 
 def specular_cos(cos_o: Any, cos_i: Any, cos_h: Any, alpha: Any, beckmann: Any = False,
@@ -145,29 +147,12 @@ def pdf_h(wo_z: Any, wo_h: Any, h_z: Any, alpha: Any, beckmann: Any = False,
     def ggx():
         return G1(wo_z, alpha, False) * dr.maximum(wo_h, 0.0) * d / dr.maximum(wo_z, 1e-8)
 
-    return _pick(beckmann, beck, ggx)
+    return by_distribution(beckmann, beck, ggx)
 
 
 # ----------------------------------------------------------------------------------------------
 # Anisotropic lobes (Mitsuba's alpha_u, alpha_v along its shading frame's s and t)
 # ----------------------------------------------------------------------------------------------
-
-
-def _aniso_terms(beckmann):
-    from . import covariance_ggx as cg
-
-    def d(h, a11, a22):
-        if isinstance(beckmann, bool):
-            return (cg.D_beckmann_dr if beckmann else cg.D_dr)(h, a11, 0.0, a22)
-        return dr.select(beckmann, cg.D_beckmann_dr(h, a11, 0.0, a22), cg.D_dr(h, a11, 0.0, a22))
-
-    def g1(v, a11, a22):
-        if isinstance(beckmann, bool):
-            return (cg.G1_beckmann_dr if beckmann else cg.G1_dr)(v, a11, 0.0, a22)
-        return dr.select(beckmann, cg.G1_beckmann_dr(v, a11, 0.0, a22),
-                         cg.G1_dr(v, a11, 0.0, a22))
-
-    return d, g1
 
 
 def aniso_specular_cos(wo, wi, alpha_u, alpha_v, beckmann: Any = False) -> Any:
@@ -176,11 +161,13 @@ def aniso_specular_cos(wo, wi, alpha_u, alpha_v, beckmann: Any = False) -> Any:
     G1(wi) / (4 cos_o)`` with GGX's or Beckmann's ``D`` and Smith ``G1`` for the roughness
     matrix ``diag(alpha_u^2, alpha_v^2)`` (Walter et al. 2007; Heitz 2014, sec. 5:
     :mod:`glossrt.brdf.covariance_ggx`'s forms). Isotropic when ``alpha_u = alpha_v``."""
-    d, g1 = _aniso_terms(beckmann)
+    from .covariance_ggx import D_lobe_dr, G1_lobe_dr
+
     a11, a22 = alpha_u * alpha_u, alpha_v * alpha_v
     h = wo + wi
     h = h * dr.rsqrt(dr.maximum(dr.squared_norm(h), 1e-30))
-    val = d(h, a11, a22) * g1(wo, a11, a22) * g1(wi, a11, a22) / (4.0 * dr.maximum(wo.z, 1e-8))
+    val = (D_lobe_dr(h, a11, 0.0, a22, beckmann) * G1_lobe_dr(wo, a11, 0.0, a22, beckmann)
+           * G1_lobe_dr(wi, a11, 0.0, a22, beckmann) / (4.0 * dr.maximum(wo.z, 1e-8)))
     return dr.select((wo.z > 0.0) & (wi.z > 0.0), val, 0.0)
 
 
@@ -193,30 +180,37 @@ def sample_h_aniso(wo, alpha_u, alpha_v, u1, u2, beckmann: Any = False):
     from .ggx import sample_vndf
 
     vt = type(wo)
-    # GGX: stretch the view by (alpha_u, alpha_v), sample the alpha = 1 hemisphere, unstretch
-    gx, gy, gz = sample_vndf(wo.x * alpha_u, wo.y * alpha_v, wo.z, 1.0, u1, u2)
-    g = dr.normalize(vt(gx * alpha_u, gy * alpha_v, dr.maximum(gz, 0.0)))
-    # Beckmann
-    phi = dr.atan2(alpha_v * dr.sin(2.0 * dr.pi * u2), alpha_u * dr.cos(2.0 * dr.pi * u2))
-    sp_, cp = dr.sincos(phi)
-    inv_a2 = cp * cp / (alpha_u * alpha_u) + sp_ * sp_ / (alpha_v * alpha_v)
-    t2 = -dr.log(dr.maximum(1.0 - u1, 1e-30)) / inv_a2
-    cz = dr.rsqrt(1.0 + t2)
-    sz = dr.sqrt(dr.maximum(1.0 - cz * cz, 0.0))
-    b = vt(sz * cp, sz * sp_, cz)
-    if isinstance(beckmann, bool):
-        return b if beckmann else g
-    return dr.select(beckmann, b, g)
+
+    def ggx():
+        # stretch the view by (alpha_u, alpha_v), sample the alpha = 1 hemisphere, unstretch
+        gx, gy, gz = sample_vndf(wo.x * alpha_u, wo.y * alpha_v, wo.z, 1.0, u1, u2)
+        return dr.normalize(vt(gx * alpha_u, gy * alpha_v, dr.maximum(gz, 0.0)))
+
+    def beck():
+        phi = dr.atan2(alpha_v * dr.sin(2.0 * dr.pi * u2), alpha_u * dr.cos(2.0 * dr.pi * u2))
+        sp_, cp = dr.sincos(phi)
+        inv_a2 = cp * cp / (alpha_u * alpha_u) + sp_ * sp_ / (alpha_v * alpha_v)
+        t2 = -dr.log(dr.maximum(1.0 - u1, 1e-30)) / inv_a2
+        cz = dr.rsqrt(1.0 + t2)
+        sz = dr.sqrt(dr.maximum(1.0 - cz * cz, 0.0))
+        return vt(sz * cp, sz * sp_, cz)
+
+    return by_distribution(beckmann, beck, ggx)
 
 
 def pdf_h_aniso(wo, h, alpha_u, alpha_v, beckmann: Any = False) -> Any:
     """Density (per steradian of ``h``) of :func:`sample_h_aniso`: GGX visible normals
     ``G1(wo) max(0, wo.h) D(h) / cos_o``, Beckmann ``D(h) cos(theta_h)``."""
-    d, g1 = _aniso_terms(beckmann)
+    from .covariance_ggx import D_lobe_dr, G1_dr
+
     a11, a22 = alpha_u * alpha_u, alpha_v * alpha_v
-    dh = d(h, a11, a22)
-    beck = dh * dr.maximum(h.z, 0.0)
-    ggx = g1(wo, a11, a22) * dr.maximum(dr.dot(wo, h), 0.0) * dh / dr.maximum(wo.z, 1e-8)
-    if isinstance(beckmann, bool):
-        return beck if beckmann else ggx
-    return dr.select(beckmann, beck, ggx)
+    dh = D_lobe_dr(h, a11, 0.0, a22, beckmann)
+
+    def beck():
+        return dh * dr.maximum(h.z, 0.0)
+
+    def ggx():
+        return G1_dr(wo, a11, 0.0, a22) * dr.maximum(dr.dot(wo, h), 0.0) * dh / \
+            dr.maximum(wo.z, 1e-8)
+
+    return by_distribution(beckmann, beck, ggx)

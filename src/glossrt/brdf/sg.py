@@ -36,6 +36,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402, F401  (variant set up by backend.ensure)
 
 from ..jit import pow_int  # noqa: E402
+from .microfacet import by_distribution  # noqa: E402
 
 __all__ = [
     "ALPHA_MIN",
@@ -212,10 +213,7 @@ def lobe_to_sg(n, wo, alpha, beckmann=False, ndf_sharpness=None):
     Frame's ``distribution`` channel) or a bool; ``ndf_sharpness``: one value for every
     pixel instead (experiments)."""
     if ndf_sharpness is None:
-        if isinstance(beckmann, bool):
-            ndf_sharpness = WANG_SG if beckmann else GGX_SG_PEAK
-        else:
-            ndf_sharpness = dr.select(beckmann, WANG_SG, GGX_SG_PEAK)
+        ndf_sharpness = by_distribution(beckmann, lambda: WANG_SG, lambda: GGX_SG_PEAK)
     return ggx_lobe_to_sg(n, wo, alpha, ndf_sharpness)
 
 

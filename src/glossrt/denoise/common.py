@@ -167,7 +167,9 @@ def beckmann_mask(frame) -> mi.Bool | bool:
     """Where the frame's ``distribution`` channel says Beckmann (``False`` without it)."""
     if "distribution" not in frame.names:
         return False
-    return split(frame["distribution"])[0] == 1.0
+    from ..brdf.microfacet import BECKMANN
+
+    return split(frame["distribution"])[0] == float(BECKMANN)
 
 
 def gbuffer(frame, grid: Grid, with_position: bool = False,

@@ -31,8 +31,6 @@ mirror direction misses every light's sphere enlarged by the lobe's spread.
 
 from __future__ import annotations
 
-import math
-
 from .. import backend
 
 backend.ensure()
@@ -176,12 +174,9 @@ def _ratio_dr(alpha: mi.Float, beckmann=False) -> mi.Float:
     """Per lane :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha` (its closed form
     ``R = sqrt(1 + alpha^2) / alpha - 1`` of the median-matched GGX alpha, ``alpha sqrt(ln 2)``
     on Beckmann lanes, clamped to ``(0, ALPHA_MAX]``, so R >= 1)."""
-    from ..brdf.ellipsoidal import ALPHA_MAX
+    from ..brdf.ellipsoidal import ALPHA_MAX, BECKMANN_MEDIAN
 
-    if isinstance(beckmann, bool):
-        alpha = alpha * math.sqrt(math.log(2.0)) if beckmann else alpha
-    else:
-        alpha = dr.select(beckmann, alpha * math.sqrt(math.log(2.0)), alpha)
+    alpha = mf.by_distribution(beckmann, lambda: alpha * BECKMANN_MEDIAN, lambda: alpha)
     a = dr.clip(alpha, 1e-6, ALPHA_MAX)
     return dr.maximum(dr.sqrt(1.0 + a * a) / a - 1.0, 1.0)
 
@@ -328,8 +323,7 @@ class HighlightRenderer:
         sp = ShadingPoints.of(frame, f0)
         alpha = frame.numpy("roughness")[..., 0].ravel()
         hit = np.array(sp.hit)
-        beck = (frame.numpy("distribution")[..., 0].ravel() == 1.0
-                if "distribution" in frame.names else np.zeros_like(hit))
+        beck = np.broadcast_to(np.array(sp.beckmann), hit.shape)
         mesh_id = mi.UInt32(split(frame["mesh_id"])[0])
         centres, radii = light_spheres(lights)
         total = dr.zeros(mi.Color3f, w * h)

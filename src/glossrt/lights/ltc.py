@@ -160,7 +160,7 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
     cos_o = dr.clip(dr.dot(nd, wod), 0.0, 1.0)
     coeffs, norm, _ = (table or _table()).lookup(
         mi.Float(a.astype(np.float32)), cos_o,
-        mi.Bool(True) if distribution == "beckmann" else None)
+        _mask(distribution == "beckmann"))
     i_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
     out = np.array(norm * i_s, dtype=np.float64)
     out[np.array(dr.dot(nd, wod)) <= 0] = 0.0  # view below the surface: no reflection

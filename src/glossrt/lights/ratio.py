@@ -77,7 +77,7 @@ from ..errors import GlossrtError  # noqa: E402
 from ..frame import RADIANCE, Frame  # noqa: E402
 from .ltc import shade_frame  # noqa: E402
 from .mc import _Light, _spec_weight, _visible, sample_batches, strategies  # noqa: E402
-from .shading import ShadingPoints  # noqa: E402
+from .shading import MATERIAL_ROW, ShadingPoints  # noqa: E402
 
 __all__ = ["COMPONENTS", "RatioImages", "estimate_pair", "filtered_ratio", "render_ratio",
            "stochastic_pair"]
@@ -142,8 +142,6 @@ def _check_f0(frame, f0):
         arr = np.asarray(f0, np.float32)
     except (TypeError, ValueError) as e:
         raise GlossrtError(f"f0 must be a numeric (H, W, 3) array: {e}") from e
-    from .shading import MATERIAL_ROW
-
     wants = [(frame.height, frame.width, c) for c in (3, MATERIAL_ROW)]
     if arr.shape not in wants:
         raise GlossrtError(f"f0 has shape {arr.shape} but the frame needs {wants[0]} "

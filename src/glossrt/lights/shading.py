@@ -102,19 +102,15 @@ def _diffuse_scale_cached(bsdf) -> np.ndarray:
 def _material_rows(setup, frame,
                    with_scale: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Per mesh id (0 = background): the Fresnel rows ``(n, ROW)`` and (``with_scale``) the
-    diffuse-scale tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials, and the
-    frame's mesh ids (H, W), checked against them."""
-    from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf
+    diffuse-scale tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials
+    (:func:`mesh_material_tables`), and the frame's mesh ids (H, W), checked against them."""
+    from ..render.materials import DIFFUSE_SCALE_NODES
     from ..scenes import stable_shapes
 
-    shapes = stable_shapes(setup.scene)
-    rows = np.zeros((len(shapes) + 1, ROW))
-    scales = np.ones((len(shapes) + 1, DIFFUSE_SCALE_NODES, 3)) if with_scale else None
-    for i, s in enumerate(shapes):
-        bsdf = s.bsdf()
-        rows[i + 1] = describe_bsdf(bsdf).fresnel.row()
-        if with_scale:
-            scales[i + 1] = _diffuse_scale_cached(bsdf)
+    shape_rows, shape_scales = mesh_material_tables(stable_shapes(setup.scene), with_scale)
+    rows = np.concatenate([np.zeros((1, ROW)), shape_rows])
+    scales = (None if shape_scales is None else
+              np.concatenate([np.ones((1, DIFFUSE_SCALE_NODES, 3)), shape_scales]))
     ids = frame.numpy("mesh_id")[..., 0].astype(np.int64)
     if ids.min() < 0 or ids.max() >= len(rows):
         raise FrameError(f"{frame.where}: mesh_id out of range for scene {setup.name!r} "
@@ -164,13 +160,19 @@ def material_rows_at(rows: np.ndarray, scales: np.ndarray, ids: np.ndarray, posi
     return out
 
 
-def mesh_material_tables(meshes) -> tuple[np.ndarray, np.ndarray]:
-    """Fresnel rows (n, ROW) and diffuse-scale tables (n, DIFFUSE_SCALE_NODES, 3) of a list
-    of shapes' BSDFs (:func:`material_rows_at`'s ``rows`` and ``scales``)."""
-    from ..render.materials import describe_bsdf
+def mesh_material_tables(meshes, with_scale: bool = True
+                         ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Fresnel rows (n, ROW) and (``with_scale``) diffuse-scale tables
+    (n, DIFFUSE_SCALE_NODES, 3) of a list of shapes' BSDFs (:func:`material_rows_at`'s
+    ``rows`` and ``scales``)."""
+    from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf
 
-    rows = np.stack([describe_bsdf(m.bsdf()).fresnel.row() for m in meshes])
-    scales = np.stack([_diffuse_scale_cached(m.bsdf()) for m in meshes])
+    rows = np.array([describe_bsdf(m.bsdf()).fresnel.row() for m in meshes],
+                    np.float64).reshape(len(meshes), ROW)
+    if not with_scale:
+        return rows, None
+    scales = np.array([_diffuse_scale_cached(m.bsdf()) for m in meshes],
+                      np.float64).reshape(len(meshes), DIFFUSE_SCALE_NODES, 3)
     return rows, scales
 
 
@@ -179,13 +181,9 @@ def points_with_materials(p, n, wo, alpha, albedo, hit, beckmann, mat: np.ndarra
     """ShadingPoints of device fields and a (N, 16) :func:`material_rows_at` array: exact
     Fresnel lanes, F0 and the diffuse reflectance ``albedo`` scaled as Mitsuba's coated
     diffuse lobes."""
-    from ..jit import owned_float
-
     f = [mi.Float(owned_float(np.ascontiguousarray(mat[:, c]))) for c in range(MATERIAL_ROW)]
-    fres = FresnelLanes(mi.UInt32(f[0]), mi.Color3f(*f[1:4]), mi.Color3f(*f[4:7]),
-                        mi.Color3f(*f[7:10]))
-    return ShadingPoints(p, n, wo, alpha, albedo * mi.Color3f(*f[ROW:]),
-                         mi.Color3f(*f[F0_COLUMNS]), hit, beckmann, fres)
+    fres, f0, scale = FresnelLanes.of_columns(f)
+    return ShadingPoints(p, n, wo, alpha, albedo * scale, f0, hit, beckmann, fres)
 
 
 def f0_image(setup, frame) -> np.ndarray:
@@ -208,6 +206,14 @@ class FresnelLanes:
     def take(self, index: mi.UInt32) -> FresnelLanes:
         return FresnelLanes(*(dr.gather(type(v), v, index) for v in (
             self.kind, self.eta, self.k, self.scale)))
+
+    @staticmethod
+    def of_columns(f: list) -> tuple[FresnelLanes, mi.Color3f, mi.Color3f]:
+        """The lanes' Fresnel terms, F0 and diffuse scale from the 16 per-lane columns of
+        :func:`fresnel_image` rows."""
+        return (FresnelLanes(mi.UInt32(f[0]), mi.Color3f(*f[1:4]), mi.Color3f(*f[4:7]),
+                             mi.Color3f(*f[7:10])),
+                mi.Color3f(*f[F0_COLUMNS]), mi.Color3f(*f[ROW:]))
 
 
 @dataclass
@@ -266,10 +272,8 @@ class ShadingPoints:
         albedo = mi.Color3f(*split(ch["albedo_diffuse"]))
         f0_rgb = mi.Color3f(*f) if len(f) == 3 else None
         if len(f) == MATERIAL_ROW:
-            fresnel = FresnelLanes(mi.UInt32(f[0]), mi.Color3f(*f[1:4]), mi.Color3f(*f[4:7]),
-                                   mi.Color3f(*f[7:10]))
-            albedo = albedo * mi.Color3f(*f[ROW:])  # Mitsuba's coated diffuse lobe
-            f0_rgb = mi.Color3f(*f[F0_COLUMNS])
+            fresnel, f0_rgb, scale = FresnelLanes.of_columns(f)
+            albedo = albedo * scale  # Mitsuba's coated diffuse lobe
         return ShadingPoints(p, n, wo, alpha, albedo, f0_rgb, hit & (dr.dot(n, wo) > 0),
                              beckmann, fresnel, tangent, alpha_uv)
 
@@ -357,14 +361,6 @@ def f0_tensor(frame, f0: np.ndarray | None) -> mi.TensorXf:
                          f"or ({h}, {w}, {MATERIAL_ROW}) (fresnel_image)")
     # in Dr.Jit's own memory: an input of the frozen LTC shading (see jit.owned_float)
     return mi.TensorXf(owned_float(f0), (h, w, c))
-
-
-def smith_lambda(cos_theta, alpha):
-    """GGX Smith ``Lambda(v) = (-1 + sqrt(1 + alpha^2 tan^2 theta)) / 2`` (Heitz 2014, eq. 72),
-    written without the tangent (finite at grazing: ``Lambda -> inf`` as ``cos -> 0``);
-    ``G1 = 1 / (1 + Lambda)``."""
-    c2 = dr.maximum(dr.square(cos_theta), 1e-12)
-    return 0.5 * (dr.sqrt(1.0 + dr.square(alpha) * (1.0 - c2) / c2) - 1.0)
 
 
 def brdf_cos(sp: ShadingPoints, wi: mi.Vector3f) -> tuple[mi.Color3f, mi.Color3f]:

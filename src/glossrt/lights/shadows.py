@@ -29,6 +29,7 @@ from ..denoise.common import check_frame, merge, split  # noqa: E402
 from ..errors import FrameError, GlossrtError  # noqa: E402
 from ..jit import opaque, owned  # noqa: E402
 from .shading import (  # noqa: E402
+    MATERIAL_ROW,
     ShadingPoints,
     _take,
     material_rows_at,
@@ -316,8 +317,6 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     # (vertex indices, barycentrics, valid) of the triangle each pixel sees
     tri = _pixel_triangles(scene, frame, meshes, offsets[:-1])
     if mode == "vertex":
-        from .shading import MATERIAL_ROW
-
         exact = f0 is not None and np.asarray(f0).shape[-1] == MATERIAL_ROW
         img = _shade_vertex_mode(scene, frame, dev, lights, tri, textures, traversal, frozen,
                                  exact)
