@@ -3,15 +3,17 @@
 #
 # Default: the suite on two pytest-xdist worker processes (fewer on a 1-core machine), each
 # test file on one worker (`--dist loadfile`: a file's module fixtures are built once); a test
-# whose worker crashes is run once more on a fresh worker (tests/conftest.py,
-# pytest_handlecrashitem). A cold run is bound by Dr.Jit's single-threaded kernel compilation,
-# so two workers nearly halve it: on the 2-core VM with an empty HOME, `bash .ci/run` took
+# whose worker crashes, or hangs past pytest-timeout's limit (pyproject.toml), is run once
+# more on a fresh worker (tests/crash_rerun.py, which also repairs pytest-xdist 3.8.0's
+# loadfile scheduler: after a crash it could leave the run hanging with every worker idle).
+# A cold run is bound by Dr.Jit's single-threaded kernel compilation, so two workers nearly
+# halve it: on the 2-core VM with an empty HOME, `bash .ci/run` took
 # 5m41-6m10 in all with 2 workers (two runs) against 8m08 in one process (2026-11-23).
 #
 # GLOSSRT_TEST_WORKERS=1 (or pytest-xdist missing): one pytest process. If it is killed by a
 # signal (exit status >= 128, e.g. 139 for SIGSEGV), the test file it was in and every file
-# after it are run once more, loudly. A failed test (before or after a crash) or a second crash
-# fails the run. tests/conftest.py writes the progress file. The crashes once seen (Renderer
+# after it are run once more, loudly. A failed test (before or after a crash), a second crash
+# or a hung test (pytest-timeout ends the process with status 1) fails the run. tests/conftest.py writes the progress file. The crashes once seen (Renderer
 # traces) came from the renderer's frozen trace being shared by all scenes (fixed 2026-11-23:
 # one per Renderer), most likely as did the one 2-worker failure never explained (NaN normals
 # in test_shadows, before that fix); the reruns stay as a safety net. GLOSSRT_TEST_WORKERS is capped at 4.

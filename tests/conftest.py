@@ -1,7 +1,6 @@
 """Test set-up: select glossrt's backend once (CPU unless GLOSSRT_DEVICE says otherwise)."""
 
 import os
-import sys
 
 import pytest
 
@@ -39,27 +38,10 @@ def pytest_runtest_logreport(report):
             f.write("".join(line + "\n" for line in lines))
 
 
-#: tests whose pytest-xdist worker crashed once (see pytest_handlecrashitem)
-_CRASHED: set[str] = set()
-
-
-@pytest.hookimpl(optionalhook=True)
-def pytest_handlecrashitem(crashitem, report, sched):
-    """pytest-xdist (``make test``'s default, two workers): a test whose worker process
-    died is run once more on a fresh worker, loudly; a second crash of the same test fails
-    it (the safety net of scripts/run-tests.sh, per test)."""
-    if crashitem in _CRASHED:
-        return
-    _CRASHED.add(crashitem)
-    sys.stderr.write(f"\n!! {report.longrepr}; running it once more\n")
-    try:
-        sched.mark_test_pending(crashitem)
-    except NotImplementedError:
-        pass  # --dist loadfile puts the crashed file's unfinished tests back in the queue itself
-    report.outcome = "rerun"
-
-
-def pytest_report_teststatus(report, config):
-    if report.outcome == "rerun":
-        return "rerun", "R", "RERUN"
-    return None
+# make test's crash handling under pytest-xdist (a plugin module of its own, so that
+# tests/test_harness.py can load it into a scratch run: ``-p crash_rerun``)
+from crash_rerun import (  # noqa: E402, F401
+    pytest_handlecrashitem,
+    pytest_report_teststatus,
+    pytest_xdist_make_scheduler,
+)
