@@ -119,14 +119,16 @@ def test_exr_readable_by_plain_bitmap(tmp_path: Path):
     bmp = mi.Bitmap(str(path))
     expected = {f"{n}.{c}" for n, comps in CHANNELS.items() for c in comps}
     expected |= {f"{n}.{c}" for n, k in EXTRAS.items() for c in component_names(n, k)}
+    expected |= {"R", "G", "B"}  # the root layer generic viewers show: a copy of color
     assert {fld.name for fld in bmp.struct_()} == expected
     assert "depth.Z" in expected and "roughness.Y" in expected and "color.R" in expected
     assert HEADER_ATTRIBUTE in bmp.metadata()
     # a standard OpenEXR string attribute: name, NUL, type name, NUL, size, JSON text
     assert HEADER_ATTRIBUTE.encode() + b"\0string\0" in path.read_bytes()[:20000]
     layers = dict(bmp.split())
-    assert set(layers) == set(CHANNELS) | set(EXTRAS)
+    assert set(layers) == set(CHANNELS) | set(EXTRAS) | {"<root>"}
     np.testing.assert_array_equal(np.array(layers["color"]), f.numpy("color"))
+    np.testing.assert_array_equal(np.array(layers["<root>"]), f.numpy("color"))
     np.testing.assert_array_equal(np.array(layers["normal"]), f.numpy("normal"))
 
 
@@ -304,3 +306,174 @@ def test_nonfinite_counts():
     f["depth"] = d
     counts = f.nonfinite_counts()
     assert counts["color"] == 2 and counts["depth"] == 1
+
+
+# -- I/O without a JIT backend, the viewers' root layer, multi-part files, odd paths -----------
+
+_NO_JIT = r"""
+import sys
+
+
+class _NoJit:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("mitsuba", "drjit"):
+            raise ImportError(f"{name} is blocked in this test")
+        return None
+
+
+sys.meta_path.insert(0, _NoJit())
+import numpy as np
+from glossrt.frame import Frame
+
+f = Frame.load(sys.argv[1], require="color")
+np.savez(sys.argv[2], **{n: f.numpy(n) for n in f.names})
+f.save(sys.argv[3])
+assert "mitsuba" not in sys.modules and "drjit" not in sys.modules
+print("names", ",".join(f.names), f.index)
+"""
+
+
+def test_load_and_save_without_mitsuba_or_drjit(tmp_path: Path):
+    import subprocess
+    import sys
+
+    f = make_frame()
+    src = f.save(tmp_path / "in.exr")
+    script = tmp_path / "nojit.py"
+    script.write_text(_NO_JIT)
+    env = {k: v for k, v in os.environ.items() if k != "DRJIT_LIBLLVM_PATH"}
+    r = subprocess.run(
+        [sys.executable, str(script), str(src), str(tmp_path / "ch.npz"), str(tmp_path / "o.exr")],
+        capture_output=True, text=True, env=env, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert f"names {','.join(f.names)} 3" in r.stdout
+    with np.load(tmp_path / "ch.npz") as z:
+        for name in f.names:
+            np.testing.assert_array_equal(bits(z[name]), bits(f.numpy(name)), err_msg=name)
+    g = Frame.load(tmp_path / "o.exr")  # written there without a backend: still bit-exact
+    assert g.names == f.names and g.camera == f.camera and g.meta == Frame.load(src).meta
+    for name in f.names:
+        np.testing.assert_array_equal(bits(g.numpy(name)), bits(f.numpy(name)), err_msg=name)
+
+
+def test_root_rgb_layer_equals_color_for_viewers(tmp_path: Path):
+    import OpenEXR  # an independent reader
+
+    f = make_frame()
+    path = f.save(tmp_path / "f.exr")
+    exr = OpenEXR.File(str(path), separate_channels=True)
+    header = exr.parts[0].header
+    chans = {n: np.array(c.pixels) for n, c in exr.parts[0].channels.items()}
+    assert {"R", "G", "B"} <= set(chans)
+    color = f.numpy("color")
+    for k, c in enumerate("RGB"):
+        assert chans[c].dtype == np.float32
+        np.testing.assert_array_equal(bits(chans[c]), bits(color[..., k]), err_msg=c)
+        np.testing.assert_array_equal(bits(chans[f"color.{c}"]), bits(color[..., k]))
+    assert HEADER_ATTRIBUTE in header
+    # loading does not show the viewers' copy as a second layer
+    assert Frame.load(path).names == f.names
+    # a frame without color has no root layer
+    p2 = Frame({"depth": np.ones((H, W), np.float32)}).save(tmp_path / "d.exr")
+    with OpenEXR.File(str(p2), separate_channels=True) as exr:
+        assert set(exr.channels()) == {"depth.Z"}
+
+
+def test_root_rgb_that_differs_from_color_is_kept_as_rgb(tmp_path: Path):
+    import OpenEXR
+
+    rng = np.random.default_rng(4)
+    planes = {n: rng.random((H, W)).astype(np.float32)
+              for n in ("R", "G", "B", "color.R", "color.G", "color.B")}  # fmt: skip
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, dict(planes)).write(
+        str(tmp_path / "x.exr"))
+    g = Frame.load(tmp_path / "x.exr")
+    assert set(g.names) == {"color", "rgb"}
+    np.testing.assert_array_equal(g.numpy("rgb")[..., 1], planes["G"])
+    np.testing.assert_array_equal(g.numpy("color")[..., 2], planes["color.B"])
+
+
+def _write_parts(path: Path, *parts: tuple[str, dict], header: dict | None = None) -> None:
+    """A multi-part EXR written by the openexr package (Part() consumes its dict: copies)."""
+    import OpenEXR
+
+    OpenEXR.File([OpenEXR.Part(dict(header or {}), dict(ch), name) for name, ch in parts]).write(
+        str(path))
+
+
+def test_multipart_exr_parts_are_all_read(tmp_path: Path):
+    rng = np.random.default_rng(2)
+
+    def plane():
+        return rng.standard_normal((H, W)).astype(np.float32)
+
+    beauty = {"R": plane(), "G": plane(), "B": plane()}
+    aux = {"depth.Z": plane(), "normal.X": plane(), "normal.Y": plane(), "normal.Z": plane()}
+    _write_parts(tmp_path / "two.exr", ("beauty", beauty), ("aux", aux))
+    g = Frame.load(tmp_path / "two.exr", require=("color", "depth", "normal"))
+    assert set(g.names) == {"color", "depth", "normal"}
+    np.testing.assert_array_equal(g.numpy("color"), np.stack([beauty[c] for c in "RGB"], -1))
+    np.testing.assert_array_equal(g.numpy("depth")[..., 0], aux["depth.Z"])
+    np.testing.assert_array_equal(g.numpy("normal")[..., 2], aux["normal.Z"])
+
+    # parts that share channel names: the part names prefix them
+    left, right = {"R": plane(), "G": plane(), "B": plane()}, {"R": plane(), "G": plane(),
+                                                               "B": plane()}
+    _write_parts(tmp_path / "stereo.exr", ("left", left), ("right", right))
+    s = Frame.load(tmp_path / "stereo.exr")
+    assert set(s.names) == {"left", "right"}
+    np.testing.assert_array_equal(s.numpy("right")[..., 0], right["R"])
+    np.testing.assert_array_equal(s.numpy("left")[..., 2], left["B"])
+
+    # parts of different sizes are refused by name
+    small = {"Z": np.zeros((H - 1, W), np.float32)}
+    display = {"displayWindow": (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))}
+    _write_parts(tmp_path / "sizes.exr", ("beauty", beauty), ("z", small), header=display)
+    with pytest.raises(FrameError, match=r"sizes\.exr: part 1"):
+        Frame.load(tmp_path / "sizes.exr")
+
+
+def test_paths_with_non_utf8_bytes(tmp_path: Path):
+    folder = tmp_path / os.fsdecode(b"dir\xff")
+    folder.mkdir()
+    path = folder / os.fsdecode(b"fr\xfe.exr")
+    f = make_frame(extras=False)
+    assert f.save(path) == path
+    assert os.listdir(os.fsencode(folder)) == [b"fr\xfe.exr"]
+    for p in (path, os.fsencode(path), str(path)):
+        g = Frame.load(p, require="color")
+        np.testing.assert_array_equal(bits(g.numpy("color")), bits(f.numpy("color")))
+    assert load_sequence(folder)[0].names == f.names
+    with pytest.raises(FrameError) as e:
+        Frame.load(folder / os.fsdecode(b"missing\xfd.exr"))
+    msg = str(e.value)
+    msg.encode("utf-8")  # printable: the odd byte is shown, not a lone surrogate
+    assert "missing\\xfd.exr" in msg
+    with pytest.raises(FrameError) as e:
+        f.save(folder / os.fsdecode(b"no\xfc") / "f.exr")
+    str(e.value).encode("utf-8")
+    assert "no\\xfc" in str(e.value)
+
+
+def test_require_takes_one_name_or_several(tmp_path: Path):
+    f = make_frame(extras=False)
+    path = f.save(tmp_path / "f.exr")
+    assert Frame.load(path, require="color").names == f.names
+    with pytest.raises(FrameError) as e:
+        Frame.load(path, require="denoised")
+    assert "lacks required channel(s) denoised " in str(e.value)  # not d, e, n, ...
+    assert len(load_sequence(tmp_path, require="motion")) == 1
+    (c,) = f.require("color")
+    (d,) = f.require(["depth"])
+    assert tuple(d.shape) == (H, W, 1) and tuple(c.shape) == (H, W, 3)
+    with pytest.raises(FrameError, match="must be str"):
+        Frame.load(path, require=[3])
+
+
+def test_openexr_is_a_declared_dependency():
+    import tomllib
+
+    pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+    deps = tomllib.loads(pyproject.read_text())["project"]["dependencies"]
+    assert any(d.lower().startswith("openexr") for d in deps), deps

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 
-class GlossrtError(Exception):
-    """Base class: a problem with the user's input or environment, with a message that names it."""
+class GlossrtError(ValueError):
+    """Base class: a problem with the user's input or environment, with a message that names it.
+
+    A ValueError, so code written against the plain ``ValueError`` some functions raised before
+    still catches it."""
 
 
 class BackendError(GlossrtError):

@@ -3,9 +3,11 @@
 A :class:`Frame` holds named channels (``H x W x C`` float32 :class:`mitsuba.TensorXf`), the
 :class:`Camera` it was rendered with, the previous frame's camera (for reprojection) and free
 JSON metadata. :meth:`Frame.save` writes one float32 OpenEXR file whose layers are the channels
-(``color.R``, ``normal.X``, ``depth.Z``, ...) and whose header carries the cameras and metadata as
-a JSON string attribute named ``glossrt``; :meth:`Frame.load` reads it back bit-exactly.
-The layout is documented in ``docs/FORMATS.md``.
+(``color.R``, ``normal.X``, ``depth.Z``, ...), plus a root ``R, G, B`` copy of ``color`` for generic
+viewers, and whose header carries the cameras and metadata as a JSON string attribute named
+``glossrt``; :meth:`Frame.load` reads it back bit-exactly. Both go through the ``openexr``
+package and NumPy, so frames load and save without a Dr.Jit backend. The layout is documented
+in ``docs/FORMATS.md``.
 
 >>> frame = Frame.load("out/frame_0000.exr", require=("color", "normal"))  # doctest: +SKIP
 >>> frame.numpy("color").shape                                              # doctest: +SKIP
@@ -18,8 +20,9 @@ import json
 import math
 import os
 import re
+import sys
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -235,7 +238,7 @@ class Camera:
         """
         p = np.asarray(points, dtype=np.float64)
         if p.shape[-1:] != (3,):
-            raise ValueError(f"points must have shape (..., 3), got {p.shape}")
+            raise FrameError(f"points must have shape (..., 3), got {p.shape}")
         inv = self.world_to_camera
         c = p @ inv[:3, :3].T + inv[:3, 3]
         x, y, z = c[..., 0], c[..., 1], c[..., 2]
@@ -263,7 +266,6 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"object of type {type(o).__name__} is not JSON serialisable")
 
 
-@dataclass(eq=False)
 class Frame:
     """One rendered frame: named channels plus the cameras and metadata needed to use them.
 
@@ -277,40 +279,74 @@ class Frame:
         index: frame number in its sequence.
         meta: free JSON-able metadata (scene, spp, seed, nan_count, ...).
         source: the file the frame was loaded from, if any (used in error messages).
+
+    Channels given as NumPy arrays (and every channel of a loaded frame) stay NumPy arrays
+    until a tensor is asked for (``frame[name]``, :meth:`require`, :attr:`channels`): only then
+    is the Dr.Jit backend chosen. :meth:`load`, :meth:`save`, :meth:`numpy`, :attr:`names`,
+    :attr:`size` and :meth:`nonfinite_counts` work without Mitsuba, Dr.Jit or libLLVM.
     """
 
-    channels: dict[str, mi.TensorXf] = field(default_factory=dict)
-    camera: Camera | None = None
-    prev_camera: Camera | None = None
-    index: int = 0
-    meta: dict[str, Any] = field(default_factory=dict)
-    source: str | None = None
-
-    def __post_init__(self) -> None:
-        given = dict(self.channels)
-        self.channels = {}
-        for name, value in given.items():
+    def __init__(
+        self,
+        channels: Mapping[str, Any] | None = None,
+        camera: Camera | None = None,
+        prev_camera: Camera | None = None,
+        index: int = 0,
+        meta: Mapping[str, Any] | None = None,
+        source: str | None = None,
+    ) -> None:
+        self.camera = camera
+        self.prev_camera = prev_camera
+        self.source = source
+        self._store: dict[str, Any] = {}
+        for name, value in dict(channels or {}).items():
             self[name] = value
-        self.index = int(self.index)
-        self.meta = dict(self.meta)
+        try:
+            self.index = int(index)
+        except (TypeError, ValueError) as e:
+            raise FrameError(f"frame index must be an integer, got {index!r}") from e
+        if meta is not None and not isinstance(meta, Mapping):
+            raise FrameError(f"frame meta must be a dict, got {type(meta).__name__}")
+        self.meta: dict[str, Any] = dict(meta or {})
         self._check_camera()
+
+    def __repr__(self) -> str:
+        w, h = self.size
+        return (
+            f"Frame({self.where}, {w}x{h}, index={self.index}, "
+            f"channels=({', '.join(self._store)}))"
+        )
 
     # -- basic access --------------------------------------------------------------------------
 
     @property
+    def channels(self) -> dict[str, mi.TensorXf]:
+        """Channel name -> ``H x W x C`` :class:`mitsuba.TensorXf` (chooses the backend on first
+        use). The dict is the frame's own: deleting an entry removes the channel."""
+        for name in self._store:
+            self._tensor(name)
+        return self._store
+
+    @channels.setter
+    def channels(self, value: Mapping[str, Any]) -> None:
+        self._store = {}
+        for name, v in dict(value).items():
+            self[name] = v
+
+    @property
     def where(self) -> str:
         """The source file, or ``"<in-memory frame>"``: used to name the frame in errors."""
-        return self.source if self.source is not None else _IN_MEMORY
+        return _shown(self.source) if self.source is not None else _IN_MEMORY
 
     @property
     def names(self) -> tuple[str, ...]:
         """Channel names, in order."""
-        return tuple(self.channels)
+        return tuple(self._store)
 
     @property
     def size(self) -> tuple[int, int]:
         """``(W, H)``: from the channels, else the camera's resolution, else ``(0, 0)``."""
-        for t in self.channels.values():
+        for t in self._store.values():
             return int(t.shape[1]), int(t.shape[0])
         if self.camera is not None:
             return self.camera.resolution
@@ -327,49 +363,71 @@ class Frame:
         return self.size[1]
 
     def __contains__(self, name: object) -> bool:
-        return name in self.channels
+        return name in self._store
+
+    def _tensor(self, name: str) -> mi.TensorXf:
+        value = self._store[name]
+        if isinstance(value, np.ndarray):
+            value = _mi().TensorXf(value)
+            self._store[name] = value
+        return value
 
     def __getitem__(self, name: str) -> mi.TensorXf:
-        if name not in self.channels:
-            have = ", ".join(self.channels) or "none"
+        if name not in self._store:
+            have = ", ".join(self._store) or "none"
             raise FrameError(f"channel {name!r} missing from {self.where} (has: {have})")
-        return self.channels[name]
+        return self._tensor(name)
 
     def require(self, *names: str) -> tuple[mi.TensorXf, ...]:
         """Check that all ``names`` are present (FrameError naming every missing one and the
         source) and return their tensors in that order."""
-        missing = [n for n in names if n not in self.channels]
-        if missing:
-            have = ", ".join(self.channels) or "none"
-            raise FrameError(
-                f"{self.where} lacks required channel(s) {', '.join(missing)} (has: {have})"
-            )
-        return tuple(self.channels[n] for n in names)
+        names = _names_arg(names)
+        self._require_names(names)
+        return tuple(self._tensor(n) for n in names)
 
     def numpy(self, name: str) -> np.ndarray:
         """Channel ``name`` as a new ``(H, W, C)`` float32 numpy array."""
-        return np.array(self[name], dtype=np.float32).reshape(self.height, self.width, -1)
+        if name not in self._store:
+            self[name]  # raises FrameError naming the channel and the frame
+        value = self._store[name]
+        if isinstance(value, np.ndarray):
+            return value.copy()
+        return np.array(value, dtype=np.float32).reshape(self.height, self.width, -1)
 
     def __setitem__(self, name: str, value: Any) -> None:
         """Set channel ``name`` from a TensorXf or array of shape ``(H, W, C)`` (or ``(H, W)``
         for one component), checking its size against the other channels and its component
-        count against the schema."""
-        mitsuba = _mi()
+        count against the schema. NumPy input is copied and kept as NumPy until a tensor is
+        asked for."""
         if not isinstance(name, str) or not name or name.endswith(".") or name != name.strip():
             raise FrameError(f"invalid channel name {name!r} in {self.where}")
-        if isinstance(value, mitsuba.TensorXf) and len(value.shape) == 3:
-            tensor = value
-            shape = tuple(int(s) for s in value.shape)
+        stored: Any
+        dr = sys.modules.get("drjit")
+        if dr is not None and isinstance(value, dr.ArrayBase):
+            mitsuba = _mi()
+            if isinstance(value, mitsuba.TensorXf) and len(value.shape) == 3:
+                stored = value
+                shape = tuple(int(s) for s in value.shape)
+            else:
+                stored = None
+                value = np.asarray(value)
         else:
-            arr = np.asarray(value, dtype=np.float32)
+            stored = None
+        if stored is None:
+            try:
+                arr = np.array(value, dtype=np.float32)
+            except (TypeError, ValueError) as e:
+                raise FrameError(
+                    f"channel {name!r} in {self.where} is not an array of numbers: {e}"
+                ) from e
             if arr.ndim == 2:
                 arr = arr[:, :, None]
             if arr.ndim != 3:
                 raise FrameError(
                     f"channel {name!r} in {self.where} must be H x W x C, got shape {arr.shape}"
                 )
+            stored = np.ascontiguousarray(arr)
             shape = arr.shape
-            tensor = mitsuba.TensorXf(np.ascontiguousarray(arr))
         h, w, c = shape
         if name in CHANNELS and c != len(CHANNELS[name]):
             raise FrameError(
@@ -378,19 +436,24 @@ class Frame:
             )
         if c < 1 or h < 1 or w < 1:
             raise FrameError(f"channel {name!r} in {self.where} is empty (shape {shape})")
-        for other, t in self.channels.items():
+        for other, t in self._store.items():
             if other != name and (int(t.shape[0]), int(t.shape[1])) != (h, w):
                 raise FrameError(
                     f"channel {name!r} in {self.where} is {w}x{h} but channel {other!r} is "
                     f"{int(t.shape[1])}x{int(t.shape[0])}"
                 )
-        self.channels[name] = tensor
+        self._store[name] = stored
         self._check_camera()
 
     def _check_camera(self) -> None:
-        if self.camera is None or not self.channels:
+        for cam in (self.camera, self.prev_camera):
+            if cam is not None and not isinstance(cam, Camera):
+                raise FrameError(
+                    f"{self.where}: camera must be a glossrt.Camera, got {type(cam).__name__}"
+                )
+        if self.camera is None or not self._store:
             return
-        t = next(iter(self.channels.values()))
+        t = next(iter(self._store.values()))
         size = (int(t.shape[1]), int(t.shape[0]))
         if self.camera.resolution != size:
             r = self.camera.resolution
@@ -409,9 +472,9 @@ class Frame:
         """
         out: dict[str, int] = {}
         background: np.ndarray | None = None
-        if "mesh_id" in self.channels:
+        if "mesh_id" in self._store:
             background = self.numpy("mesh_id")[..., 0] == 0
-        for name in self.channels:
+        for name in self._store:
             a = self.numpy(name)
             bad = ~np.isfinite(a)
             if name == "depth":
@@ -432,65 +495,86 @@ class Frame:
             "camera": self.camera.to_dict() if self.camera is not None else None,
             "prev_camera": self.prev_camera.to_dict() if self.prev_camera is not None else None,
             "channels": {
-                n: list(component_names(n, int(t.shape[2]))) for n, t in self.channels.items()
+                n: list(component_names(n, int(t.shape[2]))) for n, t in self._store.items()
             },
             "meta": self.meta,
         }
 
-    def save(self, path: str | os.PathLike[str]) -> Path:
+    def save(self, path: str | bytes | os.PathLike[Any]) -> Path:
         """Write the frame as one float32 multi-layer OpenEXR file and return its path.
 
-        The file is written to a temporary file in the same folder and renamed into place, so
-        an interrupted save never leaves a partial ``path`` behind. Raises FrameError when the
+        Written with the ``openexr`` package (no Dr.Jit backend needed). Besides the layers
+        (``color.R``, ``normal.X``, ...) the file has a root ``R, G, B`` layer equal to
+        ``color`` (when the frame has one), which generic EXR viewers show as the image. The
+        file is written to a temporary file in the same folder and renamed into place, so an
+        interrupted save never leaves a partial ``path`` behind. Raises FrameError when the
         folder does not exist or is not writable, or when :attr:`meta` is not JSON-able.
         """
-        mitsuba = _mi()
-        path = Path(path)
+        path = _as_path(path)
+        shown = _shown(path)
         folder = path.parent if str(path.parent) else Path(".")
-        if not self.channels:
-            raise FrameError(f"cannot save {path}: the frame has no channels")
+        if not self._store:
+            raise FrameError(f"cannot save {shown}: the frame has no channels")
         self._check_camera()
         try:
             header = json.dumps(self.header(), default=_json_default, allow_nan=True)
         except (TypeError, ValueError) as e:
-            raise FrameError(f"cannot save {path}: frame meta is not JSON-serialisable: {e}") from e
+            raise FrameError(
+                f"cannot save {shown}: frame meta is not JSON-serialisable: {e}"
+            ) from e
         if not folder.is_dir():
-            raise FrameError(f"cannot save {path}: folder {folder} does not exist")
+            raise FrameError(f"cannot save {shown}: folder {_shown(folder)} does not exist")
+        OpenEXR = _openexr()
 
-        names: list[str] = []
-        parts: list[np.ndarray] = []
-        for n in self.channels:
+        pixels: dict[str, np.ndarray] = {}
+        for n in self._store:
             a = self.numpy(n)
-            names += [f"{n}.{c}" for c in component_names(n, a.shape[2])]
-            parts.append(a)
-        data = np.ascontiguousarray(np.concatenate(parts, axis=2), dtype=np.float32)
-        bmp = mitsuba.Bitmap(data, mitsuba.Bitmap.PixelFormat.MultiChannel, names)
-        bmp.metadata()[HEADER_ATTRIBUTE] = header
+            for k, c in enumerate(component_names(n, a.shape[2])):
+                pixels[f"{n}.{c}"] = np.ascontiguousarray(a[:, :, k])
+        if "color" in self._store:  # the root layer generic viewers show
+            for c in _RGB:
+                pixels[c] = pixels[f"color.{c}"]
+        from . import __version__
 
+        attrs = {
+            "compression": OpenEXR.PIZ_COMPRESSION,
+            "type": OpenEXR.scanlineimage,
+            HEADER_ATTRIBUTE: header,
+            "generatedBy": f"glossrt {__version__}",
+        }
         try:
-            with replacing(path) as tmp:
-                bmp.write(tmp, mitsuba.Bitmap.FileFormat.OpenEXR)
+            exr = OpenEXR.File(attrs, pixels)
+            with replacing(path) as tmp, open(tmp, "wb") as fh:
+                exr.write(fh)
         except FolderNotWritable as e:
             raise FrameError(
-                f"cannot save {path}: folder {folder} is not writable ({e.strerror or e})"
+                f"cannot save {shown}: folder {_shown(folder)} is not writable "
+                f"({e.strerror or e})"
             ) from e
-        except (OSError, RuntimeError) as e:
-            raise FrameError(f"cannot save {path} in folder {folder}: {e}") from e
+        except (OSError, RuntimeError, ValueError, TypeError) as e:
+            raise FrameError(f"cannot save {shown} in folder {_shown(folder)}: {e}") from e
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], require: Iterable[str] = ()) -> Frame:
+    def load(
+        cls, path: str | bytes | os.PathLike[Any], require: str | Iterable[str] = ()
+    ) -> Frame:
         """Read a frame written by :meth:`save` (bit-exact) or any float OpenEXR file.
 
-        Channels are grouped into layers by the part of the EXR channel name before its last
-        dot; unprefixed ``R, G, B`` become ``color`` and other unprefixed channels become
-        one-component channels of their own name. Files without a glossrt header load with
-        ``camera = prev_camera = None``. Raises FrameError naming the file when it is missing,
-        not an OpenEXR file, unreadable, has a malformed header, or lacks ``require`` channels.
+        Read with the ``openexr`` package into NumPy: no Dr.Jit backend is needed until a
+        tensor is asked for. ``require`` is a channel name or several. Channels are grouped
+        into layers by the part of the EXR channel name before its last dot; unprefixed
+        ``R, G, B`` are the ``color`` layer when the file has none (in glossrt's files they are
+        a copy of ``color`` and are not loaded twice; see ``docs/FORMATS.md``) and other
+        unprefixed channels become one-component channels of their own name. The parts of a
+        multi-part file are merged (part names prefix the channels when two parts share a
+        channel name). Files without a glossrt header load with ``camera = prev_camera =
+        None``. Raises FrameError naming the file when it is missing, not an OpenEXR file,
+        unreadable, has a malformed header, or lacks ``require`` channels.
         """
-        mitsuba = _mi()
-        p = Path(path)
-        src = str(p)
+        req = _names_arg(require)
+        p = _as_path(path)
+        src = _shown(p)
         if not p.exists():
             raise FrameError(f"frame file {src} does not exist")
         if not p.is_file():
@@ -502,19 +586,20 @@ class Frame:
             raise FrameError(f"cannot read frame file {src}: {e.strerror or e}") from e
         if magic != _EXR_MAGIC:
             raise FrameError(f"{src} is not an OpenEXR file")
+        OpenEXR = _openexr()
         try:
-            bmp = mitsuba.Bitmap(src)
-        except RuntimeError as e:
+            with open(p, "rb") as fh:
+                exr = OpenEXR.File(fh, separate_channels=True)
+            parts = list(exr.parts)
+        except OSError as e:
+            raise FrameError(f"cannot read frame file {src}: {e.strerror or e}") from e
+        except Exception as e:  # the openexr package raises RuntimeError and others
             raise FrameError(f"cannot read OpenEXR file {src} (corrupt or truncated?): {e}") from e
 
-        fields = [f.name for f in bmp.struct_()]
-        w, h = int(bmp.width()), int(bmp.height())
-        data = np.asarray(bmp).reshape(h, w, len(fields))
-
-        md = bmp.metadata()
+        planes, attrs = _read_parts(parts, src)
         header: dict[str, Any] = {}
-        if HEADER_ATTRIBUTE in md:
-            raw = md[HEADER_ATTRIBUTE]
+        if HEADER_ATTRIBUTE in attrs:
+            raw = attrs[HEADER_ATTRIBUTE]
             try:
                 header = json.loads(raw)
             except (TypeError, ValueError) as e:
@@ -522,6 +607,8 @@ class Frame:
             if not isinstance(header, dict):
                 raise FrameError(f"{src}: malformed glossrt header attribute (not an object)")
 
+        _resolve_root_rgb(planes, src)
+        fields = list(planes)
         layers = _group_layers(fields, src)
         order: dict[str, list[str]] = {}
         stored = header.get("channels")
@@ -536,11 +623,9 @@ class Frame:
             if n not in order:
                 order[n] = _order_components(n, layers[n], src)
 
-        index_of = {name: i for i, name in enumerate(fields)}
         channels: dict[str, np.ndarray] = {}
         for n, comps in order.items():
-            cols = [index_of[layers[n][c]] for c in comps]
-            channels[n] = np.ascontiguousarray(data[:, :, cols], dtype=np.float32)
+            channels[n] = np.stack([planes[layers[n][c]] for c in comps], axis=-1)
 
         try:
             camera = _camera_or_none(header.get("camera"))
@@ -556,15 +641,146 @@ class Frame:
             raise FrameError(f"{src}: glossrt header 'index' is not an integer") from e
 
         frame = cls(
-            channels=channels,  # type: ignore[arg-type]  # converted in __post_init__
+            channels=channels,
             camera=camera,
             prev_camera=prev,
             index=index,
             meta=meta,
-            source=src,
+            source=str(p),
         )
-        frame.require(*require)
+        frame._require_names(req)
         return frame
+
+    def _require_names(self, names: Sequence[str]) -> None:
+        missing = [n for n in names if n not in self._store]
+        if missing:
+            have = ", ".join(self._store) or "none"
+            raise FrameError(
+                f"{self.where} lacks required channel(s) {', '.join(missing)} (has: {have})"
+            )
+
+
+def _names_arg(names: Any) -> tuple[str, ...]:
+    """``require=`` as a tuple of names: one str is one name (not its letters)."""
+    if isinstance(names, str):
+        return (names,)
+    try:
+        out = tuple(names)
+    except TypeError as e:
+        raise FrameError(f"channel names must be a str or strs, got {names!r}") from e
+    if len(out) == 1 and not isinstance(out[0], str) and isinstance(out[0], Iterable):
+        return _names_arg(out[0])  # require(("a", "b")) as well as require("a", "b")
+    bad = [n for n in out if not isinstance(n, str)]
+    if bad:
+        raise FrameError(f"channel names must be str, got {bad[0]!r}")
+    return out
+
+
+def _as_path(path: Any) -> Path:
+    """A user's path (str, bytes or PathLike; any bytes, UTF-8 or not) as a Path."""
+    try:
+        return Path(os.fsdecode(path))
+    except TypeError as e:
+        raise FrameError(f"a frame path must be a str, bytes or path, got {path!r}") from e
+
+
+def _shown(path: Any) -> str:
+    """``path`` for messages: bytes that are not UTF-8 (surrogate escapes) as ``\\xff``, so the
+    message can be printed."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
+def _openexr() -> Any:
+    try:
+        import OpenEXR
+    except ImportError as e:  # pragma: no cover - a declared dependency
+        raise GlossrtError(
+            "glossrt reads and writes frames with the 'openexr' package: pip install openexr"
+        ) from e
+    return OpenEXR
+
+
+def _read_parts(parts: Sequence[Any], src: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """EXR channel name -> (H, W) float32 plane, merged over all parts, and the first part's
+    header attributes (plus the glossrt attribute of whichever part has it)."""
+    if not parts:
+        raise FrameError(f"{src}: the OpenEXR file has no parts")
+    OpenEXR = _openexr()
+    windows = []
+    per_part: list[tuple[str, dict[str, np.ndarray]]] = []
+    attrs: dict[str, Any] = dict(parts[0].header)
+    for k, part in enumerate(parts):
+        name = part.name() or ""
+        label = f"part {k}" + (f" ({name!r})" if name else "")
+        kind = part.type()
+        if kind not in (OpenEXR.scanlineimage, OpenEXR.tiledimage):
+            raise FrameError(f"{src}: {label} holds deep data, which glossrt cannot read")
+        hdr = part.header
+        if HEADER_ATTRIBUTE in hdr and HEADER_ATTRIBUTE not in attrs:
+            attrs[HEADER_ATTRIBUTE] = hdr[HEADER_ATTRIBUTE]
+        lo, hi = (tuple(int(v) for v in np.asarray(c).ravel()) for c in hdr["dataWindow"])
+        windows.append((lo, hi))
+        planes: dict[str, np.ndarray] = {}
+        for cname, ch in part.channels.items():
+            if ch.xSampling != 1 or ch.ySampling != 1:
+                raise FrameError(
+                    f"{src}: channel {cname!r} of {label} is subsampled "
+                    f"({ch.xSampling}x{ch.ySampling}), which glossrt cannot read"
+                )
+            px = np.asarray(ch.pixels)
+            if px.ndim != 2:
+                raise FrameError(f"{src}: channel {cname!r} of {label} is not a 2D image")
+            planes[cname] = np.ascontiguousarray(px, dtype=np.float32)
+        per_part.append((name, planes))
+    for k, win in enumerate(windows[1:], 1):
+        if win != windows[0]:
+            raise FrameError(
+                f"{src}: part {k} covers pixels {win[0]}-{win[1]} but part 0 covers "
+                f"{windows[0][0]}-{windows[0][1]}; glossrt needs parts of one size"
+            )
+    seen: dict[str, int] = {}
+    clash = False
+    for _, planes in per_part:
+        for cname in planes:
+            clash |= cname in seen
+            seen[cname] = 1
+    merged: dict[str, np.ndarray] = {}
+    if not clash:
+        for _, planes in per_part:
+            merged.update(planes)
+        return merged, attrs
+    names = [n for n, _ in per_part]
+    if any(not n for n in names) or len(set(names)) != len(names):
+        raise FrameError(
+            f"{src}: its {len(parts)} parts share channel names and have no distinct part "
+            "names to tell them apart"
+        )
+    for pname, planes in per_part:  # the part name prefixes its channels
+        for cname, plane in planes.items():
+            merged[f"{pname}.{cname}"] = plane
+    return merged, attrs
+
+
+def _resolve_root_rgb(planes: dict[str, np.ndarray], src: str) -> None:
+    """Root ``R, G, B`` next to a ``color`` layer: glossrt's copy for viewers, dropped when it
+    equals ``color`` bit for bit; otherwise kept as a layer named ``rgb``."""
+    has_color = any(f.rsplit(".", 1)[0] == "color" for f in planes if "." in f)
+    if not has_color or not all(c in planes for c in _RGB):
+        return
+    same = all(
+        f"color.{c}" in planes
+        and np.array_equal(planes[c].view(np.uint32), planes[f"color.{c}"].view(np.uint32))
+        for c in _RGB
+    )
+    if not same:
+        if any(f.rsplit(".", 1)[0] == "rgb" for f in planes if "." in f):
+            raise FrameError(
+                f"{src}: root R, G, B differ from the 'color' layer and 'rgb' is taken"
+            )
+        for c in _RGB:
+            planes[f"rgb.{c}"] = planes[c]
+    for c in _RGB:
+        del planes[c]
 
 
 def _camera_or_none(d: Any) -> Camera | None:
@@ -641,17 +857,19 @@ def check_same_size(frames: Sequence[Frame]) -> tuple[int, int]:
     return size
 
 
-def load_sequence(directory: str | os.PathLike[str], require: Iterable[str] = ()) -> list[Frame]:
+def load_sequence(
+    directory: str | bytes | os.PathLike[Any], require: str | Iterable[str] = ()
+) -> list[Frame]:
     """Load every ``*.exr`` in ``directory``, in natural file-name order (equal to plain name
     order for the zero-padded :func:`frame_filename` names). FrameError if the folder is
     missing or has no EXR files, if a file fails :meth:`Frame.load`, or if sizes differ."""
-    d = Path(directory)
+    req = _names_arg(require)
+    d = _as_path(directory)
     if not d.is_dir():
-        raise FrameError(f"frame folder {d} does not exist")
+        raise FrameError(f"frame folder {_shown(d)} does not exist")
     files = sorted((p for p in d.glob("*.exr") if p.is_file()), key=lambda p: _natural_key(p.name))
     if not files:
-        raise FrameError(f"no *.exr frames in {d}")
-    req = tuple(require)
+        raise FrameError(f"no *.exr frames in {_shown(d)}")
     frames = [Frame.load(p, require=req) for p in files]
     check_same_size(frames)
     return frames

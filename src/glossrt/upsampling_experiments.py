@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import numpy as np
 
+from .errors import GlossrtError
 from .frame import RADIANCE
 
 INDIRECT = ("indirect_diffuse", "indirect_specular")
@@ -69,7 +70,7 @@ def upsampling(size: tuple[int, int] = (192, 144), ref_spp: int = 256, low_spp: 
     w, h = size
     for f in factors:
         if w % f or h % f:
-            raise ValueError(f"size {w}x{h} is not a multiple of the factor {f}")
+            raise GlossrtError(f"size {w}x{h} is not a multiple of the factor {f}")
     say = progress or (lambda _m: None)
     full_r = render.Renderer(scenes.load(scene, size=size))
     full = full_r.render(0)

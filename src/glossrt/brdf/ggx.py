@@ -70,6 +70,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from glossrt import backend
+from glossrt.errors import GlossrtError
 
 backend.ensure()
 
@@ -244,11 +245,11 @@ def vndf_quadrature(
         One float64 numpy array per weight, one value per point.
     """
     if samples <= 0 or samples & (samples - 1):
-        raise ValueError(f"samples must be a positive power of two, got {samples}")
+        raise GlossrtError(f"samples must be a positive power of two, got {samples}")
     mu_np = np.clip(np.asarray(mu, dtype=np.float64).ravel(), MU_MIN, 1.0)
     al_np = np.clip(np.asarray(alpha, dtype=np.float64).ravel(), ALPHA_MIN, 1.0)
     if mu_np.shape != al_np.shape:
-        raise ValueError("mu and alpha must have the same number of elements")
+        raise GlossrtError("mu and alpha must have the same number of elements")
     n_pts = mu_np.size
     from . import microfacet as mf
 
@@ -315,7 +316,7 @@ def grid_nodes(n_mu: int, n_alpha: int) -> tuple[np.ndarray, np.ndarray]:
     is integrated at :data:`MU_MIN`; the row ``alpha = 0`` is the analytic mirror limit.)
     """
     if n_mu < 2 or n_alpha < 2:
-        raise ValueError("the table needs at least 2 nodes per axis")
+        raise GlossrtError("the table needs at least 2 nodes per axis")
     s = np.linspace(0.0, 1.0, n_mu)
     r = np.linspace(0.0, 1.0, n_alpha)
     return s * s, r * r
@@ -409,7 +410,7 @@ class SpecularAlbedoTable:
         if table.ndim == 3:
             table = table[None]
         if table.ndim != 4 or table.shape[3] != 2 or min(table.shape[1:3]) < 2:
-            raise ValueError(f"expected an (n_alpha, n_mu, 2) table, got {table.shape}")
+            raise GlossrtError(f"expected an (n_alpha, n_mu, 2) table, got {table.shape}")
         n_d, n_alpha, n_mu, _ = table.shape
         data = mi.Float(np.ascontiguousarray(table).ravel())
         dr.make_opaque(data)

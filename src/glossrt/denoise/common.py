@@ -16,7 +16,7 @@ import numpy as np
 
 from ..brdf.sg import lobe_tap_log_scale, lobe_tap_sharpness, lobe_tap_terms, lobe_weight
 from ..errors import FrameError, GlossrtError
-from ..frame import RADIANCE
+from ..frame import RADIANCE, Frame
 from ..jit import exp_weight, opaque
 
 #: Rec. 709 luminance weights (linear RGB)
@@ -285,6 +285,11 @@ def view_directions(frame, position, purpose: str = "this filter") -> mi.Vector3
 
 def check_frame(frame, names) -> None:
     """Raise FrameError unless all ``names`` exist (naming file and channel)."""
+    if not isinstance(frame, Frame):
+        raise GlossrtError(
+            f"a glossrt.Frame (from Renderer.render or Frame.load) is needed, "
+            f"not {type(frame).__name__}"
+        )
     frame.require(*names)
     h, w = frame.height, frame.width
     for n in names:

@@ -27,6 +27,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import GlossrtError
+from ..frame import Frame
 from ..jit import exp_weight, no_gc
 from .atrous import dammertz_level_multi, pow_int, svgf_level_multi
 from .common import (
@@ -412,6 +413,11 @@ class SVGF:
                              for rad, _ in SIGNAL_SETS[self.params.signals]]}
 
     def __call__(self, frame) -> mi.TensorXf:
+        if not isinstance(frame, Frame):
+            raise GlossrtError(
+                f"{type(self).__name__} takes a glossrt.Frame (from Renderer.render or "
+                f"Frame.load), not {type(frame).__name__}"
+            )
         check_frame(frame, self.needs)
         if self.params.temporal:
             require_camera(frame, f"temporal filter {type(self).__name__}")

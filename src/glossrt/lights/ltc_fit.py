@@ -263,7 +263,7 @@ def _f64() -> type:
 def grid_axes(size: int = DEFAULT_SIZE) -> tuple[np.ndarray, np.ndarray]:
     """Nominal node positions ``(r, u)``: ``r_j = u_j = j / (size - 1)``."""
     if size < 2:
-        raise ValueError("the table needs at least 2 nodes per axis")
+        raise GlossrtError("the table needs at least 2 nodes per axis")
     t = np.linspace(0.0, 1.0, size)
     return t.copy(), t.copy()
 
@@ -316,7 +316,7 @@ def coeffs_from_minv(minv: np.ndarray) -> np.ndarray:
     m = np.asarray(minv, dtype=np.float64)
     e = m[..., 1, 1]
     if np.any(~(e > 0)):
-        raise ValueError("the middle entry of M^-1 must be positive")
+        raise GlossrtError("the middle entry of M^-1 must be positive")
     return np.stack([m[..., 0, 0], m[..., 0, 2], m[..., 2, 0], m[..., 2, 2]], -1) / e[..., None]
 
 
@@ -447,12 +447,12 @@ def brdf_moments(alpha: Any, cos_o: Any, samples: int = MOMENT_SAMPLES,
     direction ``integral rho cos wi dwi`` normalised; its y component is 0 by symmetry).
     """
     if samples <= 0 or samples & (samples - 1):
-        raise ValueError(f"samples must be a positive power of two, got {samples}")
+        raise GlossrtError(f"samples must be a positive power of two, got {samples}")
     beck = mf.code(distribution) == mf.BECKMANN
     al = np.asarray(alpha, dtype=np.float64).ravel()
     co = np.asarray(cos_o, dtype=np.float64).ravel()
     if al.shape != co.shape:
-        raise ValueError("alpha and cos_o must have the same number of elements")
+        raise GlossrtError("alpha and cos_o must have the same number of elements")
     f64 = _f64()
     log2n = samples.bit_length() - 1
     chunk = max(1, (1 << 21) // samples)
@@ -562,7 +562,7 @@ class _Objective:
                  n: int = FIT_SAMPLES, frozen: bool = True, distribution: str = "ggx",
                  metric: str = "l3"):
         if metric not in METRICS:
-            raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
+            raise GlossrtError(f"metric must be one of {METRICS}, got {metric!r}")
         self.metric = metric
         self.base = np.zeros(_P_SIZE)
         self.base[_P_ALPHA] = alpha
@@ -866,19 +866,19 @@ class LTCTable:
         norm = np.asarray(norm, dtype=np.float32)
         fres = np.asarray(fres, dtype=np.float32)
         if minv.ndim != 4 or minv.shape[3] != 4 or min(minv.shape[1:3]) < 2:
-            raise ValueError(f"expected an (n_r, n_u, 4) minv table, got {minv.shape}")
+            raise GlossrtError(f"expected an (n_r, n_u, 4) minv table, got {minv.shape}")
         if norm.shape != minv.shape[:3] or fres.shape != minv.shape[:3]:
-            raise ValueError("norm and fres must have the shape (n_r, n_u) of minv")
+            raise GlossrtError("norm and fres must have the shape (n_r, n_u) of minv")
         n_d, n_r, n_u, _ = minv.shape
         if len(distributions) != n_d:
-            raise ValueError(f"{n_d} tables for distributions {distributions}")
+            raise GlossrtError(f"{n_d} tables for distributions {distributions}")
         nf = np.ascontiguousarray(np.stack([norm, fres], -1))
         d_minv = mi.Float(minv.ravel())
         d_nf = mi.Float(nf.ravel())
         dr.make_opaque(d_minv, d_nf)
         r0 = math.sqrt(alpha_min)
         if not 0.0 <= r0 < 1.0 / (n_r - 1):
-            raise ValueError(f"alpha_min must lie in [0, 1/(n_r-1)^2), got {alpha_min}")
+            raise GlossrtError(f"alpha_min must lie in [0, 1/(n_r-1)^2), got {alpha_min}")
         return cls(d_minv, d_nf, n_r, n_u, r0,
                    {"minv": minv[0], "norm": norm[0], "fres": fres[0]}, n_d, distributions)
 
@@ -977,6 +977,8 @@ def read_table(path: Path | str) -> dict[str, Any]:
             return {"minv": f["minv"], "norm": f["norm"], "fres": f["fres"],
                     "alpha_min": float(f["alpha_min"]),
                     "distribution": str(f["distribution"])}
+    except GlossrtError:
+        raise
     except (OSError, ValueError) as e:
         raise GlossrtError(f"{path}: cannot read the LTC table: {e}") from e
 

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 
+from ..errors import GlossrtError
 from . import (
     SceneSpec,
     builtin,
@@ -180,7 +181,7 @@ def phong_to_alpha(s: float) -> float:
     (Walter et al. 2007's Phong-Beckmann correspondence; the NDF sharpness ``2 / alpha^2``
     of Wang et al.'s SG is then ``s + 2``)."""
     if not s > -2.0:
-        raise ValueError(f"Phong exponent must be > -2, got {s}")
+        raise GlossrtError(f"Phong exponent must be > -2, got {s}")
     return math.sqrt(2.0 / (s + 2.0))
 
 
@@ -338,7 +339,7 @@ def polygon_light_scene(alpha: float = 0.25, textured: bool = False,
 
     alpha = float(alpha)
     if not 0.0 < alpha <= 1.0:
-        raise ValueError(f"GGX alpha must lie in (0, 1], got {alpha}")
+        raise GlossrtError(f"GGX alpha must lie in (0, 1], got {alpha}")
     teapot_to_world = (T().translate([-0.45, 0.0, -0.1]).rotate([0, 1, 0], 25)
                        .rotate([1, 0, 0], -90).scale(0.3))
     cx, cy, cz = POLYGON_LIGHT_CENTRE

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import GlossrtError
+
 _PATCH_TEXT = """
     0,1,2,3,4,5,6,7,8,9,10,11,12,13,14,15,
     3,16,17,18,7,19,20,21,11,22,23,24,15,25,26,27,
@@ -301,7 +303,7 @@ def teapot_mesh(n: int = 8, lid: bool = True, bottom: bool = True):
     if n < 2:
         # n = 1 flattens the spout's and the handle's half-tubes (their four corners lie
         # on the symmetry plane y = 0) into zero-area triangles
-        raise ValueError(f"teapot tessellation needs n >= 2, got {n}")
+        raise GlossrtError(f"teapot tessellation needs n >= 2, got {n}")
     ctrl = patch_control_points()
     basis = _bernstein(np.linspace(0.0, 1.0, n + 1))
     grids = np.einsum("ia,jb,pabk->pijk", basis, basis, ctrl)  # (32, n+1, n+1, 3)
@@ -403,7 +405,7 @@ def grid_mesh(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     counter-clockwise seen from +z): ``(vertices, faces, normals)`` -- a floor that can carry
     per-vertex data (BSPVT shadows), where Mitsuba's ``rectangle`` has no vertices."""
     if n < 1:
-        raise ValueError(f"grid resolution must be >= 1, got {n}")
+        raise GlossrtError(f"grid resolution must be >= 1, got {n}")
     t = np.linspace(-1.0, 1.0, n + 1)
     x, y = np.meshgrid(t, t, indexing="xy")
     v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], -1)
@@ -418,7 +420,7 @@ def sphere_mesh(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The unit sphere as a latitude-longitude mesh: ``n`` rings of ``2 n`` quads (triangles
     at the poles), seams welded, counter-clockwise seen from outside; normals = positions."""
     if n < 2:
-        raise ValueError(f"sphere resolution must be >= 2, got {n}")
+        raise GlossrtError(f"sphere resolution must be >= 2, got {n}")
     m = 2 * n
     th = np.linspace(0.0, np.pi, n + 1)[1:-1]
     ph = np.arange(m) * (2 * np.pi / m)
