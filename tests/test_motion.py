@@ -23,8 +23,9 @@ coord = st.floats(-3, 3, allow_nan=False)
     seed=st.integers(0, 2**31),
 )
 def test_motion_kernel_matches_camera_projection(origin, target, fov, angle, shift, seed):
-    if np.linalg.norm(np.subtract(origin, target)) < 0.5:
-        return
+    # the strategies keep the camera >= 2 away from its target (z >= 3 against z <= 1): no
+    # degenerate look-at, so every example is checked (no early return)
+    assert np.linalg.norm(np.subtract(origin, target)) >= 2
     w, h = 64, 40
     prev = Camera(look_at(list(origin), list(target), [0, 1, 0]), fov, (w, h))
     # mesh 1 moves rigidly between the frames; mesh 0 (and 2) are static
@@ -45,9 +46,11 @@ def test_motion_kernel_matches_camera_projection(origin, target, fov, angle, shi
     p_prev[moving] = p_prev[moving] @ inv[:3, :3].T + inv[:3, 3]
     want = prev.project(p_prev)
     in_front = np.isfinite(want).all(-1)
-    far = np.abs(want[in_front]).max(initial=0) < 1e4  # float32 range of pixel coordinates
-    if far:
-        np.testing.assert_allclose(got[in_front], want[in_front], atol=2e-3, rtol=1e-4)
+    # points next to the camera plane project beyond float32's pixel precision: those alone
+    # are left out (before, one such point skipped the whole comparison)
+    near = in_front & (np.abs(np.where(in_front[:, None], want, 0)).max(-1) < 1e4)
+    assert near.sum() >= 10  # never a vacuous comparison (measured: >= 27 of the 50)
+    np.testing.assert_allclose(got[near], want[near], atol=2e-3, rtol=1e-4)
     # behind the camera: no motion
     assert np.all(np.array(mv).T[~in_front] == 0)
     dr.eval()

@@ -416,6 +416,73 @@ def test_render_averages_to_render_reference(cornell, cornell_renderer):
         assert np.all(np.abs(diff) <= 4.5 * se + 1e-6 * np.abs(b).mean((0, 1))), (name, diff, se)
 
 
+def _lobe_albedos(bsdf, cos_o: np.ndarray, n: int = 64) -> dict[str, np.ndarray]:
+    """Per view cosine: each lobe's directional albedo integral f_lobe(wo, wi) cos dwi, by
+    quadrature of Mitsuba's own ``eval`` restricted to that lobe (``BSDFContext.type_mask``)
+    over n^2 stratified cosine-distributed directions (an isotropic BSDF: the view azimuth
+    does not matter)."""
+    k = np.arange(n * n)
+    u = (np.tile(((k % n) + 0.5) / n, cos_o.size), np.tile(((k // n) + 0.5) / n, cos_o.size))
+    wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(*u))
+    c = np.repeat(cos_o, n * n)
+    si = dr.zeros(mi.SurfaceInteraction3f, c.size)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    si.wi = mi.Vector3f(np.sqrt(np.maximum(1 - c * c, 0)), 0.0, c)
+    si.uv = mi.Point2f(0.5, 0.5)
+    out = {}
+    for name, mask in (("diffuse", mi.BSDFFlags.DiffuseReflection),
+                       ("specular", mi.BSDFFlags.GlossyReflection)):
+        ctx = mi.BSDFContext()
+        ctx.type_mask = int(mask)
+        val = np.array(bsdf.eval(ctx, si, wi), np.float64)[0].reshape(cos_o.size, n * n)
+        # cosine sampling: pdf cos / pi, and eval includes the cosine
+        out[name] = (val * np.pi / np.array(wi.z).reshape(cos_o.size, n * n)).mean(-1)
+    return out
+
+
+def test_lobe_channels_are_each_lobes_own_integral():
+    """roughplastic (diffuse + glossy lobes, one sampling mixture) inside a closed sphere that
+    emits Le = 1 and reflects rho = 0.5 (diffuse): every direction brings the floor radiance
+    Le directly and, to 0.5% (the floor hides a little of the sphere from itself), rho Le
+    after one more bounce. So each lobe's channel is its own directional albedo A_lobe
+    (quadrature of Mitsuba's eval of that lobe alone) times Le (direct_*) or rho Le
+    (indirect_*). Splitting a sample by the lobe it came from (weight f / p_mix for the
+    sampled lobe) put ~13% of indirect_specular into indirect_diffuse."""
+    rho = 0.5
+    t = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 14.0,
+                   "to_world": t().look_at([0, 3, 0], [0, 0, 0], [0, 0, -1]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+        "floor": {"type": "rectangle", "to_world": t().rotate([1, 0, 0], -90).scale(0.5),
+                  "bsdf": {"type": "roughplastic", "alpha": 0.3, "distribution": "ggx",
+                           "diffuse_reflectance": {"type": "rgb", "value": [0.6] * 3}}},
+        "dome": {"type": "sphere", "radius": 10.0, "flip_normals": True,
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [rho] * 3}},
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0] * 3}}},
+    })
+    setup = SceneSetup("dome", scene)
+    f = Renderer(setup, max_depth=3, frozen=False).render_reference(0, spp=256)
+    floor = f.numpy("mesh_id")[..., 0] == setup.shape_index["floor"]
+    assert floor.all()
+    view = f.camera.position - f.numpy("position")[floor].astype(np.float64)
+    cos_o = view[:, 1] / np.linalg.norm(view, axis=-1)  # the floor's normal is +y
+    bsdf = next(s for s in scene.shapes() if s.id() == "floor").bsdf()
+    albedo = _lobe_albedos(bsdf, cos_o)
+    for kind, scale, slack in (("direct", 1.0, 0.002), ("indirect", rho, 0.006)):
+        for lobe in ("diffuse", "specular"):
+            v = f.numpy(f"{kind}_{lobe}")[floor][:, 0].astype(np.float64)
+            want = scale * albedo[lobe]
+            se = v.std() / np.sqrt(v.size)  # per-pixel estimates are independent
+            # the indirect light falls short of rho Le by the floor's occlusion (< 0.5%)
+            err = v.mean() - want.mean()
+            assert -(slack * want.mean() + 4.5 * se) < err < 0.002 * want.mean() + 4.5 * se, (
+                kind, lobe, v.mean(), want.mean(), se)
+    # power: the lobes differ by more than 10x, so a 13% leak is far beyond the tolerance
+    assert albedo["diffuse"].mean() > 10 * albedo["specular"].mean()
+
+
 # -- 3. motion vectors ---------------------------------------------------------------------------
 
 T_MOTION = 5  # between frames 4 and 5 the camera sways ~0.6 degrees and the sphere slides 0.027
@@ -544,6 +611,40 @@ def test_motion_fetches_previous_position_on_moving_sphere(cornell, motion_frame
     # the sphere really moved between the frames (else this check would have no power)
     moved = np.linalg.norm(expected - p[inner][taps_ok], axis=-1)
     assert moved.min() > 0.02
+
+
+def test_motion_of_a_jittered_frame_is_that_of_the_pixel_centre():
+    """docs/FORMATS.md: the surface point seen through the pixel CENTRE was at centre + motion
+    (what svgf's reprojection, taa and the spatio-temporal upsampler fetch). A jittered frame
+    shades centre + jitter, but its motion must still be the centre's: reference from
+    Mitsuba's own intersection of the pixel-centre rays, projected with the previous camera
+    (NumPy). It was the jittered sample's motion (the motion field's gradient times the
+    jitter, and another surface's motion at silhouettes)."""
+    w, h, t, jitter = 32, 24, 2, (0.45, -0.4)
+    setup = scenes.load("glossy-spheres", size=(w, h), orbit=40.0, frames=3)
+    r = Renderer(setup)
+    f = r.render(t, jitter=jitter)
+    assert f.meta["jitter"] == list(jitter)
+    setup.set_frame(t)
+    ys, xs = np.mgrid[0:h, 0:w]
+    centre = np.stack([xs + 0.5, ys + 0.5], -1).astype(np.float64)
+    uv = mi.Point2f(mi.Float(centre[..., 0].ravel() / w), mi.Float(centre[..., 1].ravel() / h))
+    ray, _ = setup.sensor.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    si = setup.scene.ray_intersect(ray)
+    hit = np.array(si.is_valid()).reshape(h, w)
+    p = np.array(si.p, np.float64).T.reshape(h, w, 3)
+    prev = setup.camera(t - 1)
+    want = prev.project(p[hit]) - centre[hit]
+    got = f.numpy("motion").astype(np.float64)[hit]
+    assert hit.sum() > 100
+    np.testing.assert_allclose(got, want, atol=0.01)
+    # the check has power: the jittered samples' own motion differs from the centres'
+    both = hits(f)[hit]  # the jittered sample hit something too
+    own = prev.project(f.numpy("position").astype(np.float64)[hit]) - (centre[hit] + jitter)
+    assert np.abs(own - want)[both].max() > 0.05
+    # the unjittered frame agrees (its motion comes from its own pixel-centre hits)
+    np.testing.assert_allclose(r.render(t).numpy("motion").astype(np.float64)[hit], want,
+                               atol=0.01)
 
 
 # -- 4. pixel subsets ----------------------------------------------------------------------------
@@ -807,21 +908,32 @@ def test_renders_are_identical_across_loads_and_processes():
     names = RADIANCE + ("color",)
     first = None
     orders = set()
-    for k in range(6):
+    rendered = 0
+    # Mitsuba's order is random (measured: the two area lights swap in about 1 load in 4).
+    # Render the first two loads (frozen and not) and then every load whose order is new,
+    # until the two orders have both been rendered: that is what gives the check its power.
+    for k in range(40):
         setup = scenes.load("roughness-map", size=REPRO_SIZE)
-        orders.add(_emitter_order(setup))
-        f = Renderer(setup, frozen=k % 2 == 0).render(0)
+        order = _emitter_order(setup)
+        if rendered >= 2 and order in orders:
+            continue
+        orders.add(order)
+        f = Renderer(setup, frozen=rendered % 2 == 0).render(0)
+        rendered += 1
         if first is None:
             first = f
             assert np.any(f.numpy("indirect_diffuse") > 0) and np.any(f.numpy("direct_diffuse") > 0)
             continue
         for n in names:
             np.testing.assert_array_equal(f.numpy(n), first.numpy(n), err_msg=f"load {k}: {n}")
+        if len(orders) >= 2 and rendered >= 2:
+            break
+    # the measured side: Mitsuba's emitter order did change between the loads compared
+    # (P(no change in 40 loads) ~ 1e-5)
+    assert len(orders) >= 2, orders
     out = subprocess.run([sys.executable, "-c", _REPRO_SCRIPT, *names], capture_output=True,
                          text=True, timeout=300, check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == _digests(first, names)
-    # (Mitsuba's order is random: ``orders`` usually holds both orders of the two area lights)
-    assert all(len(o) == 3 for o in orders)
 
 
 def test_emitter_table_order_and_pmf():
@@ -993,18 +1105,32 @@ def test_scene_without_emitters_renders_black():
 def test_frozen_trace_is_not_shared_between_scenes():
     """Each Renderer records its own frozen trace: a module-wide one replayed a recording made
     with another scene object of the same layout (wrong G-buffers, now and then a segfault
-    once that scene was freed). A second scene of the same layout renders frozen exactly as
-    traced."""
+    once that scene was freed; reproduced in 1 of 6 tries then). The first scene is rendered
+    (recorded, then replayed); a second load of the same scene with other wall colours must
+    then render frozen exactly as traced, on a first call and on replays. This checks the
+    outcome, not the cause: the old identity check (``second._trace_frozen is not
+    first._trace_frozen``) held by construction and could not fail, and with one module-wide
+    frozen function patched back in, this test and the old repro (coarse polygon-light
+    scenes, first one freed) passed 6 of 6 on 2026-12-02 (Dr.Jit re-records for the other
+    scene here), so a shared recording is no longer shown to go wrong."""
     import gc
 
     first = Renderer(scenes.load("glossy-cornell", size=(16, 12)))
     first.render(0)
+    first.render(1)  # a replay
     second_setup = scenes.load("glossy-cornell", size=(16, 12))
+    params = mi.traverse(second_setup.scene)
+    for key in ("left.bsdf.reflectance.value", "right.bsdf.reflectance.value"):
+        params[key] = mi.Color3f(0.1, 0.9, 0.3)
+    params.update()
     second = Renderer(second_setup)
-    assert second._trace_frozen is not first._trace_frozen
     del first
     gc.collect()
-    frozen = second.render(0)
-    traced = Renderer(second_setup, frozen=False).render(0)
-    for name in ("normal", "position", "color"):
-        np.testing.assert_array_equal(frozen.numpy(name), traced.numpy(name))
+    traced = Renderer(second_setup, frozen=False)
+    for t in (0, 1, 0):
+        a, b = second.render(t), traced.render(t)
+        for name in ("albedo_diffuse", "normal", "position", "color"):
+            np.testing.assert_array_equal(a.numpy(name), b.numpy(name), err_msg=f"{t} {name}")
+    # the walls' new colour is in the G-buffer (the two scenes really differ)
+    alb = b.numpy("albedo_diffuse")
+    assert np.any(np.all(np.isclose(alb, (0.1, 0.9, 0.3), atol=1e-6), axis=-1))

@@ -33,6 +33,7 @@ from . import integrator as _integrator  # noqa: E402,F401  (registers "glossrt"
 from .motion import MotionInputs  # noqa: E402
 from .pathtracer import (  # noqa: E402
     RADIANCE_OUT,
+    RR_DEPTH,
     UNBOUNDED_DEPTH,
     EmitterTable,
     ShapeTable,
@@ -47,6 +48,9 @@ COMPONENTS = {"depth": 1, "roughness": 1, "roughness_uv": 2, "distribution": 1, 
 REFERENCE_SALT = 0x5EED
 #: seeds of multi-sample pixel subsets (:meth:`Renderer.render_pixels` with spp > 1)
 PIXELS_SALT = 0xADA9
+#: path depth of scenes that set none (built-in scenes say 3 themselves; XML files without an
+#: integrator get Mitsuba's default, -1)
+DEFAULT_MAX_DEPTH = 3
 #: lanes per launch when rendering references (pixels x samples)
 MAX_LANES = 1 << 21
 
@@ -97,30 +101,39 @@ def _warm_emitters(scene: mi.Scene) -> None:
         dr.eval(ds, w)
 
 
-def _check_jitter(jitter) -> tuple[float, float]:
+def _check_jitter(jitter, limit: float = 0.5) -> tuple[float, float]:
     try:
         jx, jy = (float(v) for v in jitter)
     except (TypeError, ValueError):
         raise GlossrtError(f"jitter must be (x, y) in pixels, got {jitter!r}") from None
-    if not (-0.5 <= jx < 0.5 and -0.5 <= jy < 0.5):
-        raise GlossrtError(f"jitter must lie in [-0.5, 0.5) pixels, got {(jx, jy)}")
+    if not (-limit <= jx < limit and -limit <= jy < limit):
+        raise GlossrtError(f"jitter must lie in [-{limit}, {limit}) pixels, got {(jx, jy)}")
     return jx, jy
 
 
 class Renderer:
     """glossrt's 1 spp G-buffer path tracer for one :class:`SceneSetup`.
 
-    ``max_depth`` follows Mitsuba (3 = primary hit plus one extra scattering event, the
-    default); an XML scene's own integrator setting is used when it has one.
+    ``max_depth`` follows Mitsuba (3 = primary hit plus one extra scattering event; -1 = no
+    limit, Russian roulette from depth 5). Without the argument: the scene's own (an XML
+    file's integrator, ``<include>``d files included; Mitsuba's default -1 for a file without
+    an integrator; 3 for the built-in scenes), else :data:`DEFAULT_MAX_DEPTH`. Frames record
+    it in ``meta["max_depth"]`` (Mitsuba's convention), where it came from in
+    ``meta["max_depth_from"]`` and the Russian-roulette depth in ``meta["rr_depth"]``.
     ``frozen=True`` records the per-frame kernels with ``dr.freeze`` and replays them on
     later frames of the same size (Python tracing otherwise costs ~0.35 s per frame)."""
 
     def __init__(self, setup: SceneSetup, max_depth: int | None = None, seed: int = 0,
                  frozen: bool = True):
         self.setup = setup
-        md = int(max_depth if max_depth is not None else (setup.max_depth or 3))
+        if max_depth is not None:
+            md, self.max_depth_from = max_depth, "argument"
+        elif setup.max_depth is not None:
+            md, self.max_depth_from = setup.max_depth, setup.max_depth_from or "scene"
+        else:
+            md, self.max_depth_from = DEFAULT_MAX_DEPTH, "glossrt's default"
         try:
-            self.max_depth = resolve_max_depth(md)
+            self.max_depth = resolve_max_depth(int(md))
         except ValueError as e:
             raise GlossrtError(str(e)) from None
         self.seed = seed
@@ -135,21 +148,30 @@ class Renderer:
         self.n_meshes = len(setup.shapes)
 
     # -- low level ---------------------------------------------------------------------
+    @property
+    def mitsuba_max_depth(self) -> int:
+        """``max_depth`` in Mitsuba's convention (-1: no limit)."""
+        return -1 if self.max_depth == UNBOUNDED_DEPTH else self.max_depth
+
     def _motion_inputs(self, frame: int) -> MotionInputs:
         prev = frame - 1 if frame > 0 else frame
         return MotionInputs(self.setup.camera(prev), self.setup.object_transforms(frame),
                             self.setup.object_transforms(prev), self.n_meshes)
 
     def trace(self, frame: int, pixel: mi.UInt32, seed: mi.UInt32,
-              frozen: bool | None = None, jitter: tuple[float, float] = (0.0, 0.0)) -> dict:
+              frozen: bool | None = None, jitter: tuple[float, float] = (0.0, 0.0),
+              jitter_limit: float = 0.5) -> dict:
         """Poses ``frame`` and returns every channel (interleaved flat arrays) for the pixel
         indices ``pixel`` with per-lane (or one opaque) seed; primary rays pass through
-        pixel centre + ``jitter`` (pixels)."""
+        pixel centre + ``jitter`` (pixels, within ``[-jitter_limit, jitter_limit)``)."""
         self.setup.set_frame(frame)
         frozen = self.frozen if frozen is None else frozen
         fn = self._trace_frozen if frozen else _trace
-        jx, jy = _check_jitter(jitter)
-        offset = mi.Point2f(dr.opaque(mi.Float, jx), dr.opaque(mi.Float, jy))
+        jx, jy = _check_jitter(jitter, jitter_limit)
+        # None: primary rays through the pixel centres, which then also give the motion
+        # (a jittered frame traces one more ray per pixel, through its centre, for it)
+        offset = (None if (jx, jy) == (0.0, 0.0)
+                  else mi.Point2f(dr.opaque(mi.Float, jx), dr.opaque(mi.Float, jy)))
         with no_gc():
             out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
                      self._motion_inputs(frame), pixel, seed, self.width, self.height,
@@ -165,9 +187,9 @@ class Renderer:
         own, independent of :meth:`render_reference`'s) and the G-buffer is unchanged."""
         idx = np.asarray(pixels, dtype=np.int64).ravel()
         if idx.size and (idx.min() < 0 or idx.max() >= self.width * self.height):
-            raise ValueError(f"pixel indices must lie in [0, {self.width * self.height})")
+            raise GlossrtError(f"pixel indices must lie in [0, {self.width * self.height})")
         if spp < 1:
-            raise ValueError(f"spp must be >= 1, got {spp}")
+            raise GlossrtError(f"spp must be >= 1, got {spp}")
         if idx.size == 0:
             idx = np.zeros(0, np.int64)
         s = frame_seed(frame, self.seed if seed is None else seed)
@@ -190,16 +212,17 @@ class Renderer:
 
     # -- frames --------------------------------------------------------------------------
     def render(self, frame: int, seed: int | None = None,
-               jitter: tuple[float, float] = (0.0, 0.0)) -> Frame:
+               jitter: tuple[float, float] = (0.0, 0.0), jitter_limit: float = 0.5) -> Frame:
         """The 1 spp Frame ``frame`` (G-buffer, separated radiance, motion vectors).
         ``jitter``: sub-pixel offset (x, y) of every primary ray from its pixel centre, in
         pixels within [-0.5, 0.5) (e.g. for spatio-temporal upsampling); recorded in
-        ``meta["jitter"]``."""
+        ``meta["jitter"]``. ``jitter_limit`` widens that range (a Gaussian pixel filter's
+        samples reach into the neighbouring pixels: :func:`glossrt.specaa.reference`)."""
         w, h = self.width, self.height
         t0 = time.perf_counter()
         s = frame_seed(frame, self.seed if seed is None else seed)
         out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
-                         jitter=jitter)
+                         jitter=jitter, jitter_limit=jitter_limit)
         bad = int(out.pop("nonfinite")[0])
         channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
         f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
@@ -212,7 +235,7 @@ class Renderer:
         """A converged Frame: ``spp`` independent 1 spp estimates per pixel averaged, with the
         same pixel-centre primary hits (so it differs from :meth:`render` only by noise)."""
         if spp < 1:
-            raise ValueError(f"spp must be >= 1, got {spp}")
+            raise GlossrtError(f"spp must be >= 1, got {spp}")
         w, h = self.width, self.height
         n_pix = w * h
         k = max(1, min(spp, MAX_LANES // max(n_pix, 1)))
@@ -259,7 +282,7 @@ class Renderer:
             raise GlossrtError(f"render_mitsuba: integrator must be 'path' or 'direct', "
                                f"got {integrator!r}")
         self.setup.set_frame(frame)
-        md = -1 if self.max_depth == UNBOUNDED_DEPTH else self.max_depth
+        md = self.mitsuba_max_depth
         integrator = mi.load_dict({"type": "path", "max_depth": md} if integrator == "path"
                                   else {"type": "direct"})
         img = mi.render(self.setup.scene, sensor=self.setup.sensor, integrator=integrator,
@@ -274,7 +297,9 @@ class Renderer:
             "scene": self.setup.name,
             "spp": spp,
             "seed": self.seed,
-            "max_depth": self.max_depth,
+            "max_depth": self.mitsuba_max_depth,
+            "max_depth_from": self.max_depth_from,
+            "rr_depth": RR_DEPTH,
             "reference": reference,
             "nonfinite_samples": int(bad),
             "render_seconds": seconds,

@@ -37,13 +37,19 @@ AOV_LAYERS = (
 
 
 class GlossrtIntegrator(mi.SamplingIntegrator):
-    """Separated radiance + G-buffer AOVs. Parameter: ``max_depth`` (int, default 3)."""
+    """Separated radiance + G-buffer AOVs. Parameter: ``max_depth`` (int, default 3).
+
+    ``depth`` is measured along the axis of the sensor being rendered (the one ``render``
+    gets, e.g. ``mi.render(scene, sensor=posed_sensor)``), not ``scene.sensors()[0]``. The
+    scene's shape and emitter tables are built for each ``render`` call and dropped after it
+    (about 10 ms), so a later scene can never be served another scene's tables (a cache keyed
+    by ``id(scene)`` could be, once a new scene took a freed one's address)."""
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.max_depth = resolve_max_depth(int(props.get("max_depth", 3)))
-        self._tables: dict[int, ShapeTable] = {}
-        self._emitters: dict[int, EmitterTable] = {}
+        #: (scene, sensor, ShapeTable, EmitterTable) while ``render`` runs, else None
+        self._current = None
         from ..brdf.ggx import SpecularAlbedoTable
 
         self.albedo = SpecularAlbedoTable.load()
@@ -51,24 +57,29 @@ class GlossrtIntegrator(mi.SamplingIntegrator):
     def aov_names(self):
         return [f"{name}.{c}" for name, comps in AOV_LAYERS for c in comps]
 
-    def _shapes(self, scene: mi.Scene) -> ShapeTable:
-        key = id(scene)
-        if key not in self._tables:
-            self._tables[key] = ShapeTable(scene)
-        return self._tables[key]
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        self._current = (scene, sensor, ShapeTable(scene), EmitterTable(scene))
+        try:
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        finally:
+            self._current = None
 
-    def _emitter_table(self, scene: mi.Scene) -> EmitterTable:
-        """Stable emitter order for NEE (built once per scene, not per ``sample`` call)."""
-        key = id(scene)
-        if key not in self._emitters:
-            self._emitters[key] = EmitterTable(scene)
-        return self._emitters[key]
+    def _tables(self, scene: mi.Scene):
+        """(sensor, ShapeTable, EmitterTable) of the ``render`` call under way; outside one
+        (``sample`` called directly) the scene's first sensor and fresh tables."""
+        cur = self._current
+        if cur is not None and cur[0] is scene:
+            return cur[1:]
+        return scene.sensors()[0], ShapeTable(scene), EmitterTable(scene)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         ray = mi.Ray3f(ray)
-        r = shade(scene, sampler, ray, self.max_depth, self._emitter_table(scene))
-        sensor = scene.sensors()[0]
-        gb = gbuffer(r.si, r.bsdf, ray, sensor, self._shapes(scene), self.albedo)
+        sensor, shapes, emitters = self._tables(scene)
+        r = shade(scene, sampler, ray, self.max_depth, emitters)
+        # depth along the axis of the sensor being rendered (the posed camera)
+        gb = gbuffer(r.si, r.bsdf, ray, sensor, shapes, self.albedo)
         values = {name: getattr(r, name) for name in RADIANCE_OUT}
         values.update(gb)
         values["depth"] = dr.select(r.si.is_valid(), gb["depth"], 0.0)  # films can't average inf

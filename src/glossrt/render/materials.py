@@ -150,7 +150,11 @@ def diffuse_scale(bsdf: mi.BSDF, samples: int = 32) -> np.ndarray:
 def describe_bsdf(bsdf: mi.BSDF) -> Material:
     """Lobes, roughness and Fresnel F0 (normal incidence) of a supported Mitsuba BSDF, looking
     through ``twosided`` and ``normalmap`` wrappers (the nested BSDF's roughness and F0), and
-    whether a normal map perturbs its shading normal (``Material.normal_map``)."""
+    whether a normal map perturbs its shading normal (``Material.normal_map``). A negative or
+    non-finite roughness raises :class:`glossrt.errors.SceneError` naming the BSDF."""
+    from ..scenes import check_roughness
+
+    check_roughness(bsdf)  # a negative alpha never reaches the roughness channel
     flags = int(bsdf.flags())
     has_d = bool(flags & int(mi.BSDFFlags.Diffuse))
     has_s = bool(flags & (int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta)))

@@ -12,7 +12,10 @@ power-heuristic MIS, Russian roulette from depth 5) with the contributions split
 * ``direct_*``: paths with exactly one scattering event (NEE at the primary hit, plus the
   BSDF-sampled ray from the primary hit that reaches an emitter), split by BSDF lobe with
   ``BSDFContext.type_mask`` (diffuse vs everything else: glossy and delta);
-* ``indirect_*``: longer paths, attributed to the lobe sampled at the primary hit.
+* ``indirect_*``: longer paths, split between the lobes of the primary hit by each lobe's
+  own ``f_lobe / p`` at the sampled direction (``p`` the pdf of the BSDF's sampling
+  mixture), so each channel estimates its lobe's integral ``∫ f_lobe L cos``; the
+  BSDF-sampled part of ``direct_*`` is split the same way.
 
 Primary rays go through pixel centres, so the G-buffer is noise-free and deterministic;
 random numbers come from a PCG32 stream keyed by (pixel index, seed), so rendering a subset
@@ -33,6 +36,7 @@ import numpy as np
 
 from ..brdf.fresnel import ROW, split_sum
 from ..brdf.microfacet import BECKMANN, GGX
+from ..errors import GlossrtError
 from ..scenes import stable_emitters, stable_shapes
 from .materials import NORMAL_MAP_TWOSIDED
 
@@ -47,7 +51,7 @@ UNBOUNDED_DEPTH = 1 << 30
 def resolve_max_depth(max_depth: int) -> int:
     """Mitsuba's convention: -1 = unbounded; 0 or below -1 is an error."""
     if max_depth == 0 or max_depth < -1:
-        raise ValueError(f"max_depth must be >= 1, or -1 for unbounded; got {max_depth}")
+        raise GlossrtError(f"max_depth must be >= 1, or -1 for unbounded; got {max_depth}")
     return UNBOUNDED_DEPTH if max_depth == -1 else max_depth
 
 RADIANCE_OUT = ("emission", "direct_diffuse", "direct_specular", "indirect_diffuse",
@@ -220,7 +224,21 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
 
     # BSDF sampling at the primary hit decides the lobe of everything further along
     bs, bsdf_w = bsdf0.sample(ctx_all, si0, sampler.next_1d(), sampler.next_2d(), act0)
-    lobe_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
+    # Each lobe's share of what this sample carries: f_lobe / p_mix of the sampled direction,
+    # i.e. the fraction f_lobe / f of the sample's weight f / p_mix (the lobes' f sum to f),
+    # so indirect_diffuse estimates the integral of f_diffuse L and indirect_specular that of
+    # f_specular L whatever lobe the sample came from (a mixture's sample weight holds every
+    # lobe: roughplastic's f / p_mix is diffuse and glossy). A delta sample is all specular
+    # (its direction has measure zero for the other lobes, which eval() reports as 0).
+    delta0 = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    sampled_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
+    f_d0 = mi.Color3f(bsdf0.eval(ctx_d, si0, bs.wo, act0 & ~delta0))
+    f_s0 = mi.Color3f(bsdf0.eval(ctx_s, si0, bs.wo, act0 & ~delta0))
+    f_sum = f_d0 + f_s0
+    share_d = dr.select(f_sum > 0, f_d0 / dr.select(f_sum > 0, f_sum, 1.0),
+                        dr.select(sampled_diffuse, 1.0, 0.0))
+    share_d = dr.select(delta0, 0.0, share_d)
+    share_s = 1.0 - share_d
     beta = mi.Spectrum(bsdf_w)
     prev_si = dr.detach(si0)
     prev_pdf = mi.Float(bs.pdf)
@@ -267,14 +285,14 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
         depth += 1
         active = active_next & dr.any(beta != 0.0)
 
-    direct_d += dr.select(lobe_diffuse, L_dir, 0.0)
-    direct_s += dr.select(lobe_diffuse, 0.0, L_dir)
+    direct_d += L_dir * share_d
+    direct_s += L_dir * share_s
     return ShadeResult(
         emission=emission,
         direct_diffuse=direct_d,
         direct_specular=direct_s,
-        indirect_diffuse=dr.select(lobe_diffuse, L_ind, 0.0),
-        indirect_specular=dr.select(lobe_diffuse, 0.0, L_ind),
+        indirect_diffuse=L_ind * share_d,
+        indirect_specular=L_ind * share_s,
         si=si0,
         bsdf=bsdf0,
     )
@@ -467,11 +485,16 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  jitter: mi.Point2f | None = None) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
-    ``jitter`` (pixels, in [-0.5, 0.5)) moves every primary ray off the pixel centre."""
+    ``jitter`` (pixels, in [-0.5, 0.5), or wider by ``Renderer.render``'s ``jitter_limit``)
+    moves every primary ray off the pixel centre; the ``motion`` channel stays that of the
+    pixel centre (docs/FORMATS.md: where the surface point seen through the pixel centre was
+    in the previous frame, what the reprojecting consumers fetch at ``centre + motion``),
+    from a primary ray of its own through the centre."""
     from .motion import motion
 
-    x = mi.Float(pixel % width) + 0.5
-    y = mi.Float(pixel // width) + 0.5
+    xc = mi.Float(pixel % width) + 0.5
+    yc = mi.Float(pixel // width) + 0.5
+    x, y = xc, yc
     if jitter is not None:
         x, y = x + jitter.x, y + jitter.y
     pos = mi.Point2f(x / width, y / height)
@@ -490,11 +513,19 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
         out[name] = v
         color += v
     out["color"] = color
-    valid = r.si.is_valid()
+    if jitter is None:
+        ray_c, si_c, mesh_c = ray, r.si, mi.UInt32(out["mesh_id"])
+    else:  # the pixel centre's own primary hit
+        ray_c, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(xc / width, yc / height),
+                                     mi.Point2f(0.5, 0.5))
+        si_c = scene.ray_intersect(ray_c, ray_flags=mi.RayFlags.Minimal, coherent=True)
+        rid = dr.select(si_c.is_valid(), dr.reinterpret_array(mi.UInt32, si_c.shape), 0)
+        mesh_c = dr.gather(mi.UInt32, shapes.index, rid, si_c.is_valid())
     # background: a far point along the ray, so camera rotation still moves the sky
-    p_motion = dr.select(valid, mi.Vector3f(r.si.p), mi.Vector3f(ray.o + ray.d * 1e6))
-    out["motion"] = motion(p_motion, mi.UInt32(out["mesh_id"]), mi.Bool(True),
-                           mi.Point2f(x, y), motion_inputs)
+    p_motion = dr.select(si_c.is_valid(), mi.Vector3f(si_c.p),
+                         mi.Vector3f(ray_c.o + ray_c.d * 1e6))
+    out["motion"] = motion(p_motion, mesh_c, mi.Bool(True), mi.Point2f(xc, yc),
+                           motion_inputs)
     # one kernel for everything (a reduction first would re-run the path tracing for it)
     dr.eval(out, bad)
     out["nonfinite"] = dr.sum(bad)

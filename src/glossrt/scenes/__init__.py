@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
@@ -197,12 +198,16 @@ class SceneSetup:
         camera_path: Callable[[int], Matrix] | None = None,
         object_paths: dict[str, Callable[[int], Matrix]] | None = None,
         max_depth: int | None = None,
+        max_depth_from: str | None = None,
         source: str | None = None,
     ):
         self.name = name
         self.scene = scene
         self.source = source
+        #: path depth in Mitsuba's convention (-1: no limit), None: the renderer's default
         self.max_depth = max_depth
+        #: where ``max_depth`` comes from (the frames' ``meta["max_depth_from"]``)
+        self.max_depth_from = max_depth_from if max_depth is not None else None
         sensors = scene.sensors()
         if not sensors:
             raise SceneError(f"{name}: the scene has no sensor (camera)")
@@ -218,10 +223,8 @@ class SceneSetup:
             raise SceneError(f"{name}: the camera has a NaN/Inf transform or field of view")
         check_finite_geometry(scene, name)
         film_size = tuple(int(v) for v in s0.film().size())
-        self.size = tuple(size) if size is not None else film_size
+        self.size = check_size(size) if size is not None else film_size
         w, h = self.size
-        if w <= 0 or h <= 0:
-            raise SceneError(f"image size must be positive, got {w}x{h}")
         near = float(p0["near_clip"]) if "near_clip" in p0.keys() else 1e-2
         far = float(p0["far_clip"]) if "far_clip" in p0.keys() else 1e4
         self.sensor = mi.load_dict(
@@ -334,44 +337,165 @@ class SceneSetup:
 # -- loading ------------------------------------------------------------------------------
 
 
-def _check_xml_plugins(path: str) -> int | None:
-    """Reject unsupported plugins before Mitsuba loads the file; return the integrator's
-    ``max_depth`` when the file sets one."""
+#: Mitsuba class names (``obj.class_name()``) of the supported plugins -> their plugin names
+_BSDF_CLASSES = {"SmoothDiffuse": "diffuse", "SmoothConductor": "conductor",
+                 "RoughConductor": "roughconductor", "SmoothPlastic": "plastic",
+                 "RoughPlastic": "roughplastic", "TwoSidedBRDF": "twosided",
+                 "NormalMap": "normalmap"}
+_EMITTER_CLASSES = {"AreaLight": "area", "PointLight": "point",
+                    "ConstantBackgroundEmitter": "constant", "EnvironmentMapEmitter": "envmap",
+                    "DirectionalEmitter": "directional"}
+#: what a scene file without an integrator gets: Mitsuba's ``path`` default, max_depth -1
+#: (unbounded; Russian roulette ends the paths from depth 5)
+MITSUBA_DEFAULT_MAX_DEPTH = -1
+
+
+def _unsupported(kind: str, obj, supported) -> str:
+    cls = obj.class_name()
+    return (f"{kind} {obj.id()!r} is a Mitsuba {cls} ({cls.lower()}), which glossrt's renderer "
+            f"does not support (supported plugins: {', '.join(sorted(supported))})")
+
+
+class _Children(mi.TraversalCallback):
+    """Collects the BSDFs nested in a BSDF (``Object.traverse``: twosided's sides, a
+    normalmap's nested BSDF)."""
+
+    def __init__(self):
+        super().__init__()
+        self.bsdfs = []
+
+    def put(self, name, value, *flags):
+        if isinstance(value, mi.BSDF):
+            self.bsdfs.append(value)
+
+
+def _nested_bsdfs(bsdf) -> list:
+    """``bsdf`` and every BSDF nested in it, depth first."""
+    cb = _Children()
+    bsdf.traverse(cb)
+    out = [bsdf]
+    for child in cb.bsdfs:
+        out += _nested_bsdfs(child)
+    return out
+
+
+_ROUGHNESS_KEYS = ("alpha", "alpha.value", "alpha_u", "alpha_u.value", "alpha_v",
+                   "alpha_v.value", "alpha.data")
+
+
+def check_roughness(bsdf, where: str = "") -> None:
+    """Raise :class:`SceneError` naming ``bsdf`` (and ``where`` it is) when its microfacet
+    roughness (``alpha``, ``alpha_u``, ``alpha_v``, constant or a texture's values) is
+    negative or not finite. Mitsuba's ``roughconductor`` takes such values as they are
+    (``roughplastic`` clamps them to 1e-4 itself, so they never reach here)."""
+    params = mi.traverse(bsdf)
+    for key in params.keys():
+        if not any(key == k or key.endswith("." + k) for k in _ROUGHNESS_KEYS):
+            continue
+        v = np.asarray(params[key], dtype=np.float64).ravel()
+        if v.size and (not np.isfinite(v).all() or v.min() < 0):
+            bad = v[~np.isfinite(v) | (v < 0)][0]
+            prefix = f"{where}: " if where else ""
+            raise SceneError(f"{prefix}BSDF {bsdf.id()!r} ({bsdf.class_name()}): roughness "
+                             f"{key} = {bad:g}; microfacet roughness must be >= 0")
+
+
+def check_plugins(scene: mi.Scene, name: str) -> None:
+    """Raise :class:`SceneError` for a BSDF (nested ones included) or emitter of the LOADED
+    scene that glossrt's renderer does not support, or a BSDF with a negative roughness
+    (:func:`check_roughness`). What Mitsuba loaded is checked, so
+    ``<include>``d files, ``$parameters`` and built-in scene dicts are covered alike."""
+    for shape in stable_shapes(scene):
+        bsdf = shape.bsdf()
+        if bsdf is None:
+            continue
+        for b in _nested_bsdfs(bsdf):
+            if b.class_name() not in _BSDF_CLASSES:
+                raise SceneError(f"{name}: shape {shape.id()!r}: "
+                                 + _unsupported("BSDF", b, SUPPORTED_BSDFS))
+            check_roughness(b, f"{name}: shape {shape.id()!r}")
+    for e in scene.emitters():
+        if e.class_name() not in _EMITTER_CLASSES:
+            raise SceneError(f"{name}: " + _unsupported("emitter", e, SUPPORTED_EMITTERS))
+
+
+_INT_FIELD = r"{}\s*=\s*(-?\d+)"
+
+
+def integrator_max_depth(scene: mi.Scene, name: str) -> int:
+    """``max_depth`` of the loaded scene's integrator, in Mitsuba's convention (-1: no
+    limit). Mitsuba exposes it only in the integrator's string form (``mi.traverse`` gives
+    no parameters); an unsigned -1 (``volpath`` prints 4294967295) reads as -1. A scene
+    without an integrator gets Mitsuba's default, -1 (:data:`MITSUBA_DEFAULT_MAX_DEPTH`).
+    An integrator without a ``max_depth`` (``direct``, ``aov``, ...) is refused: glossrt
+    cannot tell which paths it renders."""
+    integrator = scene.integrator()
+    if integrator is None:
+        return MITSUBA_DEFAULT_MAX_DEPTH
+    m = re.search(_INT_FIELD.format("max_depth"), str(integrator))
+    if m is None:
+        raise SceneError(f"{name}: integrator {integrator.class_name()} has no max_depth; "
+                         "glossrt renders with a path tracer: use <integrator type=\"path\"> "
+                         "(or none, for Mitsuba's default max_depth -1)")
+    depth = int(m.group(1))
+    if depth >= 2**31 - 1:  # printed as an unsigned integer
+        depth = -1
+    return depth
+
+
+def _xml_plugin_types(path: str, seen: set | None = None) -> list[tuple[str, str]]:
+    """(tag, type) of every plugin element of an XML scene file and the files it
+    ``<include>``s (relative to the including file). Only used to explain a file that Mitsuba
+    could not load (e.g. twosided around a dielectric); what glossrt renders is checked on
+    the loaded scene (:func:`check_plugins`)."""
+    seen = set() if seen is None else seen
+    path = os.path.abspath(path)
+    if path in seen:
+        return []
+    seen.add(path)
     try:
         root = ET.parse(path).getroot()
-    except ET.ParseError as e:
-        raise SceneError(f"{path}: not a valid XML scene ({e})") from None
-    max_depth = None
-    # <default name="max_depth" value="5"/> supplies $max_depth unless overridden
-    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
+    except (ET.ParseError, OSError):
+        return []
+    out = []
     for el in root.iter():
-        kind, typ = el.tag, el.get("type")
-        if kind == "bsdf" and typ not in SUPPORTED_BSDFS:
-            raise SceneError(
-                f"{path}: BSDF plugin {typ!r} is not supported by glossrt's renderer "
-                f"(supported: {', '.join(sorted(SUPPORTED_BSDFS))})"
-            )
-        if kind == "emitter" and typ not in SUPPORTED_EMITTERS:
-            raise SceneError(
-                f"{path}: emitter plugin {typ!r} is not supported "
-                f"(supported: {', '.join(sorted(SUPPORTED_EMITTERS))})"
-            )
-        if kind == "sensor" and typ not in SUPPORTED_SENSORS:
-            raise SceneError(f"{path}: sensor plugin {typ!r} is not supported (use perspective)")
-        if kind == "integrator":
-            for child in el:
-                if child.get("name") == "max_depth":
-                    value = child.get("value") or ""
-                    if value.startswith("$"):
-                        value = defaults.get(value[1:], "")
-                    try:
-                        max_depth = int(value)
-                    except ValueError:
-                        raise SceneError(
-                            f"{path}: integrator max_depth {child.get('value')!r} is not an "
-                            "integer (nor a parameter with a <default>)"
-                        ) from None
-    return max_depth
+        if el.tag in ("bsdf", "emitter", "sensor") and el.get("type"):
+            out.append((el.tag, el.get("type")))
+        if el.tag == "include" and el.get("filename"):
+            out += _xml_plugin_types(os.path.join(os.path.dirname(path), el.get("filename")),
+                                     seen)
+    return out
+
+
+def _explain_load_error(path: str) -> str | None:
+    """Name an unsupported plugin of a file Mitsuba refused, when there is one."""
+    supported = {"bsdf": SUPPORTED_BSDFS, "emitter": SUPPORTED_EMITTERS,
+                 "sensor": SUPPORTED_SENSORS}
+    for tag, typ in _xml_plugin_types(path):
+        if typ not in supported[tag]:
+            return (f"{tag} plugin {typ!r} is not supported by glossrt's renderer "
+                    f"(supported: {', '.join(sorted(supported[tag]))})")
+    return None
+
+
+def check_size(size) -> tuple[int, int] | None:
+    """``size`` as ``(W, H)`` positive integers (at most :data:`MAX_SIDE`), or a
+    :class:`SceneError` saying what is wrong with it; None stays None."""
+    if size is None:
+        return None
+    try:
+        w, h = size
+    except (TypeError, ValueError):
+        raise SceneError(f"image size must be (width, height), got {size!r}") from None
+    for v in (w, h):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+            raise SceneError(f"image size must be two positive integers, got {size!r}")
+    w, h = int(w), int(h)
+    if w <= 0 or h <= 0:
+        raise SceneError(f"image size must be positive, got {w}x{h}")
+    if max(w, h) > MAX_SIDE:
+        raise SceneError(f"image size {w}x{h}: at most {MAX_SIDE} pixels a side")
+    return w, h
 
 
 def load(
@@ -385,10 +509,7 @@ def load(
 
     ``size`` (W, H) overrides the scene's film size; ``orbit`` (degrees over all
     ``frames``) adds a camera orbit to a scene without its own animation."""
-    if size is not None and (size[0] <= 0 or size[1] <= 0):
-        raise SceneError(f"image size must be positive, got {size[0]}x{size[1]}")
-    if size is not None and max(size) > MAX_SIDE:
-        raise SceneError(f"image size {size[0]}x{size[1]}: at most {MAX_SIDE} pixels a side")
+    size = check_size(size)
     if orbit is not None and not math.isfinite(float(orbit)):
         raise SceneError(f"orbit must be a finite number of degrees, got {orbit}")
     from . import library  # noqa: F401  (registers the built-in scenes)
@@ -406,17 +527,28 @@ def load(
             raise SceneError(f"{path} is a folder, not a scene file")
         if not os.path.isfile(path):
             raise SceneError(f"scene file not found: {path}")
-        max_depth = _check_xml_plugins(path)
+        try:
+            ET.parse(path)
+        except ET.ParseError as e:
+            raise SceneError(f"{path}: not a valid XML scene ({e})") from None
         try:
             scene = mi.load_file(path)
         except Exception as e:
+            why = _explain_load_error(path)
+            if why is not None:
+                raise SceneError(f"{path}: {why}") from None
             msg = str(e).strip().splitlines()[-1] if str(e).strip() else repr(e)
             raise SceneError(f"{path}: Mitsuba could not load the scene: {msg}") from None
+        # what Mitsuba loaded (``<include>``d files too), not the XML text
+        check_plugins(scene, path)
+        max_depth = integrator_max_depth(scene, path)
         setup = SceneSetup(
             os.path.splitext(os.path.basename(path))[0],
             scene,
             size=size,
             max_depth=max_depth,
+            max_depth_from=("scene file" if scene.integrator() is not None
+                            else "Mitsuba's default (the scene file sets no integrator)"),
             source=path,
         )
     if orbit:
@@ -435,8 +567,10 @@ def from_spec(name: str, spec: SceneSpec, *, size: tuple[int, int] | None = None
         scene = mi.load_dict(spec.scene_dict)
     except Exception as e:  # pragma: no cover - a bug in a built-in scene
         raise SceneError(f"scene {name!r} failed to load: {e}") from e
-    return SceneSetup(name, scene, size=size, camera_path=spec.camera_path,
-                      object_paths=spec.object_paths, max_depth=spec.max_depth)
+    check_plugins(scene, name)
+    return SceneSetup(name, scene, size=check_size(size), camera_path=spec.camera_path,
+                      object_paths=spec.object_paths, max_depth=spec.max_depth,
+                      max_depth_from="built-in scene")
 
 
 #: the largest image side: a G-buffer channel of 16384^2 RGB pixels still fits Dr.Jit's 2^32
