@@ -297,9 +297,12 @@ def test_partners_on_another_mesh_count_as_the_pixel_itself(plane):
 
 
 def test_avgnormal_and_projected_kernels_agree_on_a_curved_surface():
-    # Both read the same normal differences: slopes about the average normal (sigma^2 0.25,
-    # times 2) vs world-space differences (sigma_p^2 = 1 / 2 pi): for small differences the
-    # kernels' traces differ by 2 * 0.25 * 2 pi / 2 = pi / 2 per axis-summed trace
+    # Both read the same normal differences dn (small ones: a slope about the average normal
+    # is the normal's tangential offset to first order). avgnormal: A - alpha^2 I = 2 Sigma,
+    # Sigma = sigma^2 (du du^T + dv dv^T) with sigma^2 = 1/4 (Tokuyoshi, eqs. 1-2), so its
+    # trace is (1/2) (|dn_u|^2 + |dn_v|^2). projected (Tokuyoshi & Kaplanyan 2021): the
+    # isotropic kernel 2 sigma_p^2 (|dn_u|^2 + |dn_v|^2) with sigma_p^2 = 1 / (2 pi), i.e.
+    # (1/pi) (|dn_u|^2 + |dn_v|^2). Ratio of the two: (1/2) / (1/pi) = pi / 2.
     from glossrt import render
 
     setup = _setup(sphere=True, size=(96, 72))
@@ -313,7 +316,197 @@ def test_avgnormal_and_projected_kernels_agree_on_a_curved_surface():
     sel = ball & (k_proj > 1e-4) & (k_proj < 0.05)
     assert sel.sum() > 100
     ratio = k_avg[sel] / k_proj[sel]
-    assert np.median(ratio) == pytest.approx(math.pi, rel=0.05), np.median(ratio)
+    assert np.median(ratio) == pytest.approx(math.pi / 2, rel=0.05), np.median(ratio)
+
+
+def _field_normals(xs, ys, a, b, cx, cy):
+    """The analytic normal field n(x, y) = normalize(a (x - cx), 1, b (y - cy)) (world space,
+    about the floor's +y) at pixel coordinates (x, y)."""
+    v = np.stack(np.broadcast_arrays(a * (xs - cx), np.ones_like(xs * ys), b * (ys - cy)), -1)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_projected_kernel_is_twice_the_projected_normals_footprint_variance(plane):
+    # Tokuyoshi & Kaplanyan 2021 from first principles, in NumPy: a Gaussian pixel filter of
+    # variance sigma_p^2 = 1 / (2 pi) px^2 per axis (their choice: a unit-integral Gaussian of
+    # peak 1, like the unit box) spreads the normal over the footprint; in projected space
+    # (the normal's component in the tangent plane of the footprint's mean normal) that
+    # spread has a covariance Sigma, and the Beckmann-equivalent roughness of a Gaussian
+    # spread is alpha^2 = 2 x its variance (Tokuyoshi, eq. 2); the isotropic kernel takes
+    # the trace: alpha_k^2 = 2 tr(Sigma). Here by Gauss-Hermite quadrature over the footprint
+    # of an analytic normal field written into the G-buffer; glossrt sees only its quad
+    # differences. (Without eq. 2's factor 2 the kernel is half of this.)
+    from glossrt.frame import Frame
+
+    _, fr, _, _ = plane
+    ch = {k: fr.numpy(k).copy() for k in fr.names}
+    H, W = ch["normal"].shape[:2]
+    a, b, cx, cy = 0.02, -0.015, W / 2, H / 2  # tilted towards the camera far away
+    ys, xs = np.mgrid[0:H, 0:W] + 0.5
+    ch["normal"] = _field_normals(xs, ys, a, b, cx, cy).astype(np.float32)
+    f = Frame(channels=ch, camera=fr.camera, index=fr.index)
+    got = specaa.roughness_image(f, "projected:kappa=none")[..., 0].astype(float)
+    alpha2 = ch["roughness"][..., 0].astype(float) ** 2
+
+    s2 = 1.0 / (2.0 * math.pi)
+    t, w = np.polynomial.hermite_e.hermegauss(24)  # weight exp(-t^2 / 2)
+    w = w / w.sum()
+    ox, oy = np.meshgrid(math.sqrt(s2) * t, math.sqrt(s2) * t)
+    wgt = np.outer(w, w)
+    on = ch["mesh_id"][..., 0] > 0
+    iy, ix = np.mgrid[0:H, 0:W]
+    quad_on = on & on[iy, ix ^ 1] & on[iy ^ 1, ix]  # the pixel and both partners
+    quad_on &= (ix ^ 1 < W) & (iy ^ 1 < H)
+    wo = np.asarray(fr.camera.position, float) - ch["position"].astype(float)
+    quad_on &= np.sum(ch["normal"] * wo, -1) > 0  # shaded: the normal faces the camera
+    checked = 0
+    for y, x in zip(*np.nonzero(quad_on), strict=True):
+        n = _field_normals(x + 0.5 + ox, y + 0.5 + oy, a, b, cx, cy)  # (24, 24, 3)
+        m = np.einsum("ij,ijk->k", wgt, n)
+        m /= np.linalg.norm(m)
+        proj = n - np.einsum("ijk,k->ij", n, m)[..., None] * m  # projected-space normal
+        mean = np.einsum("ij,ijk->k", wgt, proj)
+        var = np.einsum("ij,ijk->", wgt, (proj - mean) ** 2)  # tr(Sigma)
+        want = 2.0 * var
+        # the quad difference stands for the derivative: O(a^2 |a (x - cx)|) relative apart
+        np.testing.assert_allclose(got[y, x] - alpha2[y, x], want, rtol=0.02,
+                                   err_msg=f"pixel {(x, y)}")
+        checked += 1
+    assert checked > 0.8 * H * W
+
+
+def test_kappa_option_clamps_every_method():
+    # METHOD:kappa=K clamps the added kernel's eigenvalues to K (Kaplanyan et al. 2016): the
+    # clamped matrix against NumPy's eigendecomposition of the unclamped one, on a sphere
+    from glossrt import render
+    from glossrt.lights.analytic import analytic_lights
+
+    setup = _setup(sphere=True, size=(64, 48))
+    fr = render.Renderer(setup).render(0)
+    lights = analytic_lights(setup, 0)
+    lamp = next(lt for lt in lights if hasattr(lt, "position"))
+    ball = fr.numpy("mesh_id")[..., 0] == setup.shape_index["ball"]
+    alpha2 = fr.numpy("roughness")[..., 0].astype(float) ** 2
+    for m in ("halfvector", "halfvector-bbox", "halfvector-eig", "avgnormal", "avgnormal-max",
+              "avgnormal-eig", "projected"):
+        light = lamp if m.startswith("halfvector") else None
+        base = f"{m}:kappa=none" if m == "projected" else m
+        au = specaa.roughness_image(fr, base, light).astype(float)
+        k = np.stack([np.stack([au[..., 0] - alpha2, au[..., 1]], -1),
+                      np.stack([au[..., 1], au[..., 2] - alpha2], -1)], -2)
+        lam, vec = np.linalg.eigh(k)
+        sel = ball & (lam[..., 1] + alpha2 < 0.95)  # A's own clamp at 1 not reached
+        kappa = float(np.percentile(lam[..., 1][sel], 60))
+        assert kappa > 1e-4, m
+        ac = specaa.roughness_image(fr, f"{m}:kappa={kappa:.6g}", light).astype(float)
+        kc = np.einsum("...ij,...j,...kj->...ik", vec, np.minimum(lam, float(f"{kappa:.6g}")),
+                       vec)
+        want = np.stack([kc[..., 0, 0] + alpha2, kc[..., 0, 1], kc[..., 1, 1] + alpha2], -1)
+        clamped = sel & (lam[..., 1] > 1.05 * kappa)
+        assert clamped.sum() > 0.2 * sel.sum(), m
+        np.testing.assert_allclose(ac[sel], want[sel], rtol=1e-3, atol=2e-6, err_msg=m)
+        assert np.abs(ac - au)[clamped].max() > 1e-4, m
+    # the projected default is 0.18
+    assert specaa.parse_method("projected").kappa == 0.18
+    assert specaa.parse_method("projected:kappa=none").kappa is None
+    assert specaa.parse_method(" AvgNormal-Eig:kappa=0.18 ").kappa == 0.18
+    assert specaa.parse_method("avgnormal-eig:kappa=0.18", kappa=0.18).kappa == 0.18
+
+
+@pytest.mark.parametrize("bad,match", [
+    ("avgnormal:kappa=-1", "positive"), ("avgnormal:kappa=0", "positive"),
+    ("avgnormal:kappa=nan", "positive"), ("avgnormal:kappa=inf", "positive"),
+    ("avgnormal:kappa=abc", "number"), ("avgnormal:kappa=", "only option"),
+    ("avgnormal:sigma=1", "only option"), ("none:kappa=0.1", "no kernel"),
+    ("projected:kappa=-0.1", "positive"), ("bogus:kappa=0.1", "unknown specular")])
+def test_kappa_option_rejects_bad_values(bad, match):
+    with pytest.raises(GlossrtError, match=match):
+        specaa.parse_method(bad)
+
+
+def test_kappa_argument_is_checked_for_every_method():
+    for m in ("projected", "avgnormal-eig", "halfvector"):
+        with pytest.raises(GlossrtError, match="positive"):
+            specaa.parse_method(m, kappa=-0.5)
+    with pytest.raises(GlossrtError, match="twice"):
+        specaa.parse_method("avgnormal:kappa=0.1", kappa=0.2)
+
+
+def test_gaussian_subpixel_offsets_have_the_pixel_filter_variance():
+    # Tokuyoshi, eq. 1: a Gaussian pixel filter of variance 0.25 px^2 per axis. Checked with
+    # NumPy's moments and the normal CDF (math.erf), not with the module's constant.
+    for spp in (64, 256):
+        o = specaa.subpixel_offsets(spp, "gaussian")
+        assert o.shape == (spp, 2)
+        np.testing.assert_allclose(o.mean(axis=0), 0.0, atol=1e-12)
+        np.testing.assert_allclose(np.cov(o.T, bias=True), 0.25 * np.eye(2), atol=1e-12)
+        xs = np.unique(o[:, 0])
+        n = xs.size
+        assert n * n == spp
+        # each per-axis value is one stratum of equal probability: its normal-CDF value is
+        # within the stratum [i/n, (i+1)/n) (up to the few-% stretch to the exact variance)
+        cdf = np.array([0.5 * (1 + math.erf(x / (0.5 * math.sqrt(2)))) for x in xs])
+        np.testing.assert_allclose(cdf, (np.arange(n) + 0.5) / n, atol=0.6 / n)
+        assert np.abs(o).max() > 0.5  # the filter reaches into the neighbouring pixels
+    box = specaa.subpixel_offsets(16)
+    assert box.min() >= -0.5 and box.max() < 0.5
+    np.testing.assert_allclose(np.cov(box.T, bias=True), (1 - 1 / 16) / 12 * np.eye(2))
+    np.testing.assert_array_equal(specaa.subpixel_offsets(1, "gaussian"), [[0.0, 0.0]])
+    with pytest.raises(GlossrtError, match="pixel filter"):
+        specaa.subpixel_offsets(16, "tent")
+
+
+def _strips_scene(rfilter: dict, size=(24, 16)) -> dict:
+    """Five thin diffuse strips (about 1.3 px wide, 1.2 px apart) facing the camera, lit by a
+    point light; black margins of several pixels around them."""
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "fov": 40, "fov_axis": "x",
+                    "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0]),
+                    "sampler": {"type": "stratified", "sample_count": 1024},
+                    "film": {"type": "hdrfilm", "width": size[0], "height": size[1],
+                             "rfilter": rfilter}},
+         "lamp": {"type": "point", "position": [0.3, 0.4, 2.0],
+                  "intensity": {"type": "rgb", "value": [3.0, 3.0, 3.0]}}}
+    for i in range(5):
+        d[f"strip{i}"] = {
+            "type": "rectangle",
+            "to_world": T().translate([-0.55 + 0.23 * i, 0.0, 0.0]).scale([0.06, 0.35, 1.0]),
+            "bsdf": {"type": "diffuse",
+                     "reflectance": {"type": "rgb", "value": [0.6, 0.6, 0.6]}}}
+    return d
+
+
+def test_gaussian_reference_matches_mitsubas_gaussian_pixel_filter():
+    # The Gaussian-filtered reference against Mitsuba's own render of the same scene with its
+    # `gaussian` reconstruction filter (stddev 0.5 px: variance 0.25) and direct integrator
+    # (1024 stratified samples): thin diffuse strips, where the pixel filter matters (the box
+    # and Gaussian Mitsuba images differ by ~5x the error allowed here). Measured: mean
+    # |error| 7.5e-4 at variance 0.25; 1.1e-3 at 0.20 and 1.2e-3 at 0.30.
+    from glossrt import render, scenes
+    from glossrt.lights.analytic import analytic_lights
+    from glossrt.scenes import SceneSpec
+
+    cam = T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0]).matrix.numpy()
+    setup = scenes.from_spec("strips", SceneSpec(_strips_scene({"type": "box"}),
+                                                 camera_path=lambda i: cam))
+    rend = render.Renderer(setup)
+    lights = analytic_lights(setup, 0)
+    ref_g = specaa.reference(rend, 0, lights, (), spp=256, pixel_filter="gaussian")
+    ref_b = specaa.reference(rend, 0, lights, (), spp=256)
+
+    def mitsuba(rfilter):
+        sc = mi.load_dict(_strips_scene(rfilter))
+        return np.array(mi.render(sc, integrator=mi.load_dict({"type": "direct"}), spp=1024))
+
+    mit_g = mitsuba({"type": "gaussian", "stddev": 0.5})
+    mit_b = mitsuba({"type": "box"})
+    filt = np.abs(mit_g - mit_b).mean()
+    assert filt > 3e-3  # the filters differ visibly here
+    assert np.abs(ref_b - mit_b).mean() < 0.2 * filt  # same shading, box filter
+    assert np.abs(ref_g - mit_g).mean() < 1e-3
+    assert np.abs(ref_g - mit_g).max() < 0.3 * np.abs(mit_g - mit_b).max()
+    with pytest.raises(GlossrtError, match="pixel filter"):
+        specaa.reference(rend, 0, lights, (), spp=16, pixel_filter="gauss")
 
 
 def test_unfiltered_shading_is_the_isotropic_brdf(plane):
@@ -441,14 +634,22 @@ def test_cli_render_writes_the_specaa_channel(tmp_path, capsys):
     img = f.numpy("specaa")
     assert img.shape == (18, 32, 3) and np.isfinite(img).all() and img.max() > 0
     assert f.meta["specaa"] == "avgnormal-eig"
+    assert main(["render", "normal-mapped", "--size", "16x8", "--specaa",
+                 "avgnormal-eig:kappa=0.01", "--out", str(tmp_path / "k")]) == 0
+    fk = Frame.load(str(sorted((tmp_path / "k").glob("*.exr"))[0]))
+    assert fk.meta["specaa"] == "avgnormal-eig:kappa=0.01"
     assert main(["render", "normal-mapped", "--size", "8x8", "--specaa", "bogus",
                  "--out", str(tmp_path / "x")]) == 2
+    assert main(["render", "normal-mapped", "--size", "8x8", "--specaa",
+                 "avgnormal:kappa=-1", "--out", str(tmp_path / "z")]) == 2
     assert main(["render", "normal-mapped", "--size", "8x8", "--specaa", "none", "--reference",
                  "--out", str(tmp_path / "y")]) == 2
     err = capsys.readouterr().err
     assert "unknown specular antialiasing method 'bogus'" in err
     assert "experiment --which specaa" in err
+    assert "kappa must be a positive finite number, got -1.0" in err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    assert not (tmp_path / "z").exists()
 
 
 def test_frame_free_eigenvalue_matches_the_basis_form():

@@ -28,14 +28,18 @@ Methods (``method=`` everywhere; :data:`METHODS` lists the evaluated ones):
   Antialiasing", I3D 2019, and "Stable Geometric Specular Antialiasing with Projected-Space NDF
   Filtering", JCGT 10(2), 2021, eq. 14): isotropic, from the screen-space differences of the
   world-space normal (the projected-space derivative, which does not blow up at grazing
-  angles like slopes do): ``alpha'^2 = min(1, alpha^2 + min(sigma_p^2 (|dn_u|^2 + |dn_v|^2),
-  kappa))`` with ``sigma_p^2 = 1 / (2 pi)`` and the clamp ``kappa = 0.18``.
+  angles like slopes do): ``alpha'^2 = min(1, alpha^2 + min(2 sigma_p^2 (|dn_u|^2 +
+  |dn_v|^2), kappa))`` with ``sigma_p^2 = 1 / (2 pi)`` and the clamp ``kappa = 0.18``. The
+  factor 2 is eq. 2's: a Beckmann ``alpha^2`` is twice the variance of the slopes, here the
+  variance ``sigma_p^2 (|dn_u|^2 + |dn_v|^2)`` of the projected normal over the footprint.
 
 Every ``SOURCE-FORM`` pair also works (``halfvector-eig``, ``avgnormal-bbox``...): sources
 ``halfvector`` / ``avgnormal``, forms ``cov`` (default, anisotropic), ``bbox``, ``max``,
 ``eig``. All methods clamp the filtered matrix's eigenvalues to at most 1 (GGX ``alpha <= 1``);
-``kappa`` (default: none for the paper's methods, 0.18 for ``projected``) also clamps the
-added kernel's eigenvalues.
+``kappa`` (Kaplanyan et al.'s clamp of the added kernel's eigenvalues; default: none for the
+paper's methods, 0.18 for ``projected``) is set for any method by a suffix of its name,
+``METHOD:kappa=K`` (``avgnormal-eig:kappa=0.18``; ``projected:kappa=none`` removes
+projected's clamp), which the CLI's ``--specaa METHOD`` accepts too, or by ``kappa=``.
 
 Conventions:
 
@@ -60,7 +64,10 @@ Conventions:
   Smith term of point and directional lights.
 
 The reference (:func:`reference`) averages the unfiltered shading over ``spp`` stratified
-sub-pixel positions (a box pixel filter): what filtering tries to approximate with one sample.
+sub-pixel positions: what filtering tries to approximate with one sample. Its pixel filter
+(:data:`PIXEL_FILTERS`) is a box (positions in the pixel) or the Gaussian of variance
+``sigma^2 = 0.25`` px^2 per axis that Tokuyoshi's eq. 1 assumes (positions spread over the
+neighbouring pixels, :func:`subpixel_offsets`).
 
 References:
     A. Kaplanyan, S. Hill, A. Patney, A. Lefohn, "Filtering Distributions of Normals for
@@ -104,6 +111,9 @@ METHODS = ("none", "halfvector", "halfvector-bbox", "avgnormal", "avgnormal-max"
            "avgnormal-eig", "projected")
 #: variance of the Gaussian pixel filter in pixels^2 (Tokuyoshi, eq. 1)
 SIGMA2 = 0.25
+#: pixel filters of the supersampled reference (:func:`reference`): ``"box"`` (the pixel's
+#: square) or ``"gaussian"`` (variance :data:`SIGMA2` per axis, Tokuyoshi's eq. 1)
+PIXEL_FILTERS = ("box", "gaussian")
 #: pixel-filter variance and kernel clamp of projected-space filtering (Tokuyoshi & Kaplanyan
 #: 2021, eq. 14)
 SIGMA2_PROJECTED = 1.0 / (2.0 * math.pi)
@@ -138,26 +148,61 @@ class Method:
         return self.source == "halfvector"
 
 
+_NO_CLAMP = "none"
+
+
+def _parse_kappa(name: str, option: str) -> float | str:
+    """The clamp of a ``METHOD:kappa=K`` suffix: a positive finite number or ``"none"``."""
+    key, eq, value = option.partition("=")
+    value = value.strip()
+    if key.strip() != "kappa" or not eq or not value:
+        raise GlossrtError(f"specular antialiasing method {name!r}: the only option is "
+                           f"':kappa=K' (K > 0, or 'none'), got {option!r}")
+    if value == _NO_CLAMP:
+        return _NO_CLAMP
+    try:
+        return float(value)
+    except ValueError:
+        raise GlossrtError(f"specular antialiasing method {name!r}: kappa must be a number "
+                           f"or 'none', got {value!r}") from None
+
+
 def parse_method(name: str, kappa: float | None = None, masking: str = "filtered") -> Method:
     """The :class:`Method` of ``name`` (see the module docstring); a clear error otherwise.
-    ``kappa`` overrides the default clamp of the kernel (``projected``: 0.18, others none);
+    ``name`` may end in ``:kappa=K`` (a positive clamp of the added kernel's eigenvalues,
+    Kaplanyan et al. 2016; ``none``: no clamp); ``kappa`` does the same as an argument (both
+    given: an error unless they agree). Default clamp: ``projected`` 0.18, others none.
     ``masking``: :data:`MASKING`."""
     key = str(name).strip().lower()
     if masking not in MASKING:
         raise GlossrtError(f"masking must be one of {MASKING}, got {masking!r}")
-    if key in ("none", "projected"):
-        k = KAPPA_PROJECTED if key == "projected" and kappa is None else kappa
-        return Method(key, "cov", k, masking)
+    key, colon, option = key.partition(":")
+    key = key.strip()
+    clamp: float | str | None = kappa
+    if colon:
+        k_opt = _parse_kappa(name, option)
+        if kappa is not None and k_opt != kappa:
+            raise GlossrtError(f"specular antialiasing method {name!r}: kappa given twice "
+                               f"({k_opt} in the name, {kappa} as an argument)")
+        clamp = k_opt
+    if isinstance(clamp, (int, float)) and not (math.isfinite(clamp) and clamp > 0):
+        raise GlossrtError(f"kappa must be a positive finite number, got {clamp}")
+    if key == "none":
+        if clamp is not None:
+            raise GlossrtError(f"specular antialiasing method {name!r}: 'none' adds no "
+                               f"kernel, so it takes no kappa")
+        return Method(key, "cov", None, masking)
+    if key == "projected":  # Tokuyoshi & Kaplanyan 2021, eq. 14: KAPPA = 0.18 by default
+        k = KAPPA_PROJECTED if clamp is None else clamp
+        return Method(key, "cov", None if k == _NO_CLAMP else float(k), masking)
     source, _, form = key.partition("-")
     form = form or "cov"
     if source not in _SOURCES or form not in _FORMS:
         raise GlossrtError(
             f"unknown specular antialiasing method {name!r}: use none, projected, or "
-            f"SOURCE[-FORM] with SOURCE in {_SOURCES} and FORM in {_FORMS} "
-            f"(evaluated: {', '.join(METHODS)})")
-    if kappa is not None and not kappa > 0:
-        raise GlossrtError(f"kappa must be positive, got {kappa}")
-    return Method(source, form, kappa, masking)
+            f"SOURCE[-FORM] with SOURCE in {_SOURCES} and FORM in {_FORMS}, optionally "
+            f"followed by ':kappa=K' (evaluated: {', '.join(METHODS)})")
+    return Method(source, form, None if clamp in (None, _NO_CLAMP) else float(clamp), masking)
 
 
 # -- geometry ---------------------------------------------------------------------------------
@@ -438,9 +483,11 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
     if method.source == "none":
         return (a2, zero, a2) if am is None else am
     if method.source == "projected":
-        # Tokuyoshi & Kaplanyan 2021, eq. 14 (world-space normal differences)
+        # Tokuyoshi & Kaplanyan 2021, eq. 14 (world-space normal differences):
+        # kernel alpha^2 = 2 sigma_p^2 (|dn_u|^2 + |dn_v|^2), twice the projected normal's
+        # variance over the footprint (the Beckmann alpha^2 = 2 variance of Tokuyoshi, eq. 2)
         du, dv = q.nx - q.sp.n, q.ny - q.sp.n
-        k = SIGMA2_PROJECTED * (dr.squared_norm(du) + dr.squared_norm(dv))
+        k = 2.0 * SIGMA2_PROJECTED * (dr.squared_norm(du) + dr.squared_norm(dv))
     elif method.form == "eig" and method.source == "avgnormal":
         k = _largest_eigenvalue_avgnormal(q)
     else:
@@ -598,36 +645,69 @@ def roughness_image(frame, method: str, light=None, kappa: float | None = None) 
 
 
 # -- reference --------------------------------------------------------------------------------
-def subpixel_offsets(spp: int) -> np.ndarray:
-    """``spp`` stratified sub-pixel offsets in [-0.5, 0.5)^2 (a ``sqrt(spp)`` square grid of
-    cell centres, so ``spp`` must be a square), row-major."""
-    n = int(round(math.sqrt(spp)))
+#: how far a sub-pixel offset may reach from its pixel's centre, in pixels (the renderer's
+#: ``jitter_limit`` for the Gaussian pixel filter; Mitsuba's own ``gaussian`` filter stops
+#: at 4 standard deviations, 2 px for ``sigma^2 = 0.25``)
+JITTER_LIMIT = 2.0
+
+
+def _normal_quantile(u: np.ndarray, sigma: float) -> np.ndarray:
+    """``sigma * Phi^-1(u)`` (the normal distribution's inverse CDF), ``0 < u < 1``."""
+    from statistics import NormalDist
+
+    inv = NormalDist(0.0, sigma).inv_cdf
+    return np.array([inv(float(v)) for v in np.ravel(u)])
+
+
+def subpixel_offsets(spp: int, pixel_filter: str = "box") -> np.ndarray:
+    """``spp`` stratified sub-pixel offsets (x, y) in pixels from the pixel's centre, equally
+    weighted, row-major on a ``sqrt(spp)`` square grid of strata (``spp`` must be a square):
+
+    * ``"box"``: the strata's centres in [-0.5, 0.5)^2;
+    * ``"gaussian"``: the Gaussian pixel filter of variance ``sigma^2 = 0.25`` px^2 per axis
+      (Tokuyoshi, eq. 1): per axis the normal quantiles ``sigma Phi^-1((i + 1/2) / n)`` of
+      the strata's centres (equal probability each), scaled so the set's variance is exactly
+      ``sigma^2`` (the centres alone fall 8% short at n = 16: their tails are cut).
+    """
+    if pixel_filter not in PIXEL_FILTERS:
+        raise GlossrtError(f"pixel filter must be one of {PIXEL_FILTERS}, got {pixel_filter!r}")
+    n = int(round(math.sqrt(spp))) if isinstance(spp, (int, np.integer)) and spp > 0 else 0
     if n < 1 or n * n != spp:
         raise GlossrtError(f"reference spp must be a square number (16, 64, 256...), got {spp}")
-    c = (np.arange(n) + 0.5) / n - 0.5
+    u = (np.arange(n) + 0.5) / n
+    if pixel_filter == "box":
+        c = u - 0.5
+    elif n == 1:
+        c = np.zeros(1)
+    else:
+        c = _normal_quantile(u, math.sqrt(SIGMA2))
+        c *= math.sqrt(SIGMA2 / np.mean(c * c))  # symmetric: mean 0, variance sigma^2
     gx, gy = np.meshgrid(c, c)
     return np.stack([gx.ravel(), gy.ravel()], axis=1)
 
 
 def reference(renderer, frame_index: int, lights: Sequence = (), polygons: Sequence = (),
               f0_of: Callable | None = None, spp: int = 256,
-              progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+              progress: Callable[[int, int], None] | None = None,
+              pixel_filter: str = "box") -> np.ndarray:
     """Supersampled reference (H, W, 3): the unfiltered shading of :func:`shade` averaged
-    over ``spp`` stratified sub-pixel primary hits (box pixel filter) of ``renderer``'s frame
-    ``frame_index`` (a :class:`glossrt.render.Renderer`). ``f0_of(frame)`` gives each
-    sub-sample's F0 image (default: :func:`glossrt.lights.shading.f0_image` of the renderer's
-    scene)."""
+    over ``spp`` stratified sub-pixel primary hits (:func:`subpixel_offsets` of
+    ``pixel_filter``: ``"box"``, or ``"gaussian"``, Tokuyoshi's eq. 1 filter, whose samples
+    reach into the neighbouring pixels) of ``renderer``'s frame ``frame_index`` (a
+    :class:`glossrt.render.Renderer`). ``f0_of(frame)`` gives each sub-sample's F0 image
+    (default: :func:`glossrt.lights.shading.f0_image` of the renderer's scene)."""
     from .lights.shading import f0_image
 
+    offsets = subpixel_offsets(spp, pixel_filter)  # bad spp / filter: before any work
     if f0_of is None:
         def f0_of(fr):
             return f0_image(renderer.setup, fr)
 
     acc = None
-    offsets = subpixel_offsets(spp)
     cache: dict = {}
     for i, (jx, jy) in enumerate(offsets):
-        fr = renderer.render(frame_index, jitter=(float(jx), float(jy)))
+        fr = renderer.render(frame_index, jitter=(float(jx), float(jy)),
+                             jitter_limit=JITTER_LIMIT)
         img = shade_tensor(fr, lights, polygons, "none", f0_of(fr), frozen=True,
                            textures=cache)
         acc = img if acc is None else acc + img

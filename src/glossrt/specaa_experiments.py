@@ -3,15 +3,17 @@ Kaplanyan et al. 2016; issue 8), on the ``normal-mapped`` scene.
 
 For each method of :data:`glossrt.specaa.METHODS` (and the rows of :data:`EXTRA`):
 
-* error against a supersampled reference (:func:`glossrt.specaa.reference`: the unfiltered
-  shading averaged over ``spp`` stratified sub-pixel positions) in RMSE and HDR-FLIP, on frame
-  0 and over the whole image;
+* error against two supersampled references (:func:`glossrt.specaa.reference`: the
+  unfiltered shading averaged over ``spp`` stratified sub-pixel positions) in RMSE and
+  HDR-FLIP, on frame 0 and over the whole image: the box pixel filter, and the Gaussian pixel
+  filter of variance 0.25 px^2 that Tokuyoshi's eq. 1 assumes (``*_gauss``);
 * the bias on a flat region (the ``floor_flat`` strip, no normal map, eroded by one pixel so
   its quads see no other mesh): the mean of ``image - reference`` relative to the reference's
   mean there (0 = unbiased; filtering that blurs highlights on a flat mirror shows here);
 * temporal error under the scene's slow camera motion: :func:`glossrt.metrics.temporal_error`
   (mean absolute luminance change between consecutive frames) of each method's sequence and
-  of a supersampled reference sequence (``temporal_spp``), which changes only because the
+  of a supersampled (box-filter) reference sequence (``temporal_spp``), which changes only
+  because the
   view does; and the *flicker*, the part of a method's frame-to-frame change the reference
   does not have: ``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (luminance ``L``
   of the method, ``R`` of the reference).
@@ -26,15 +28,23 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import GlossrtError
+
 SCENE = "normal-mapped"
 FLAT_SHAPE = "floor_flat"
 #: rows beyond the paper's methods: ``METHOD+material`` shades point / directional lights with
-#: the Smith masking of the material's own alpha (:data:`glossrt.specaa.MASKING`)
-EXTRA = ("avgnormal-eig+material", "projected+material")
+#: the Smith masking of the material's own alpha (:data:`glossrt.specaa.MASKING`);
+#: ``METHOD:kappa=K`` clamps the added kernel's eigenvalues to ``K`` (Kaplanyan et al. 2016's
+#: clamp, projected-space filtering's 0.18 on the paper's methods; ``projected:kappa=none``
+#: is projected without its default clamp)
+KAPPA = 0.18
+EXTRA = ("avgnormal-eig+material", "projected+material", f"halfvector:kappa={KAPPA}",
+         f"halfvector-bbox:kappa={KAPPA}", f"avgnormal:kappa={KAPPA}",
+         f"avgnormal-eig:kappa={KAPPA}", "projected:kappa=none")
 
 
 def _variant(label: str) -> tuple[str, str]:
-    """``(method, masking)`` of a row label ``METHOD[+material]``."""
+    """``(method, masking)`` of a row label ``METHOD[:kappa=K][+material]``."""
     method, _, masking = label.partition("+")
     return method, masking or "filtered"
 
@@ -55,12 +65,14 @@ class SpecAAResults:
 
     def markdown(self) -> str:
         lines = [
-            f"| method | RMSE | FLIP | mean bias | flat-region bias | temporal error "
-            f"(reference {self.reference_temporal:.4f}) | flicker |",
-            "|---|---|---|---|---|---|---|"]
+            f"| method | RMSE | FLIP | RMSE (Gaussian) | FLIP (Gaussian) | mean bias | "
+            f"flat-region bias | temporal error (reference {self.reference_temporal:.4f}) | "
+            f"flicker |",
+            "|---|---|---|---|---|---|---|---|---|"]
         for r in self.rows:
             lines.append(
                 f"| {r['method']} | {r['rmse']:.4f} | {r['flip']:.4f} | "
+                f"{r['rmse_gauss']:.4f} | {r['flip_gauss']:.4f} | "
                 f"{100 * r['bias']:+.1f}% | {100 * r['flat_bias']:+.1f}% | "
                 f"{r['temporal']:.4f} | {r['flicker']:.4f} |")
         return "\n".join(lines)
@@ -126,7 +138,7 @@ def flicker(frames, refs) -> float:
     from .metrics import luminance
 
     if len(frames) != len(refs) or len(frames) < 2:
-        raise ValueError("flicker needs two or more frames and one reference per frame")
+        raise GlossrtError("flicker needs two or more frames and one reference per frame")
     d = [luminance(np.asarray(f)) - luminance(np.asarray(r)) for f, r in zip(frames, refs,
                                                                            strict=True)]
     return float(np.mean([np.mean(np.abs(d[t] - d[t - 1])) for t in range(1, len(d))]))
@@ -154,8 +166,11 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
         return fresnel_image(setup, fr)
 
     res = SpecAAResults(tuple(size), spp, temporal_spp, frames)
-    say(f"reference, frame 0 ({spp} sub-pixel samples)")
+    say(f"reference, frame 0 ({spp} sub-pixel samples, box filter)")
     ref = specaa.reference(rend, 0, *lights_of(0), f0_of=materials, spp=spp)
+    say(f"reference, frame 0 ({spp} sub-pixel samples, Gaussian filter, variance 0.25)")
+    ref_g = specaa.reference(rend, 0, *lights_of(0), f0_of=materials, spp=spp,
+                             pixel_filter="gaussian")
     # the reference against Mitsuba's own direct integrator (box pixel filter, 4x the spp)
     say(f"Mitsuba's direct integrator, frame 0 ({4 * spp} spp)")
     direct = np.array(rend.render_mitsuba(0, 4 * spp, integrator="direct"))
@@ -189,6 +204,8 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
             "rmse": metrics.rmse(img, ref),
             "rmse_surfaces": float(np.sqrt(np.mean((img - ref)[hit] ** 2))),
             "flip": metrics.flip(img, ref),
+            "rmse_gauss": metrics.rmse(img, ref_g),
+            "flip_gauss": metrics.flip(img, ref_g),
             "flat_bias": float(d[flat].mean() / max(ref_flat, 1e-9)) if flat.any()
             else float("nan"),
             "flat_pixels": int(flat.sum()),
@@ -197,6 +214,7 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
             "bias": float((img - ref)[hit].mean() / max(float(ref[hit].mean()), 1e-9)),
         })
         res.images[m] = img
+    res.images[f"Gaussian reference ({spp} spp)"] = ref_g
     res.images[f"reference ({spp} spp)"] = ref
     res.seconds = time.perf_counter() - t_start
     return res
