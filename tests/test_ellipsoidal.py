@@ -587,14 +587,116 @@ def test_regular_samples_beat_random(r):
         assert err < 0.5 * rms, (r, err, rms)
 
 
+def frame_np(n):
+    """Independent tangent frame (s, t) of the unit normal n, right-handed (s x t = n): Gram-
+    Schmidt from the world axis least aligned with n. It differs from glossrt's (Mitsuba's
+    Duff et al.) frame by a rotation about n, so azimuths measured in it differ from glossrt's
+    local ones by a constant angle per normal, with the same sense."""
+    a = np.eye(3)[np.argmin(np.abs(n))]
+    s = a - (a @ n) * n
+    s /= np.linalg.norm(s)
+    return s, np.cross(n, s)
+
+
+def pattern_azimuth(delta, theta):
+    """Azimuth in glossrt's local frame of local_normal(delta, theta): theta for delta >= 0,
+    theta + pi for delta < 0 (sin(-d) (cos t, sin t) = sin d (cos(t + pi), sin(t + pi)))."""
+    return np.where(np.asarray(delta) >= 0, theta, np.asarray(theta) + np.pi)
+
+
+def wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+NORMALS = np.array([[0.36, 0.48, 0.8], [0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0], [0, -1.0, 0],
+                    [-0.6, 0.0, -0.8], [0.0, 0.6, 0.8]])
+
+
+def test_frame_tangents_orthonormal_right_handed():
+    """The frame glossrt rotates local normals with (the images of the local x and y axes,
+    to_world, NumPy and Dr.Jit): unit, orthogonal to each other and to n, s x t = n, and
+    a rotation about n of the independent Gram-Schmidt frame (the 2 x 2 matrix between them
+    has determinant +1, not -1: a mirrored frame would fail)."""
+    rng = np.random.default_rng(21)
+    ns = np.vstack([NORMALS / np.linalg.norm(NORMALS, axis=1, keepdims=True),
+                    random_dirs(rng, 200, upper=False)])
+    for dr_path in (False, True):
+        if dr_path:
+            s_ = to_np(ell.to_world(vec(ns), vec(np.tile([1.0, 0, 0], (len(ns), 1)))))
+            t_ = to_np(ell.to_world(vec(ns), vec(np.tile([0, 1.0, 0], (len(ns), 1)))))
+            tol = 2e-6
+        else:
+            s_ = ell.to_world(ns, np.tile([1.0, 0, 0], (len(ns), 1)))
+            t_ = ell.to_world(ns, np.tile([0, 1.0, 0], (len(ns), 1)))
+            tol = 1e-12
+        np.testing.assert_allclose(np.linalg.norm(s_, axis=1), 1.0, atol=tol)
+        np.testing.assert_allclose(np.linalg.norm(t_, axis=1), 1.0, atol=tol)
+        for a, b in ((s_, t_), (s_, ns), (t_, ns)):
+            np.testing.assert_allclose(np.sum(a * b, 1), 0.0, atol=tol)
+        np.testing.assert_allclose(np.cross(s_, t_), ns, atol=2 * tol)
+        for i, n in enumerate(ns):
+            s, t = frame_np(n)
+            m = np.array([[s_[i] @ s, s_[i] @ t], [t_[i] @ s, t_[i] @ t]])
+            assert np.linalg.det(m) == pytest.approx(1.0, abs=10 * tol)
+
+
 def test_regular_normals_world_space():
-    n = np.array([[0.36, 0.48, 0.8]])
-    d, t, w = ell.regular_samples(7.0)
-    pairs = ell.regular_normals(vec(n), 7.0)
-    assert len(pairs) == 13
-    np.testing.assert_allclose([p[1] for p in pairs], w)
-    for (h, _), di in zip(pairs, d, strict=True):
-        assert float(dr.dot(h, vec(n)).numpy()[0]) == pytest.approx(math.cos(di), abs=2e-6)
+    """The 13 regular normals around n, measured in the independent frame: angle from n =
+    |delta_i|, and azimuths = the pattern's (theta_i, or theta_i + pi for negative delta) plus
+    one constant per normal (a rotation, same sense): the two rings of 6 at 60 degrees, the
+    second turned by 30 (sec. 7.2 pattern, regular_samples' docstring)."""
+    r = 7.0
+    d, t, w = ell.regular_samples(r)
+    ring = np.abs(d) > 0
+    psi = pattern_azimuth(d, t)
+    for n in NORMALS / np.linalg.norm(NORMALS, axis=1, keepdims=True):
+        pairs = ell.regular_normals(vec(n[None]), r)
+        assert len(pairs) == 13
+        np.testing.assert_allclose([p[1] for p in pairs], w)
+        h = np.vstack([to_np(p[0]) for p in pairs])
+        np.testing.assert_allclose(np.linalg.norm(h, axis=1), 1.0, atol=2e-6)
+        np.testing.assert_allclose(h @ n, np.cos(d), atol=2e-6)
+        s, tt = frame_np(n)
+        phi = np.arctan2(h @ tt, h @ s)
+        off = wrap(phi[ring] - psi[ring])
+        np.testing.assert_allclose(wrap(off - off[0]), 0.0, atol=2e-4)
+        # the pattern itself, independently: per ring 6 azimuths 60 degrees apart, rings 30
+        # degrees apart
+        rings = [np.sort(wrap(phi[np.isclose(np.abs(d), x)] - off[0]) % (2 * np.pi))
+                 for x in np.unique(np.abs(d[ring]))]
+        for k, az in enumerate(rings):
+            np.testing.assert_allclose(az, k * np.pi / 6 + np.arange(6) * np.pi / 3, atol=2e-4)
+
+
+def test_hash_normals_distribution_in_an_independent_frame():
+    """hash_normals measured in the independent frame of n: each sample's azimuth is
+    pi v (+ pi for negative delta(u)) plus one constant per normal, from its own hash
+    uniforms (u, v) (hash_uniforms; so the mapping is a rotation, same sense), the azimuths
+    are uniform on [0, 2 pi) (chi-square), the angle from n follows D_s, and the two are
+    independent (chi-square of the joint 6 x 5 histogram)."""
+    m, r = 8192, 6.0
+    for n in NORMALS[[0, 2, 3]] / np.linalg.norm(NORMALS[[0, 2, 3]], axis=1, keepdims=True):
+        pix = mi.UInt32(np.arange(m))
+        hs = ell.hash_normals(vec(np.tile(n, (m, 1))), pix, r, count=2, frame=5)
+        s, tt = frame_np(n)
+        for i, h in enumerate(hs):
+            h = to_np(h)
+            u, v = ell.hash_uniforms(pix, mi.UInt32(i), 5)
+            delta = ell.ellipsoidal_sample(u.numpy().astype(np.float64), r)
+            psi = pattern_azimuth(delta, np.pi * v.numpy().astype(np.float64))
+            phi = np.arctan2(h @ tt, h @ s)
+            big = np.abs(delta) > 0.05  # azimuth well defined in float32
+            off = wrap(phi[big] - psi[big])
+            np.testing.assert_allclose(wrap(off - off[0]), 0.0, atol=1e-4)
+            assert chisquare(np.histogram(phi % (2 * np.pi), bins=24,
+                                          range=(0, 2 * np.pi))[0]).pvalue > 1e-3
+            ad = np.arccos(np.clip(h @ n, -1, 1))
+            assert chi2_folded(ad, r) > 1e-3
+            q = np.minimum((folded_cdf(ad, r) * 5).astype(int), 4)
+            a = np.minimum((phi % (2 * np.pi) / (2 * np.pi) * 6).astype(int), 5)
+            joint = np.histogram2d(a, q, bins=[6, 5], range=[[0, 6], [0, 5]])[0]
+            expect = np.outer(joint.sum(1), joint.sum(0)) / joint.sum()
+            assert chisquare(joint.ravel(), expect.ravel(), ddof=9).pvalue > 1e-3
 
 
 # ------------------------------------------------------------------------------ errors

@@ -184,3 +184,74 @@ def test_frozen_path_matches_the_traced_one():
         assert H._fast_frozen.n_recordings - before <= 1
     with pytest.raises(GlossrtError, match="frozen"):
         H.HighlightRenderer(sampling="texture", frozen=True)
+
+
+def test_smooth_surface_reflects_the_light_map_like_a_mirror():
+    """alpha = 0 (a smooth conductor or a mirror: the G-buffer's roughness of Mitsuba's
+    ``conductor``) used to raise from ``ratio_from_alpha``; it is the mirror limit of D_s:
+    every microfacet normal is n, so each pixel shows ``F(v.n) L_env(reflect(v, n))`` (G = 1
+    there: ``2 (n.h)(n.v) / (v.h) = 2``). Reference: that product in NumPy, with the map's
+    NumPy lookup, for every sampling, the culled path and the frozen one."""
+    f, lights, maps, f0 = setup_plane(0.0, 24, 18, half=3.0)
+    p = f.numpy("position").reshape(-1, 3).astype(np.float64)
+    v = CAM - p
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    r = 2.0 * v[:, 2:3] * np.array([0.0, 0.0, 1.0]) - v  # mirror direction about n = +z
+    fres = 0.05 + 0.95 * (1.0 - v[:, 2]) ** 5
+    want = (fres[:, None] * maps.maps[1].lookup_np(r)).reshape(18, 24, 3)
+    lit = want.max(-1) > 0.1
+    print("lit pixels", lit.sum())
+    assert 20 < lit.sum() < lit.size - 20  # a highlight with edges
+    for kw in ({"sampling": "texture"}, {"sampling": "hash"}, {"sampling": "regular"},
+               {"sampling": "hash", "cull": False, "frozen": True}):
+        got = HighlightRenderer(**kw)(f, lights, maps, f0)
+        print(kw, np.abs(got - want).max())
+        np.testing.assert_allclose(got, want, rtol=2e-3, atol=2e-3)
+
+
+def test_culling_keeps_the_highlight_of_a_near_light():
+    """Culling tests the mirror ray from the probe the map was rendered from (the map's
+    lookups see the lights from there), enlarged by the map's texel footprint; it used to
+    test it from the shading point, which drops the highlights of lights near the object:
+    here a small quad 0.4 from the probe (the plane's centre) in the mirror direction of a
+    corner pixel 2.3 away, whose ray from the pixel passes 1.47 away from the light. The
+    independent check: the map's NumPy lookup in that pixel's mirror direction sees the
+    light; culled and unculled images agree (alpha 0: exactly; alpha 0.05: the highlight
+    kept, the rest within the quantile's 1%)."""
+    f = plane_frame(24, 18, alpha=0.0)
+    f["position"] = f.numpy("position") * 4.0  # x in [-2, 2], y in [-1.2, 1.2]
+    p = f.numpy("position").reshape(-1, 3).astype(np.float64)
+    corner = 0  # pixel (0, 0), at (-2, -1.2, 0)
+    v = CAM - p[corner]
+    v /= np.linalg.norm(v)
+    r = np.array([-v[0], -v[1], v[2]])
+    c = 0.4 * r
+    t1 = np.cross(r, [0.0, 0.0, 1.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(r, t1)
+    h = 0.06
+    quad = np.array([c - h * t1 - h * t2, c + h * t1 - h * t2, c + h * t1 + h * t2,
+                     c - h * t1 + h * t2])
+    if np.cross(quad[1] - quad[0], quad[2] - quad[0]) @ r > 0:  # emit towards the probe
+        quad = quad[::-1].copy()
+    lights = [Light(quad, (5.0, 4.0, 3.0))]
+    maps = CubeMapSet.render(lights, {1: np.zeros(3)}, 64)
+    assert maps.maps[1].lookup_np(r[None])[0].max() > 1.0  # the map sees it from the probe
+    # from the pixel, the mirror ray misses the light by far
+    off = np.linalg.norm(np.cross(c - p[corner], r))
+    assert off > 1.4
+    f0 = np.full((18, 24, 3), 0.05, np.float32)
+    for alpha in (0.0, 0.05):
+        f["roughness"] = np.full((18, 24, 1), alpha, np.float32)
+        on = HighlightRenderer(samples=16, sampling="hash", cull=True)
+        off_ = HighlightRenderer(samples=16, sampling="hash", cull=False)
+        a, b = on(f, lights, maps, f0), off_(f, lights, maps, f0)
+        print(alpha, on.last_stats, a.reshape(-1, 3)[corner], b.reshape(-1, 3)[corner],
+              a.sum(), b.sum())
+        assert b.reshape(-1, 3)[corner].max() > 0.05
+        np.testing.assert_allclose(a.reshape(-1, 3)[corner], b.reshape(-1, 3)[corner])
+        if alpha == 0.0:
+            assert on.last_stats["shaded"] < on.last_stats["pixels"] / 4  # it still culls
+            np.testing.assert_array_equal(a, b)
+        else:
+            assert np.abs(a - b).sum() <= 0.02 * b.sum()

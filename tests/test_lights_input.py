@@ -208,3 +208,46 @@ def test_nan_transform_is_not_called_zero_area():
     flat = _floor_scene(light_to_world=T().translate([0, 1.2, -0.5]).scale([0.4, 0.0, 1.0]))
     with pytest.raises(GlossrtError, match="zero area"):
         polygon_lights(flat, 0)
+
+
+def test_collinear_triangle_light_says_zero_area(tmp_path, capsys):
+    """A triangle light whose corners lie on one line used to be refused with "its normals do
+    not all point to the same side of its plane" (Mitsuba's normals of a zero-area triangle
+    are NaN): now one line saying it has zero area because its vertices are collinear, from
+    the scene loader and through the CLI; a mesh of degenerate triangles whose vertices span
+    a plane says so too."""
+    from glossrt.cli import main
+
+    def obj(name, verts, faces):
+        path = tmp_path / f"{name}.obj"
+        path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in verts)
+                        + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+        return str(path)
+
+    line = obj("line", [[0, 0, 2.0], [0.5, 0.25, 2.0], [1.0, 0.5, 2.0]], [(0, 1, 2)])
+    fan = obj("fan", [[0, 0, 2.0], [1, 0, 2.0], [2, 0, 2.0], [0, 1, 2.0], [0, 2, 2.0]],
+              [(0, 1, 2), (0, 3, 4)])
+    for name, path, why in (("stick", line, "vertices are collinear"),
+                            ("fan", fan, "triangles has collinear or repeated corners")):
+        scene = mi.load_dict({"type": "scene", name: {
+            "type": "obj", "filename": path,
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [5.0, 5.0, 5.0]}}}})
+        with pytest.raises(GlossrtError) as e:
+            polygon_lights(scene)
+        msg = str(e.value)
+        assert "\n" not in msg and repr(name) in msg and "zero area" in msg and why in msg, msg
+        assert "normals" not in msg, msg
+    xml = tmp_path / "stick.xml"
+    xml.write_text(
+        '<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="45"/>'
+        '<transform name="to_world"><lookat origin="0,-4,3" target="0,0,0" up="0,0,1"/>'
+        '</transform><film type="hdrfilm"><integer name="width" value="16"/>'
+        '<integer name="height" value="12"/></film></sensor><shape type="rectangle">'
+        '<bsdf type="roughconductor"><float name="alpha" value="0.2"/></bsdf></shape>'
+        f'<shape type="obj" id="stick"><string name="filename" value="{line}"/>'
+        '<emitter type="area"><rgb name="radiance" value="5,5,5"/></emitter></shape></scene>')
+    assert main(["light", str(xml), "--method", "ltc", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    errors = [ln for ln in err.splitlines() if "error" in ln]  # (the rest: progress)
+    assert len(errors) == 1 and "'stick'" in errors[0] and "collinear" in errors[0], err
+    assert not (tmp_path / "out" / "frame_0000.exr").exists()

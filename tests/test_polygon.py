@@ -734,3 +734,91 @@ def test_shading_frame_and_to_local():
     rot = random_rotation(rng, 1)[0]
     loc2 = P.to_local(quad @ rot.T, pos @ rot.T, n @ rot.T)
     np.testing.assert_allclose(P.clamped_cosine_integral(loc2), got, rtol=0, atol=2 * ABS32)
+
+
+# ------------------------------------------------------------------- LTC polygon_integral
+
+
+def _ltc_quadrature(quad, n_view, alpha, m=600):
+    """norm * integral over the quad (z = const > 0 above the shading point at the origin,
+    normal +z, view (sin t, 0, cos t)) of the LTC density ``D(w) = D_o(M^-1 w / |M^-1 w|)
+    |det M^-1| / |M^-1 w|^3`` (Heitz et al. 2016, eq. 1), D_o = max(z, 0) / pi; midpoint rule
+    on an m x m grid of the quad's area (dw = cos_l dA / r^2), float64. The LTC coefficients
+    from the table's NumPy lookup."""
+    from glossrt.lights.ltc_fit import LTCTable, minv_matrix
+
+    coeffs, norm, _ = LTCTable.load().lookup_np(alpha, n_view[2])
+    minv = minv_matrix(coeffs)
+    a, b, d = quad[0], quad[1], quad[3]
+    s = (np.arange(m) + 0.5) / m
+    su, sv = np.meshgrid(s, s)
+    y = a + su[..., None] * (b - a) + sv[..., None] * (d - a)
+    area = np.linalg.norm(np.cross(b - a, d - a))
+    r2 = np.sum(y * y, -1)
+    w = y / np.sqrt(r2)[..., None]
+    cos_l = np.abs(w[..., 2])  # the quad's normal is +-z
+    wo = w @ minv.T
+    lo = np.linalg.norm(wo, axis=-1)
+    dens = np.maximum(wo[..., 2] / lo, 0.0) / np.pi * abs(np.linalg.det(minv)) / lo**3
+    return float(norm) * float(np.sum(dens * cos_l / r2) * area / (m * m)), coeffs, float(norm)
+
+
+def test_ltc_polygon_integral_is_scale_invariant_near_the_plane():
+    """Issue 23: ``polygon_integral`` returned 0 for a quad of half-size 1 at distance 2e-6
+    from the shading point's plane (the same shape as a quad of half-size 5e5 at distance 1):
+    float32 vertices put that plane within rounding of the shading point. It now works in
+    float64: the integral is the same for the polygon and the distance scaled together, and
+    near the plane it tends to the LTC's mass over the whole upper hemisphere. References:
+    area quadrature of the LTC density for the quad at distance 2, and for the near-plane
+    quads the closed form of that limit: with ``m`` the third row of ``M`` (``w.z > 0`` iff
+    ``m . w_o > 0``), ``(1/pi) int_{z>0, m.w>0} cos = (1 + cos beta) / 2`` with ``cos beta = m_z /
+    |m|`` (projected on the unit disk, the region is a half disk and a half ellipse of
+    semi-axes 1 and cos beta)."""
+    from glossrt.lights.ltc import polygon_integral
+    from glossrt.lights.ltc_fit import minv_matrix
+
+    quad = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
+    nrm = np.array([0.0, 0.0, 1.0])
+    for t, alpha in ((0.3, 0.3), (1.0, 0.15), (0.0, 0.6)):
+        wo = np.array([math.sin(t), 0.0, math.cos(t)])
+        want, coeffs, norm = _ltc_quadrature(quad, wo, alpha)
+        got = polygon_integral(quad, nrm, wo, alpha)
+        print("quad at 2:", t, alpha, got, want)
+        assert got == pytest.approx(want, rel=2e-4)
+        for s in (5e5, 2e-6, 1e-30, 1e30):  # polygon and distance scaled together
+            assert polygon_integral(quad * s, nrm, wo, alpha) == pytest.approx(got, rel=1e-12)
+        m_row = np.linalg.inv(minv_matrix(coeffs))[2]
+        limit = norm * (1.0 + m_row[2] / np.linalg.norm(m_row)) / 2.0
+        near = quad.copy()
+        near[:, 2] = 2e-6
+        wide = quad * np.array([5e5, 5e5, 1.0])
+        a, b = polygon_integral(near, nrm, wo, alpha), polygon_integral(wide, nrm, wo, alpha)
+        print("near the plane:", a, b, "limit", limit)
+        assert a == pytest.approx(limit, rel=1e-5)
+        assert b == pytest.approx(a, rel=1e-6)  # the same shape (the edge terms: ~1e-7)
+
+
+def test_ltc_polygon_integral_refuses_bad_input():
+    """Negative alpha used to read the table's alpha-0 row (a mirror), and a non-planar
+    polygon (which the scene loader refuses as a light) was integrated as if it were one:
+    both are clear one-line errors now."""
+    from glossrt.lights.ltc import polygon_integral
+
+    quad = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
+    nrm, wo = [0.0, 0.0, 1.0], [0.3, 0.0, 0.95]
+    with pytest.raises(GlossrtError, match=r"alpha must be >= 0, got -0.3") as e:
+        polygon_integral(quad, nrm, wo, -0.3)
+    assert "\n" not in str(e.value)
+    with pytest.raises(GlossrtError, match="alpha"):
+        polygon_integral(np.stack([quad, quad]), nrm, wo, np.array([0.2, -1e-9]))
+    bent = quad.copy()
+    bent[2, 2] = 2.5
+    with pytest.raises(GlossrtError, match=r"polygon 1 is not planar") as e:
+        polygon_integral(np.stack([quad, bent]), nrm, wo, 0.3)
+    assert "\n" not in str(e.value)
+    # planar within the scene loader's tolerance (1e-5 of the size): accepted
+    ok = quad.copy()
+    ok[2, 2] += 1e-7
+    assert polygon_integral(ok, nrm, wo, 0.3) == pytest.approx(
+        polygon_integral(quad, nrm, wo, 0.3), rel=1e-5)
+    assert polygon_integral(quad, nrm, wo, 0.0) > 0  # alpha 0 (a mirror's limit) is allowed

@@ -370,3 +370,148 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
         res.images[f"{label}: Monte Carlo {ref_spp} spp"] = ref
         res.images[f"{label}: |LTC - MC|"] = np.abs(ltc - ref)
     return res
+
+
+# -- textured lights: the prefiltered lookup's footprint scale (issue 23) -------------------
+
+#: footprint scales tried by :func:`texture_footprint` (log-spaced)
+FOOTPRINT_SCALES = tuple(float(x) for x in np.round(np.geomspace(0.0625, 2.0, 16), 4))
+
+
+def footprint_textures(n: int = 64) -> dict[str, np.ndarray]:
+    """The light textures of :func:`texture_footprint`, (n, n, 3) float32: an 8 x 8
+    ``checker`` (0.05 / 1, tinted), a ``gradient`` (red along u, green along v, blue
+    constant) and ``blobs`` (three coloured Gaussian spots of different sizes on a dark
+    ground)."""
+    s = (np.arange(n) + 0.5) / n
+    u, v = np.meshgrid(s, s)
+    cells = ((u * 8).astype(int) + (v * 8).astype(int)) % 2
+    checker = np.where(cells[..., None] == 1, [1.0, 0.9, 0.7], [0.05, 0.05, 0.08])
+    gradient = np.stack([u, v, np.full_like(u, 0.5)], -1)
+    blobs = np.full((n, n, 3), 0.03)
+    for cu, cv, r, col in ((0.25, 0.3, 0.08, (1.0, 0.2, 0.1)), (0.7, 0.65, 0.15, (0.1, 0.4, 1.0)),
+                           (0.6, 0.2, 0.04, (0.9, 0.9, 0.2))):
+        blobs = blobs + np.exp(-((u - cu) ** 2 + (v - cv) ** 2) / (2 * r * r))[..., None] * col
+    return {k: np.asarray(x, np.float32) for k, x in
+            (("checker", checker), ("gradient", gradient), ("blobs", blobs))}
+
+
+#: materials of :func:`texture_footprint`: (label, GGX alpha, diffuse albedo, F0)
+FOOTPRINT_MATERIALS = (("spec a0.1", 0.1, 0.0, 1.0), ("spec a0.25", 0.25, 0.0, 1.0),
+                       ("spec a0.5", 0.5, 0.0, 1.0), ("spec a1", 1.0, 0.0, 1.0),
+                       ("diffuse", 0.5, 0.8, 0.0))
+
+
+@dataclass
+class _FpLight:
+    vertices: np.ndarray
+    radiance: tuple
+    two_sided: bool = False
+    texture: object = None
+    uv: object = None
+
+
+def footprint_frame(w: int, h: int, alpha: float, albedo: float):
+    """The G-buffer of :func:`texture_footprint`: a floor (z = 0, x in [-1, 1], y in
+    [-0.6, 1.2]) seen from (0, -2, 1.2), every pixel a floor point (position grid, normal +z,
+    GGX ``alpha``, diffuse ``albedo``)."""
+    from .frame import RADIANCE, Camera, Frame
+
+    px, py = np.meshgrid(np.linspace(-1.0, 1.0, w), np.linspace(-0.6, 1.2, h))
+    ch = {c: np.zeros((h, w, 3)) for c in RADIANCE}
+    ch["position"] = np.stack([px, py, np.zeros_like(px)], -1)
+    ch["normal"] = np.broadcast_to([0, 0, 1.0], (h, w, 3))
+    ch["albedo_diffuse"] = np.full((h, w, 3), albedo)
+    ch["albedo_specular"] = np.zeros((h, w, 3))
+    ch["roughness"] = np.full((h, w, 1), alpha)
+    ch["mesh_id"] = np.ones((h, w, 1))
+    ch["depth"] = np.ones((h, w, 1))
+    cam = np.eye(4)
+    cam[:3, 3] = [0.0, -2.0, 1.2]
+    return Frame(channels={k: np.asarray(x, np.float32) for k, x in ch.items()},
+                 camera=Camera(cam, 45.0, (w, h)))
+
+
+#: the light of :func:`texture_footprint`: a 1.2 x 0.72 quad centred at (0, 1.0, 0.55),
+#: facing down and towards the camera (counter-clockwise seen from the floor); the camera
+#: sees its mirror image in the floor around y = 0
+FOOTPRINT_LIGHT = np.array([[-0.6, 0.7, 0.75], [-0.6, 1.3, 0.35], [0.6, 1.3, 0.35],
+                            [0.6, 0.7, 0.75]])
+FOOTPRINT_UV = np.array([[0.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, 0.0]])
+
+
+def texture_footprint(size: tuple[int, int] = (32, 24), ref_spp: int = 4096,
+                      scales: tuple[float, ...] = FOOTPRINT_SCALES,
+                      textures: dict[str, np.ndarray] | None = None,
+                      materials: tuple = FOOTPRINT_MATERIALS, seed: int = 3,
+                      progress: Callable[[str], None] | None = None) -> dict:
+    """Calibrate the textured-light lookup's footprint scale ``c`` (``sigma_uv = c d /
+    sqrt(A)``, :mod:`glossrt.lights.ltc`) against Monte Carlo.
+
+    For each texture of ``textures`` (default :func:`footprint_textures`) and each material
+    (GGX alpha, diffuse albedo, F0) a floor under the textured quad
+    :data:`FOOTPRINT_LIGHT` (:func:`footprint_frame`) is shaded by LTC with the prefiltered
+    texture at each scale of ``scales`` and each ``blend`` (``"log"``, ``"linear"``), and by
+    unshadowed Monte Carlo (:func:`glossrt.lights.mc.render_mc`, ``ref_spp`` per pixel, the
+    full-resolution texture, bilinear) with the texture and with a plain light of radiance
+    1. The error isolates the texture lookup from LTC's own error of the lobe's integral:
+    LTC's texture factor ``LTC_tex / LTC_plain`` applied to the reference's plain light,
+    against the reference's textured light, as a relative L1 error ``sum |f_LTC MC_plain -
+    MC_tex| / sum MC_tex`` over the pixels and channels. Returns ``{"errors": {blend: array
+    (texture, material, scale)}, "total": {blend: the same for sum |LTC_tex - MC_tex| / sum
+    MC_tex}, "scales", "textures", "materials", "best": {blend: scale of the least mean
+    error}, "noise": the reference's own relative L1 noise (two halves of its samples)}``."""
+    from .lights.ltc import PrefilteredTexture, shade_frame
+    from .lights.mc import render_mc
+
+    textures = footprint_textures() if textures is None else textures
+    w, h = size
+    plain_light = _FpLight(FOOTPRINT_LIGHT, (1.0, 1.0, 1.0))
+    names = list(textures)
+    err = {b: np.zeros((len(names), len(materials), len(scales))) for b in ("log", "linear")}
+    tot = {b: np.zeros_like(err[b]) for b in err}
+    noise = np.zeros((len(names), len(materials)))
+    for j, (label, alpha, albedo, f0v) in enumerate(materials):
+        frame = footprint_frame(w, h, alpha, albedo)
+        f0 = np.full((h, w, 3), f0v, np.float32)
+        mc_plain = render_mc(frame, [plain_light], ref_spp, f0=f0, seed=seed)
+        ltc_plain = shade_frame(frame, [plain_light], f0=f0)
+        for i, name in enumerate(names):
+            img = textures[name]
+            light = _FpLight(FOOTPRINT_LIGHT, (1.0, 1.0, 1.0), texture=img, uv=FOOTPRINT_UV)
+            half = ref_spp // 2
+            a = render_mc(frame, [light], half, f0=f0, seed=seed + 1)
+            b = render_mc(frame, [light], ref_spp - half, f0=f0, seed=seed + 2)
+            mc_tex = 0.5 * (a + b)
+            noise[i, j] = 0.5 * np.abs(a - b).sum() / mc_tex.sum()
+            for blend in ("log", "linear"):
+                pre = PrefilteredTexture(img, blend=blend)
+                for k, c in enumerate(scales):
+                    pre.scale = float(c)
+                    ltc_tex = shade_frame(frame, [light], f0=f0, textures={id(img): pre})
+                    factor = ltc_tex / np.maximum(ltc_plain, 1e-12)
+                    err[blend][i, j, k] = (np.abs(factor * mc_plain - mc_tex).sum()
+                                           / mc_tex.sum())
+                    tot[blend][i, j, k] = np.abs(ltc_tex - mc_tex).sum() / mc_tex.sum()
+            if progress is not None:
+                progress(f"{name}, {label}: best scale (log blend) "
+                         f"{scales[int(np.argmin(err['log'][i, j]))]}")
+    best = {b: float(scales[int(np.argmin(e.mean(axis=(0, 1))))]) for b, e in err.items()}
+    return {"errors": err, "total": tot, "scales": tuple(scales), "textures": names,
+            "materials": [m[0] for m in materials], "best": best, "noise": noise}
+
+
+def footprint_markdown(res: dict, at: tuple[tuple[str, float], ...]) -> str:
+    """A table of :func:`texture_footprint`'s texture-lookup error per texture and material
+    for the (blend, scale) pairs of ``at`` (each scale must be one of ``res["scales"]``)."""
+    cols = [f"{b}, c = {c:g}" for b, c in at]
+    lines = ["| texture | material | " + " | ".join(cols) + " | reference noise |",
+             "|---|---|" + "---|" * (len(cols) + 1)]
+    idx = [(b, res["scales"].index(c)) for b, c in at]
+    for i, t in enumerate(res["textures"]):
+        for j, m in enumerate(res["materials"]):
+            vals = " | ".join(f"{res['errors'][b][i, j, k]:.4f}" for b, k in idx)
+            lines.append(f"| {t} | {m} | {vals} | {res['noise'][i, j]:.4f} |")
+    means = " | ".join(f"**{res['errors'][b][..., k].mean():.4f}**" for b, k in idx)
+    lines.append(f"| mean | | {means} | {res['noise'].mean():.4f} |")
+    return "\n".join(lines)

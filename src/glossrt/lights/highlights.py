@@ -26,10 +26,16 @@ For a pixel with normal ``n``, view ``v`` (towards the eye) and ``N`` microfacet
 the reflected light alone, i.e. ``F = 1``). ``L_env`` holds the lights only
 (the paper's light environment map), so the method gives the specular reflection of the
 lights; diffuse light is not part of it. Bounding-sphere culling (sec. 6) skips pixels whose
-mirror direction misses every light's sphere enlarged by the lobe's spread.
+mirror direction, cast from the probe the pixel's map was rendered from (the map's lookups
+see the lights from there, not from the pixel), misses every light's sphere enlarged by the
+lobe's spread and by the map's texel footprint (:func:`texel_margin`). Smooth BSDFs (alpha
+0: a ``conductor``, ``dielectric``; up to Mitsuba's clamp :data:`ALPHA_SMOOTH`) take the
+distribution's limit: every microfacet normal is ``n``, the mirror reflection of the map.
 """
 
 from __future__ import annotations
+
+import math
 
 from .. import backend
 
@@ -101,13 +107,28 @@ def _groups(alpha: np.ndarray, hit: np.ndarray,
     return out
 
 
+#: Alphas up to this are smooth (a ``conductor`` or ``dielectric`` has alpha 0, where
+#: ``R_r`` would be infinite; Mitsuba clamps every microfacet alpha to it, and so does
+#: :class:`~glossrt.lights.shading.ShadingPoints`): the ellipsoidal estimator takes their
+#: limit ``R_r -> infinity``, in which every microfacet normal is ``n`` -- mirror reflection,
+#: ``h = n`` for every sample (``D_s``'s tails fall only like ``1 / (R_r delta)``, so a large
+#: finite ratio would still scatter a few samples by milliradians). Traced and frozen paths.
+ALPHA_SMOOTH = ALPHA_MIN
+
+
+def _is_smooth(alpha: float) -> bool:
+    return alpha <= ALPHA_SMOOTH
+
+
 def _ratio(alpha: float, beckmann: bool) -> float:
     """The ellipsoidal ratio whose median microfacet angle is the material's (GGX or
-    Beckmann; :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha`)."""
+    Beckmann; :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha`), at least that of median
+    alpha 1e-6 (smooth alphas, :data:`ALPHA_SMOOTH`, sample the mirror's normal instead;
+    their ratio serves the culling's spread)."""
     from ..brdf import ellipsoidal as el
 
     a = float(el.median_alpha(alpha, "beckmann" if beckmann else "ggx"))
-    return float(el.ratio_from_alpha(min(a, el.ALPHA_MAX)))
+    return float(el.ratio_from_alpha(min(max(a, 1e-6), el.ALPHA_MAX)))
 
 
 def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, samples: int,
@@ -124,9 +145,13 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     total = dr.zeros(mi.Color3f, dr.width(n))
     if distribution == "ellipsoidal":
         # a scalar alpha: one material (``beckmann`` its distribution); per lane: sp's
-        ratio = (_ratio(alpha, beckmann) if isinstance(alpha, float)
-                 else _ratio_dr(alpha, sp.beckmann))
-        if sampling == "regular":
+        scalar = isinstance(alpha, float)
+        ratio = _ratio(alpha, beckmann) if scalar else _ratio_dr(alpha, sp.beckmann)
+        # smooth lanes (ALPHA_SMOOTH): the limit R_r -> infinity, every normal is n
+        smooth = None if scalar else _smooth_dr(alpha)
+        if scalar and _is_smooth(alpha):
+            hs = [(n, 1.0)]
+        elif sampling == "regular":
             hs = el.regular_normals(n, ratio)
         elif sampling == "texture":
             hs = [(h, 1.0 / samples) for h in texture.sample_normals(n, pix_x, pix_y, samples,
@@ -139,6 +164,8 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
                 hs.append((el.microfacet_normal(n, el.ellipsoidal_sample(u, ratio),
                                                 dr.pi * vv), 1.0 / samples))
         for h, w in hs:
+            if smooth is not None:
+                h = dr.select(smooth, n, h)
             l = el.reflect(v, h)  # noqa: E741
             g = el.geometric_attenuation(n, h, v, l)
             f = sp.fresnel_at(dr.dot(v, h))
@@ -173,12 +200,18 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
 def _ratio_dr(alpha: mi.Float, beckmann=False) -> mi.Float:
     """Per lane :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha` (its closed form
     ``R = sqrt(1 + alpha^2) / alpha - 1`` of the median-matched GGX alpha, ``alpha sqrt(ln 2)``
-    on Beckmann lanes, clamped to ``(0, ALPHA_MAX]``, so R >= 1)."""
+    on Beckmann lanes, clamped to ``(0, ALPHA_MAX]``, so R >= 1; smooth lanes take the
+    mirror's normals instead, :data:`ALPHA_SMOOTH`)."""
     from ..brdf.ellipsoidal import ALPHA_MAX, BECKMANN_MEDIAN
 
     alpha = mf.by_distribution(beckmann, lambda: alpha * BECKMANN_MEDIAN, lambda: alpha)
     a = dr.clip(alpha, 1e-6, ALPHA_MAX)
     return dr.maximum(dr.sqrt(1.0 + a * a) / a - 1.0, 1.0)
+
+
+def _smooth_dr(alpha: mi.Float) -> mi.Bool:
+    """Per lane :func:`_is_smooth`."""
+    return alpha <= ALPHA_SMOOTH
 
 
 def _fast_kernel(ch: dict, cam: list, data, base, has, tables, n_ids: int, n_levels: int,
@@ -224,6 +257,27 @@ def spread_angle(alpha: float, distribution: str, q: float = 0.99,
     if beckmann:
         return float(np.arctan(a * np.sqrt(-np.log(1.0 - q))))
     return float(np.arctan(a * np.sqrt(q / (1.0 - q))))
+
+
+def _probe_table(maps) -> tuple[np.ndarray, np.ndarray]:
+    """``(probes (n_ids, 3), known (n_ids,))``: the point each mesh id's cube map was
+    rendered from (:attr:`glossrt.lights.envmap.LightCubeMap.probe`), where known."""
+    n = int(maps._n_ids)
+    probes, known = np.zeros((n, 3)), np.zeros(n, bool)
+    for i, m in maps.maps.items():
+        if m.probe is not None:
+            probes[i], known[i] = m.probe, True
+    return probes, known
+
+
+def texel_margin(maps) -> float:
+    """Angle (radians) by which a light's image in the level-0 maps reaches past the light
+    itself: a texel is lit when any of its sub-samples sees the light (half a texel diagonal
+    from its centre) and bilinear lookups reach a texel centre up to one diagonal away; a
+    texel of a ``res``-texel face side spans at most ``2 / res`` radians (at the face's
+    centre), its diagonal ``2 sqrt(2) / res``. The culling cone is enlarged by two diagonals
+    (1.5 needed), so it drops no pixel the map lights."""
+    return 2.0 * 2.0 * math.sqrt(2.0) / float(maps.resolutions[0])
 
 
 class HighlightRenderer:
@@ -326,14 +380,24 @@ class HighlightRenderer:
         beck = np.broadcast_to(np.array(sp.beckmann), hit.shape)
         mesh_id = mi.UInt32(split(frame["mesh_id"])[0])
         centres, radii = light_spheres(lights)
+        if self.cull and len(lights):
+            probes, known = _probe_table(maps)
+            ids_np = np.asarray(mesh_id, dtype=np.int64)
+            margin = texel_margin(maps)
         total = dr.zeros(mi.Color3f, w * h)
         stats = {"pixels": int(hit.sum()), "shaded": 0}
         for a, b, idx_np in _groups(alpha, hit, beck):
             idx = mi.UInt32(idx_np.astype(np.uint32))
             sub = sp.take(idx)
             if self.cull and len(lights):
-                spread = lobe_spread(spread_angle(a, self.distribution, beckmann=b))
-                keep = cull_mask(sub.p, el.reflect(sub.wo, sub.n), centres, radii, spread)
+                spread = lobe_spread(spread_angle(a, self.distribution, beckmann=b)) + margin
+                # from the probe each pixel's map was rendered from (its lookups see the
+                # lights from there), not from the shading point; a map without a known
+                # probe: no culling
+                pid = np.minimum(ids_np[idx_np], len(known) - 1)
+                origin = mi.Point3f(*(mi.Float(c) for c in probes[pid].T.astype(np.float32)))
+                keep = cull_mask(origin, el.reflect(sub.wo, sub.n), centres, radii, spread)
+                keep |= mi.Bool(~known[pid] & (ids_np[idx_np] < len(known)))
                 sel = dr.compress(keep)
                 if dr.width(sel) == 0:
                     continue
@@ -346,7 +410,8 @@ class HighlightRenderer:
                 return maps.lookup(ids, d, lod)
 
             tex = None
-            if self.distribution == "ellipsoidal" and self.sampling == "texture":
+            if (self.distribution == "ellipsoidal" and self.sampling == "texture"
+                    and not _is_smooth(a)):
                 tex = self._texture(_ratio(a, b))
             col = _estimate(sub, env, idx % w, idx // w, idx, a, self.samples,
                             self.distribution, self.sampling, frame_index, tex,

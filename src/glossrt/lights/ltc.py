@@ -19,10 +19,14 @@ times the light's texture prefiltered over the footprint of the (transformed) co
 the light, looked up where the vector form factor ``F`` of the transformed polygon (its mean
 direction, :func:`glossrt.lights.polygon.form_factor_vector`) meets the light's plane, at a
 level of detail set by the distance ``d`` of that plane along ``F`` relative to the polygon's
-size in the transformed space: ``sigma_uv = d / sqrt(A)`` (glossrt's form of the idea: the
-paper does not give its constants). :class:`PrefilteredTexture` stores Gaussian-filtered
-levels (normalised convolution over a padded domain, so the average only counts texels inside
-the light and lookups slightly outside the polygon see its edge colours).
+size in the transformed space: ``sigma_uv = c d / sqrt(A)`` (glossrt's form of the idea: the
+paper does not give its constants; ``c`` = :data:`FOOTPRINT_SCALE`, fitted against Monte
+Carlo on several textures and roughnesses by
+:func:`glossrt.ltc_experiments.texture_footprint`, docs/RESULTS.md).
+:class:`PrefilteredTexture` stores Gaussian-filtered levels (normalised convolution over a
+padded domain, so the average only counts texels inside the light and lookups slightly
+outside the polygon see its edge colours; each level centred on the texels its bilinear
+lookup reads) and blends the two levels that bracket the width linearly in ``log2`` of it.
 """
 
 from __future__ import annotations
@@ -135,6 +139,8 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
     for name, arr in (("vertices", verts), ("normal", n), ("view", wo), ("alpha", a)):
         if not np.all(np.isfinite(arr)):
             raise GlossrtError(f"polygon_integral: {name} contains NaN or Inf")
+    if np.any(a < 0):
+        raise GlossrtError(f"polygon_integral: alpha must be >= 0, got {float(a.min()):g}")
     k = verts.shape[-2]
     verts = np.broadcast_to(verts, (*batch, k, 3)).reshape(-1, k, 3)
     n = np.broadcast_to(n, (*batch, 3)).reshape(-1, 3)
@@ -148,37 +154,91 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
     # scale each polygon so its largest coordinate is ~1 (the integral is scale invariant)
     scale = np.maximum(np.abs(verts).max(axis=(1, 2)), 1e-300)[:, None, None]
     verts = verts / scale
+    _check_planar(verts)
+    # the shading frame and M^-1 in float64: the integral depends on the polygon's shape and
+    # distance only through their ratio, so a light seen nearly edge-on (its plane 2e-6 of
+    # its size from the shading point) is as well defined as any other; float32 vertices
+    # would put such planes within rounding of the point (polygon.PLANE_TOL_ULPS: 0)
+    t1, t2 = _ltc_frame_np(n, wo)
+    local = np.einsum("pkc,pjc->pkj", verts, np.stack([t1, t2, n], 1))  # (T1, T2, n) coords
+    cos_o = np.clip(np.sum(n * wo, -1), 0.0, 1.0)
+    coeffs, norm, _ = (table or _table()).lookup(
+        mi.Float(a.astype(np.float32)), mi.Float(cos_o.astype(np.float32)),
+        _mask(distribution == "beckmann"))
+    c = np.array(coeffs, dtype=np.float64).reshape(4, -1)
+    tx = c[0][:, None] * local[..., 0] + c[1][:, None] * local[..., 2]
+    tz = c[2][:, None] * local[..., 0] + c[3][:, None] * local[..., 2]
+    transformed = np.stack([tx, local[..., 1], tz], -1)  # M^-1 v (_apply_minv)
 
     def vec(x):
-        return mi.Vector3f(*(mi.Float(np.ascontiguousarray(x[:, c], np.float32))
-                             for c in range(3)))
+        return mi.Vector3d(*(mi.Float64(np.ascontiguousarray(x[:, c_])) for c_ in range(3)))
 
-    nd, wod = vec(n), vec(wo)
-    t1, t2 = ltc_frame(nd, wod)
-    origin = dr.zeros(mi.Point3f, len(a))
-    local = _local([vec(verts[:, j]) for j in range(k)], origin, t1, t2, nd)
-    cos_o = dr.clip(dr.dot(nd, wod), 0.0, 1.0)
-    coeffs, norm, _ = (table or _table()).lookup(
-        mi.Float(a.astype(np.float32)), cos_o,
-        _mask(distribution == "beckmann"))
-    i_s = cosine_integral(_apply_minv(coeffs, local), None, two_sided)
-    out = np.array(norm * i_s, dtype=np.float64)
-    out[np.array(dr.dot(nd, wod)) <= 0] = 0.0  # view below the surface: no reflection
+    i_s = np.array(cosine_integral([vec(transformed[:, j]) for j in range(k)], None,
+                                   two_sided), dtype=np.float64)
+    out = np.array(norm, dtype=np.float64) * i_s
+    out[np.sum(n * wo, -1) <= 0] = 0.0  # view below the surface: no reflection
     return out.reshape(batch)
 
 
-def strided_gaussian(n: int, sigma: float, step: int, truncate: float = 4.0) -> np.ndarray:
+def _ltc_frame_np(n: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Float64 :func:`ltc_frame` for (P, 3) unit ``n`` and ``wo``: ``T1`` along ``wo``'s
+    projection on the tangent plane, ``T2 = n x T1``; ``wo`` along ``n``: the tangents of
+    Mitsuba's ``coordinate_system`` (Duff et al. 2017, listing 3)."""
+    t = wo - n * np.sum(n * wo, -1, keepdims=True)
+    len2 = np.sum(t * t, -1, keepdims=True)
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    sign = np.where(z >= 0.0, 1.0, -1.0)
+    aa = -1.0 / (sign + z)
+    b = x * y * aa
+    fallback = np.stack([1.0 + sign * x * x * aa, sign * b, -sign * x], -1)
+    t1 = np.where(len2 > 1e-12, t / np.sqrt(np.maximum(len2, 1e-300)), fallback)
+    return t1, np.cross(n, t1)
+
+
+def _check_planar(verts: np.ndarray) -> None:
+    """GlossrtError unless every polygon of ``verts`` (P, K, 3) is planar within the
+    tolerance the scene loader gives mesh lights (:data:`glossrt.lights.scene.PLANE_TOL` of
+    its size: the largest distance of a vertex from the best-fit plane)."""
+    from .scene import PLANE_TOL
+
+    if verts.shape[1] == 3:
+        return
+    centre = verts.mean(1, keepdims=True)
+    _, _, vt = np.linalg.svd(verts - centre, full_matrices=False)
+    off = np.abs(np.einsum("pkc,pc->pk", verts - centre, vt[:, 2])).max(1)
+    size = np.linalg.norm(verts.max(1) - verts.min(1), axis=-1)
+    bad = off > PLANE_TOL * size
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise GlossrtError(
+            f"polygon_integral: polygon {i} is not planar (a vertex lies {off[i] / size[i]:.3g}"
+            f" of its size off its best-fit plane, more than {PLANE_TOL:g}); split it into "
+            "planar pieces")
+
+
+def strided_gaussian(n: int, sigma: float, step: int, truncate: float = 4.0,
+                     centred: bool = False) -> np.ndarray:
     """The 1D Gaussian filter of ``scipy.ndimage.gaussian_filter`` (same truncation radius
     ``int(truncate sigma + 0.5)``, weights normalised over it, zeros outside the signal:
     ``mode="constant"``) as a matrix evaluated at every ``step``-th sample: shape
-    ``(ceil(n / step), n)``, float64."""
+    ``(ceil(n / step), n)``, float64. ``centred=True``: evaluated instead at the centres of
+    the ``ceil(n / step)`` texels a texture of that many samples spreads over the same
+    domain (sample ``j`` at ``(j + 0.5) n / m - 0.5``), where a bilinear lookup reads them;
+    the every-``step``-th samples sit ``(step - 1) / 2`` texels off those centres."""
     r = int(truncate * float(sigma) + 0.5)
-    out = np.arange(0, n, step)
+    m = -(-n // step)
+    out = (np.arange(m) + 0.5) * (n / m) - 0.5 if centred else np.arange(0, n, step)
     d = np.arange(n)[None, :] - out[:, None]
     w = np.exp(-0.5 * (d / float(sigma)) ** 2)
-    w[np.abs(d) > r] = 0.0
+    w[np.abs(d) > r + (0.5 if centred else 0.0)] = 0.0
     x = np.arange(-r, r + 1)
     return w / np.exp(-0.5 * (x / float(sigma)) ** 2).sum()
+
+
+#: the scale ``c`` of the prefiltered lookup's filter width ``sigma_uv = c d / sqrt(A)``
+#: (module docstring), fitted against Monte Carlo by
+#: :func:`glossrt.ltc_experiments.texture_footprint` (docs/RESULTS.md)
+FOOTPRINT_SCALE = 0.63
 
 
 class PrefilteredTexture:
@@ -186,15 +246,31 @@ class PrefilteredTexture:
     normalised Gaussian convolution (sigma ``2^k`` texels of the base level) of the texture
     padded by ``pad`` of its size on each side, stored at ``1 / 2^k`` resolution; ``eval(uv,
     sigma_uv)`` blends the two levels around the requested filter width (in uv units, the
-    light's texture spans [0, 1]^2) and returns RGB."""
+    light's texture spans [0, 1]^2) and returns RGB.
 
-    def __init__(self, image: np.ndarray, pad: float = 0.5, levels: int | None = None):
+    ``scale``: the footprint scale ``c`` of the lookups made for LTC shading (``sigma_uv =
+    c d / sqrt(A)``; default :data:`FOOTPRINT_SCALE`). ``blend``: ``"log"`` (default)
+    interpolates linearly in ``log2 sigma`` between the two levels that bracket it, as
+    trilinear mipmapping does (the levels' widths double from one to the next, so the level
+    index is ``log2`` of the width in texels); ``"linear"`` interpolates linearly in
+    ``sigma`` (kept for comparison: between level 0 and level 1 it weights the sharp level
+    too little, and in general it leans to the coarser level)."""
+
+    def __init__(self, image: np.ndarray, pad: float = 0.5, levels: int | None = None,
+                 scale: float | None = None, blend: str = "log"):
+        if blend not in ("log", "linear"):
+            raise GlossrtError(f"blend must be 'log' or 'linear', got {blend!r}")
+        self.scale = FOOTPRINT_SCALE if scale is None else float(scale)
+        if not (math.isfinite(self.scale) and self.scale > 0):
+            raise GlossrtError(f"footprint scale must be a positive number, got {scale!r}")
+        self.blend = blend
         img = np.asarray(image, np.float32)
         if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
             raise GlossrtError(f"light texture must be (H, W, 3), got {img.shape}")
         if not np.all(np.isfinite(img)):
             raise GlossrtError("light texture contains NaN or Inf")
         h, w = img.shape[:2]
+        self.texels = max(h, w)
         self.pad = float(pad)
         ph, pw = int(math.ceil(h * pad)), int(math.ceil(w * pad))
         data = np.zeros((h + 2 * ph, w + 2 * pw, 3), np.float32)
@@ -213,8 +289,10 @@ class PrefilteredTexture:
             if sigma > 0:
                 # the Gaussian at every step-th texel only (what the level keeps): separable
                 # strided matrices, not a full-resolution filter of radius 4 sigma
-                gy = strided_gaussian(data.shape[0], sigma, step)
-                gx = strided_gaussian(data.shape[1], sigma, step)
+                # centred on the texels a bilinear lookup reads (a level filtered at
+                # every step-th texel would sit (step - 1) / 2 texels off the base level)
+                gy = strided_gaussian(data.shape[0], sigma, step, centred=True)
+                gx = strided_gaussian(data.shape[1], sigma, step, centred=True)
                 num = np.stack([gy @ (data[..., c] * mask) @ gx.T for c in range(3)], -1)
                 den = (gy @ mask @ gx.T)[..., None]
                 lvl = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
@@ -227,11 +305,22 @@ class PrefilteredTexture:
                 wrap_mode=dr.WrapMode.Clamp))
 
     def eval(self, uv: mi.Point2f, sigma_uv: mi.Float) -> mi.Color3f:
-        """Trilinear lookup: the two levels whose filter widths bracket ``sigma_uv``."""
+        """Trilinear lookup: the two levels whose filter widths bracket ``sigma_uv``
+        (blended as ``blend`` says; below level 1's width in ``"log"``: down to 1 texel,
+        the base level's own bilinear footprint, the blend runs from level 0; under that,
+        level 0)."""
         p = mi.Point2f((uv.x - self.lo[0]) / self.span[0], (uv.y - self.lo[1]) / self.span[1])
         vals = [t.eval(p) for t in self.textures]
         cols = [mi.Color3f(v[0], v[1], v[2]) for v in vals]
         out = cols[0]
+        if self.blend == "log":
+            # the level index: level k has width 2^k texels (k >= 1), level 0 counts as 1
+            # texel; linear in log2(sigma) between consecutive levels, beyond the last: it
+            lod = dr.log2(dr.maximum(sigma_uv * self.texels, 1e-30))
+            for k in range(1, len(cols)):
+                t = dr.clip(lod - (k - 1), 0.0, 1.0)
+                out = dr.select(lod > k - 1, dr.lerp(cols[k - 1], cols[k], t), out)
+            return out
         # piecewise-linear in sigma between consecutive levels; beyond the last: the last
         for k in range(1, len(cols)):
             s0, s1 = self.sigmas[k - 1], self.sigmas[k]
@@ -256,7 +345,7 @@ def _tex_eval(uv: tuple, tex: PrefilteredTexture, plane: tuple, f: mi.Vector3f) 
     or of a piece of it: BSPVT shadows) and the whole light's ``plane`` (:func:`_tex_plane`): the
     prefiltered texture where ``f`` meets the plane, uv by the light's affine map (``uv``:
     opaque ``(u0, v0, u1, v1, ul, vl)`` at its vertices 0, 1 and last), filter width
-    ``|t| / sqrt(area)``."""
+    ``c |t| / sqrt(area)`` (``c``: the texture's footprint ``scale``)."""
     v0, e1, e2, nrm, area = plane
     dirn = dr.normalize(f)
     denom = dr.dot(dirn, nrm)
@@ -270,7 +359,9 @@ def _tex_eval(uv: tuple, tex: PrefilteredTexture, plane: tuple, f: mi.Vector3f) 
     u0, w0, u1, w1, ul, wl = uv
     u = u0 + s * (u1 - u0) + q * (ul - u0)
     v = w0 + s * (w1 - w0) + q * (wl - w0)
-    sigma_uv = dr.abs(t) / dr.sqrt(dr.maximum(area, 1e-30))
+    # Heitz et al. 2016, sec. 5.3: the filter width grows with the distance to the light's
+    # plane relative to the light's size; c fitted against Monte Carlo (FOOTPRINT_SCALE)
+    sigma_uv = tex.scale * dr.abs(t) / dr.sqrt(dr.maximum(area, 1e-30))
     return tex.eval(mi.Point2f(u, v), sigma_uv)
 
 

@@ -49,8 +49,19 @@ glossrt's choices:
   ``A`` is 0 as well, the result is 0 either way.
 * **Clamp** every ratio to ``[0, 1]`` per channel (it is there already, see above; the clamp
   guards against float rounding in the filter's demodulation).
-* All lights share one ratio per component (the paper's estimator per light would need one
-  pair of images per light; glossrt's scenes have one light).
+* **One ratio per light** (``per_light=True``, the default; Heitz, Hill & McGuire 2018,
+  sec. 5, multiple lights: ``L = sum_l A_l S_l / U_l``): each light ``l`` gets its own
+  analytic term ``A_l`` and its own pair ``S_l`` / ``U_l`` (the same samples: every light
+  draws its own light and BRDF sample, as in :func:`glossrt.lights.mc.estimate`), filtered
+  alike and divided per light. One ratio shared by all lights, ``(sum_l A_l) (sum_l S_l) /
+  (sum_l U_l)``, is right only where every light is shadowed alike, or where each ``A_l``
+  equals its ``U_l`` (then the sums cancel); it is wrong wherever the analytic terms err
+  differently per light (LTC's specular error, a textured light's prefiltered lookup) and
+  wherever the filter averages over pixels whose mix of lights differs (near one light and
+  far from another): a light that is hidden then darkens the visible one's contribution, or
+  the visible one lightens the hidden one's shadow. ``per_light=False`` (one ratio of the
+  sums over lights, per component) is kept for comparison. The cost is one pair of images
+  and one filtering per light.
 
 Denoising: :func:`glossrt.denoise.bilateral` (cross-bilateral, weights from the G-buffer
 only: screen distance, depth, normals and, with ``weight="lobe"``, the specular lobes), run
@@ -63,7 +74,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .. import backend
 
@@ -97,17 +108,16 @@ class Pair:
     u_s: mi.Color3f
 
 
-def estimate_pair(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) -> Pair:
-    """One two-strategy MIS sample per lane of the direct light of ``lights`` (``_Light``
-    objects of :mod:`glossrt.lights.mc`), with and without shadow rays through ``scene``,
-    from the same samples (:func:`glossrt.lights.mc.strategies`, the ones
-    :func:`glossrt.lights.mc.estimate` draws; ``scene=None``: ``s`` is ``u``)."""
+def estimate_pair(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) -> list[Pair]:
+    """One two-strategy MIS sample per lane of the direct light of each of ``lights``
+    (``_Light`` objects of :mod:`glossrt.lights.mc`), with and without shadow rays through
+    ``scene``, from the same samples (:func:`glossrt.lights.mc.strategies`, the ones
+    :func:`glossrt.lights.mc.estimate` draws; ``scene=None``: ``s`` is ``u``): one
+    :class:`Pair` per light, in order (sum them for the whole light)."""
     frame = mi.Frame3f(sp.n)
     wo_l = frame.to_local(sp.wo)
     q = _spec_weight(sp)
-    n = dr.width(sp.p)
-    u_d, u_s = dr.zeros(mi.Color3f, n), dr.zeros(mi.Color3f, n)
-    s_d, s_s = dr.zeros(mi.Color3f, n), dr.zeros(mi.Color3f, n)
+    out = []
     for lt in lights:
         s1, s2 = strategies(sp, lt, frame, wo_l, q, rng)
         # Veach 1997, balance heuristic: f L / p_l * p_l / (p_l + p_b)
@@ -116,17 +126,16 @@ def estimate_pair(sp: ShadingPoints, lights: list, rng: mi.PCG32, scene=None) ->
         # Heitz, Hill & McGuire 2018, ratio estimator: the same sample, with and without V
         c_d, c_s = s1.fd * scale, s1.fs * scale
         c_d2, c_s2 = s2.fd * scale2, s2.fs * scale2
-        u_d += c_d + c_d2
-        u_s += c_s + c_s2
+        u_d, u_s = c_d + c_d2, c_s + c_s2
         if scene is None:
+            out.append(Pair(mi.Color3f(u_d), mi.Color3f(u_s), u_d, u_s))
             continue
         vis = _visible(scene, sp.p, sp.n, s1.y, s1.ok)
         vis2 = _visible(scene, sp.p, sp.n, s2.y, s2.ok)
-        s_d += dr.select(vis, c_d, 0.0) + dr.select(vis2, c_d2, 0.0)
-        s_s += dr.select(vis, c_s, 0.0) + dr.select(vis2, c_s2, 0.0)
-    if scene is None:
-        s_d, s_s = mi.Color3f(u_d), mi.Color3f(u_s)
-    return Pair(s_d, s_s, u_d, u_s)
+        s_d = dr.select(vis, c_d, 0.0) + dr.select(vis2, c_d2, 0.0)
+        s_s = dr.select(vis, c_s, 0.0) + dr.select(vis2, c_s2, 0.0)
+        out.append(Pair(s_d, s_s, u_d, u_s))
+    return out
 
 
 def _check_spp(spp) -> int:
@@ -166,35 +175,49 @@ def _scene_of(scene):
 
 def stochastic_pair(frame, lights: list, scene=None, spp: int = 1,
                     f0: np.ndarray | None = None, seed: int = 0,
-                    progress: Callable[[int, int], None] | None = None) -> dict:
+                    progress: Callable[[int, int], None] | None = None,
+                    per_light: bool = False) -> dict | list[dict]:
     """The noisy shadowed and unshadowed Monte Carlo images of ``frame`` from the same
     samples, ``spp`` per pixel (sampled and seeded like :func:`glossrt.lights.mc.render_mc`):
     a dict of (H, W, 3) float32 arrays ``shadowed_diffuse``, ``shadowed_specular``,
-    ``unshadowed_diffuse``, ``unshadowed_specular``. ``scene``: the Mitsuba scene for the
-    shadow rays (``None``: the shadowed images are the unshadowed ones)."""
+    ``unshadowed_diffuse``, ``unshadowed_specular`` for all lights together, or with
+    ``per_light=True`` a list of such dicts, one per light (they sum to the former).
+    ``scene``: the Mitsuba scene for the shadow rays (``None``: the shadowed images are the
+    unshadowed ones)."""
     spp = _check_spp(spp)
     f0 = _check_f0(frame, f0)
     scene = _scene_of(scene)
     h, w = frame.height, frame.width
     lts = [_Light(lt) for lt in lights]
-    acc = [dr.zeros(mi.Color3f, w * h) for _ in range(4)]
+    groups = len(lts) if per_light else 1
+    acc = [[dr.zeros(mi.Color3f, w * h) for _ in range(4)] for _ in range(groups)]
     done = 0
     for sp, rng, k in sample_batches(ShadingPoints.of(frame, f0), spp, seed):
-        pair = estimate_pair(sp, lts, rng, scene)
-        ests = []
-        for s, u in ((pair.s_d, pair.u_d), (pair.s_s, pair.u_s)):
-            ok = dr.isfinite(u)  # s is u or 0: drop both together
-            ests += [dr.select(ok, s, 0.0), dr.select(ok, u, 0.0)]
-        for j, est in enumerate(ests):
-            acc[j] = acc[j] + mi.Color3f(*(dr.block_sum(est[c], k) for c in range(3)))
+        pairs = estimate_pair(sp, lts, rng, scene)
+        if not per_light and pairs:
+            total = pairs[0]
+            for p in pairs[1:]:
+                total = Pair(total.s_d + p.s_d, total.s_s + p.s_s, total.u_d + p.u_d,
+                             total.u_s + p.u_s)
+            pairs = [total] if pairs else []
+        for g, pair in enumerate(pairs):
+            ests = []
+            for s, u in ((pair.s_d, pair.u_d), (pair.s_s, pair.u_s)):
+                ok = dr.isfinite(u)  # s is u or 0: drop both together
+                ests += [dr.select(ok, s, 0.0), dr.select(ok, u, 0.0)]
+            for j, est in enumerate(ests):
+                acc[g][j] = acc[g][j] + mi.Color3f(*(dr.block_sum(est[c], k)
+                                                     for c in range(3)))
         dr.eval(acc)
         done += k
         if progress is not None:
             progress(done, spp)
     names = ("shadowed_diffuse", "unshadowed_diffuse", "shadowed_specular",
              "unshadowed_specular")
-    return {name: (np.stack([np.array(a[c]) for c in range(3)], -1) / spp)
-            .reshape(h, w, 3).astype(np.float32) for name, a in zip(names, acc, strict=True)}
+    out = [{name: (np.stack([np.array(a[c]) for c in range(3)], -1) / spp)
+            .reshape(h, w, 3).astype(np.float32) for name, a in zip(names, ag, strict=True)}
+           for ag in acc]
+    return out if per_light else out[0]
 
 
 def _filter_frame(frame, channel: str, image: np.ndarray, demodulate: bool) -> Frame:
@@ -277,9 +300,13 @@ class RatioImages:
     ``analytic_diffuse`` / ``analytic_specular`` its two terms; the noisy
     ``shadowed_*`` / ``unshadowed_*`` Monte Carlo estimates (same samples); their filtered
     versions ``shadowed_*_denoised`` / ``unshadowed_*_denoised`` (the noisy ones when
-    ``denoise=False``) and the ratios ``ratio_diffuse`` / ``ratio_specular`` (with
-    ``split=False`` both are the one ratio of the sums, and the ``*_diffuse`` estimates hold
-    the sums, the ``*_specular`` ones zeros)."""
+    ``denoise=False``), all summed over the lights, and the ratios ``ratio_diffuse`` /
+    ``ratio_specular`` (with ``split=False`` both are the one ratio of the sums, and the
+    ``*_diffuse`` estimates hold the sums, the ``*_specular`` ones zeros). With one light (or
+    ``per_light=False``) the ratios are the ones applied; with several, each light has its
+    own (``per_light``: one dict per light of its ``analytic_*``, ``ratio_*`` and noisy and
+    filtered estimates, keyed as here) and ``ratio_*`` is their effective ratio ``sum_l A_l
+    r_l / sum_l A_l`` (1 where no light reaches)."""
 
     image: np.ndarray
     analytic: np.ndarray
@@ -295,6 +322,7 @@ class RatioImages:
     unshadowed_specular_denoised: np.ndarray
     ratio_diffuse: np.ndarray
     ratio_specular: np.ndarray
+    per_light: list = field(default_factory=list)
 
     @property
     def shadowed(self) -> np.ndarray:
@@ -307,35 +335,20 @@ class RatioImages:
         return self.unshadowed_diffuse + self.unshadowed_specular
 
 
-def render_ratio(frame, lights: list, scene=None, spp: int = 1, f0: np.ndarray | None = None,
-                 seed: int = 0, denoise: bool = True, split: bool = True,
-                 progress: Callable[[int, int], None] | None = None,
-                 **filter_params) -> RatioImages:
-    """Shadowed direct light of ``frame``'s G-buffer from the polygon ``lights`` by the ratio
-    estimator (module docstring): unshadowed LTC (:func:`glossrt.lights.ltc.shade_frame`,
-    ``f0`` per pixel as there) times the ratio of shadowed to unshadowed Monte Carlo
-    estimates from the same ``spp`` samples per pixel (``seed``; shadow rays through
-    ``scene``, a Mitsuba scene or SceneSetup, ``None``: no shadows, ratio 1), denoised with
-    the same bilateral weights (``denoise``; ``filter_params`` go to
-    :func:`glossrt.denoise.bilateral`). ``split``: one ratio per component (diffuse,
-    specular; default) or one for their sum. Returns :class:`RatioImages`; the image is
-    ``.image``."""
-    spp = _check_spp(spp)
-    f0 = _check_f0(frame, f0)
-    scene = _scene_of(scene)
-    if denoise:
-        _bilateral_params(filter_params)
-    elif filter_params:
-        raise GlossrtError(f"denoiser parameter(s) {', '.join(sorted(filter_params))} given "
-                           "with denoise=False")
-    # analytic, unshadowed: the specular term alone (no diffuse albedo) and the rest
+def _analytic_terms(frame, lights: list, f0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(total, diffuse, specular)`` unshadowed LTC images of ``lights``: the specular term
+    shaded without diffuse albedo, the diffuse term the rest."""
     total = shade_frame(frame, lights, f0=f0)
     no_diffuse = dict(frame.channels)
     no_diffuse["albedo_diffuse"] = np.zeros((frame.height, frame.width, 3), np.float32)
     a_s = shade_frame(Frame(channels=no_diffuse, camera=frame.camera), lights, f0=f0)
-    a_d = np.maximum(total - a_s, 0.0)
-    noisy = stochastic_pair(frame, lights, scene, spp, f0, seed, progress)
-    zeros = np.zeros_like(total)
+    return total, np.maximum(total - a_s, 0.0), a_s
+
+
+def _ratios(frame, noisy: dict, split: bool, denoise: bool, filter_params: dict) -> dict:
+    """One light group's (or all lights') filtered ratios: ``r_d``, ``r_s`` and the noisy
+    and filtered estimates, keyed as in :class:`RatioImages`."""
+    zeros = np.zeros_like(noisy["shadowed_diffuse"])
     if split:
         r_d, sd_f, ud_f = filtered_ratio(frame, noisy["shadowed_diffuse"],
                                          noisy["unshadowed_diffuse"], "diffuse", denoise,
@@ -352,12 +365,63 @@ def render_ratio(frame, lights: list, scene=None, spp: int = 1, f0: np.ndarray |
                                          noisy["unshadowed_diffuse"], "diffuse", denoise,
                                          demodulate=False, **filter_params)
         r_s, ss_f, us_f = r_d, zeros, zeros
-    # Heitz, Hill & McGuire 2018: shadowed = unshadowed (analytic) x weighted shadow (ratio),
-    # written as A - A_d (1 - r_d) - A_s (1 - r_s) so that ratio 1 returns A bit for bit
-    image = total - a_d * (1.0 - r_d) - a_s * (1.0 - r_s)
+    return {**noisy, "shadowed_diffuse_denoised": sd_f, "shadowed_specular_denoised": ss_f,
+            "unshadowed_diffuse_denoised": ud_f, "unshadowed_specular_denoised": us_f,
+            "ratio_diffuse": r_d, "ratio_specular": r_s}
+
+
+def render_ratio(frame, lights: list, scene=None, spp: int = 1, f0: np.ndarray | None = None,
+                 seed: int = 0, denoise: bool = True, split: bool = True,
+                 progress: Callable[[int, int], None] | None = None,
+                 per_light: bool = True, **filter_params) -> RatioImages:
+    """Shadowed direct light of ``frame``'s G-buffer from the polygon ``lights`` by the ratio
+    estimator (module docstring): unshadowed LTC (:func:`glossrt.lights.ltc.shade_frame`,
+    ``f0`` per pixel as there) times the ratio of shadowed to unshadowed Monte Carlo
+    estimates from the same ``spp`` samples per pixel (``seed``; shadow rays through
+    ``scene``, a Mitsuba scene or SceneSetup, ``None``: no shadows, ratio 1), denoised with
+    the same bilateral weights (``denoise``; ``filter_params`` go to
+    :func:`glossrt.denoise.bilateral`). ``split``: one ratio per component (diffuse,
+    specular; default) or one for their sum. ``per_light``: one ratio per light (default,
+    Heitz, Hill & McGuire 2018) or one shared by all lights. Returns :class:`RatioImages`;
+    the image is ``.image``."""
+    spp = _check_spp(spp)
+    f0 = _check_f0(frame, f0)
+    scene = _scene_of(scene)
+    if denoise:
+        _bilateral_params(filter_params)
+    elif filter_params:
+        raise GlossrtError(f"denoiser parameter(s) {', '.join(sorted(filter_params))} given "
+                           "with denoise=False")
+    # analytic, unshadowed: all lights, then (several lights, one ratio each) light by light
+    total, a_d, a_s = _analytic_terms(frame, lights, f0)
+    groups = per_light and len(lights) > 1
+    terms = [_analytic_terms(frame, [lt], f0)[1:] for lt in lights] if groups else [(a_d, a_s)]
+    noisy = stochastic_pair(frame, lights, scene, spp, f0, seed, progress, per_light=groups)
+    noisy = noisy if groups else [noisy]
+    parts = [_ratios(frame, nz, split, denoise, filter_params) for nz in noisy]
+    # Heitz, Hill & McGuire 2018, sec. 5: L = sum_l A_l S_l / U_l (one ratio per light),
+    # shadowed = unshadowed (analytic) x weighted shadow (ratio), written as
+    # A - sum_l (A_d,l (1 - r_d,l) + A_s,l (1 - r_s,l)) so that ratio 1 returns A bit for bit
+    image = np.array(total, np.float64)
+    for (ad, as_), part in zip(terms, parts, strict=True):
+        image -= ad * (1.0 - part["ratio_diffuse"]) + as_ * (1.0 - part["ratio_specular"])
     image = np.maximum(image, 0.0).astype(np.float32)
+    summed = {k: sum(p[k] for p in parts).astype(np.float32) for k in parts[0]
+              if not k.startswith("ratio_")}
+    if groups:
+        rat = {}
+        for comp, k in (("diffuse", 0), ("specular", 1)):
+            num = sum(t[k] * p[f"ratio_{comp}"] for t, p in zip(terms, parts, strict=True))
+            den = sum(t[k] for t in terms)
+            r = np.ones_like(den)
+            np.divide(num, den, out=r, where=den > 0)
+            rat[f"ratio_{comp}"] = np.clip(r, 0.0, 1.0).astype(np.float32)
+        each = [{"analytic_diffuse": t[0].astype(np.float32),
+                 "analytic_specular": t[1].astype(np.float32), **p}
+                for t, p in zip(terms, parts, strict=True)]
+    else:
+        rat = {k: parts[0][k] for k in ("ratio_diffuse", "ratio_specular")}
+        each = []
     return RatioImages(image=image, analytic=total, analytic_diffuse=a_d.astype(np.float32),
-                       analytic_specular=a_s.astype(np.float32), **noisy,
-                       shadowed_diffuse_denoised=sd_f, shadowed_specular_denoised=ss_f,
-                       unshadowed_diffuse_denoised=ud_f, unshadowed_specular_denoised=us_f,
-                       ratio_diffuse=r_d, ratio_specular=r_s)
+                       analytic_specular=a_s.astype(np.float32), **summed, **rat,
+                       per_light=each)

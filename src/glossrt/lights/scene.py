@@ -48,6 +48,9 @@ MAX_VERTICES = 8
 #: between a mesh's area and its convex outline's, as fractions of the light's size / area
 PLANE_TOL = 1e-5
 AREA_TOL = 1e-4
+#: a mesh light whose vertices spread across their line by less than this fraction of their
+#: spread along it is collinear (zero area; Mitsuba stores vertices in float32, ~6e-8)
+COLLINEAR_TOL = 1e-6
 
 #: rectangle corners in its local frame, counter-clockwise about +z, and their uv
 _RECT_LOCAL = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
@@ -156,6 +159,10 @@ def _mesh_polygon(shape, textured: bool,
         raise GlossrtError(f"area light on mesh {name!r}: the mesh has no extent")
     centre = pts.mean(0)
     _, sing, vt = np.linalg.svd(pts - centre, full_matrices=False)
+    if len(sing) < 2 or not sing[1] > COLLINEAR_TOL * sing[0]:
+        raise GlossrtError(
+            f"area light on mesh {name!r} has zero area: its {len(pts)} vertices are "
+            "collinear (they lie on one line)")
     plane_n = vt[2]
     off = float(np.max(np.abs((pts - centre) @ plane_n)))
     if off > PLANE_TOL * size:
@@ -167,6 +174,10 @@ def _mesh_polygon(shape, textured: bool,
     tri_area = 0.5 * np.linalg.norm(fn, axis=1)
     side = fn @ plane_n
     real = tri_area > 1e-12 * size * size
+    if not np.any(real):
+        raise GlossrtError(
+            f"area light on mesh {name!r} has zero area: each of its {len(faces)} triangles "
+            "has collinear or repeated corners")
     if np.any(side[real] > 0) and np.any(side[real] < 0):
         raise GlossrtError(
             f"area light on mesh {name!r} is not a polygon light: its triangles are wound "
