@@ -200,7 +200,21 @@ def test_bench_json(tmp_path, capsys):
     assert r["glossrt_frame_s"] > 0 and r["mitsuba_path_1spp_s"] > 0
     assert r["ratio_frame_vs_path"] > 0 and r["repeats"] >= 3
     d = res["results"]["denoisers"]
-    assert d["cost_vs_atrous"]["atrous"] == 1.0 and d["seconds"]["svgf"] > 0
+    # cost_vs_atrous: the median over repeats of each method's time over atrous' time in the
+    # same repeat, recomputed here from the recorded samples, for every method that can run
+    from glossrt.experiments import _available
+
+    method = {"svgf-paper-2-signals": "svgf", "svgf-1-signal": "svgf"}
+    ran = {m for m in ("svgf", "svgf-lobe", "svgf-paper-2-signals", "svgf-1-signal", "atrous",
+                       "atrous-temporal", "oidn") if _available(method.get(m, m)) is None}
+    assert set(d["seconds"]) == set(d["samples"]) == set(d["cost_vs_atrous"]) == ran
+    base = np.asarray(d["samples"]["atrous"])
+    assert len(base) == d["repeats"] >= 3
+    for m, s in d["samples"].items():
+        s = np.asarray(s)
+        assert (s > 0).all()
+        assert d["seconds"][m] == pytest.approx(np.median(s), rel=1e-12)
+        assert d["cost_vs_atrous"][m] == pytest.approx(np.median(s / base), rel=1e-12)
     lw = res["results"]["lobe-weights"]["ratio_lobe_vs_normal"]
     assert {"bilateral-spec-traced", "bilateral-spec-frozen", "upsample-1/2-both-frozen"} <= set(lw)
 
@@ -328,7 +342,7 @@ def test_denoise_cli_reads_foreign_exrs(tmp_path, capsys):
     assert main(["denoise", str(foreign), "--method", "svgf", "--out", str(out2)]) == 2
     err = capsys.readouterr().err
     assert "frame_0000.exr" in err and "no camera" in err
-    assert os.listdir(out2) == []
+    assert not out2.exists()  # the folder this failed run created is removed again
 
 
 def test_denoise_cli_missing_channel(tmp_path, capsys):

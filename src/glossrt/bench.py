@@ -103,7 +103,7 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
 
     setup = scenes.load("glossy-cornell", size=ctx.size)
     r = render.Renderer(setup, frozen=True)
-    integrator = mi.load_dict({"type": "path", "max_depth": r.max_depth})
+    integrator = mi.load_dict({"type": "path", "max_depth": r.mitsuba_max_depth})
     counter = {"f": 0}
 
     def ours():
@@ -128,7 +128,7 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
     return {
         "scene": "glossy-cornell",
         "size": list(ctx.size),
-        "max_depth": r.max_depth,
+        "max_depth": r.mitsuba_max_depth,
         "glossrt_trace_s": med["glossrt_kernels"],
         "glossrt_frame_s": med["glossrt_frame"],
         "mitsuba_path_1spp_s": med["mitsuba_path"],
@@ -185,7 +185,7 @@ def denoisers(ctx: BenchContext) -> dict:
     times = round_robin(runners, 1, ctx.turns, ctx.min_sample)
     med = {k: statistics.median(v) for k, v in times.items()}
     out = {"scene": "glossy-cornell (static camera)", "size": list(ctx.size),
-           "seconds": med, "repeats": ctx.turns}
+           "seconds": med, "repeats": ctx.turns, "samples": times}
     if "oidn" in times:
         out["oidn_over"] = {k: paired_ratio(times["oidn"], v) for k, v in times.items()}
     if "atrous" in times:
@@ -426,17 +426,30 @@ def _bspvt_engines(scene, res: int, count: int) -> dict:
     return out
 
 
+def check_args(repeats: int = 9, warmup: int = 3, min_sample: float = MIN_SAMPLE,
+               names: list[str] | None = None) -> None:
+    """Refuse, before any benchmark runs, repeats < 1, a negative warm-up or shortest sample,
+    and unknown benchmark names."""
+    unknown = [n for n in names or [] if n not in BENCHMARKS]
+    if unknown:
+        raise GlossrtError(f"unknown benchmark(s) {unknown}; available: {sorted(BENCHMARKS)}")
+    if repeats < 1:
+        raise GlossrtError(f"bench: --repeats must be >= 1, got {repeats}")
+    if warmup < 0:
+        raise GlossrtError(f"bench: --warmup must be >= 0, got {warmup}")
+    if not min_sample >= 0:
+        raise GlossrtError(f"bench: min_sample must be >= 0 seconds, got {min_sample}")
+
+
 def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,
         repeats: int = 9, log: Callable[[str], None] = print,
         min_sample: float = MIN_SAMPLE) -> dict:
     """Run the named (default: all) benchmarks and return a JSON-able dict."""
+    check_args(repeats=repeats, warmup=warmup, min_sample=min_sample, names=names)
     info = backend.info()
     ctx = BenchContext(size=size, warmup=warmup, repeats=repeats, min_sample=min_sample)
-    unknown = [n for n in names or [] if n not in BENCHMARKS]
-    if unknown:
-        raise GlossrtError(f"unknown benchmark(s) {unknown}; available: {sorted(BENCHMARKS)}")
-    if not min_sample >= 0:
-        raise GlossrtError(f"bench: min_sample must be >= 0 seconds, got {min_sample}")
+    if ctx.turns != repeats:
+        log(f"bench: side-by-side ratios take {ctx.turns} repeats (asked for {repeats})")
     results = {}
     for name in names or list(BENCHMARKS):
         log(f"bench {name} ...")

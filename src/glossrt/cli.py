@@ -4,12 +4,15 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
+import re
 import sys
 import tempfile
 import time
 import warnings
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from .bench import MIN_SAMPLE
@@ -28,12 +31,99 @@ EXAMPLES = """examples:
 """
 
 
+#: folders this run created (outermost first); :func:`main` removes those left empty when the
+#: command fails, so a failed run leaves no empty output folder behind
+_CREATED: list[Path] = []
+
+#: peak memory of a render (measured on the 2-core CPU VM, docs/PERFORMANCE.md): the process'
+#: base plus bytes per pixel, fitted to the peak RSS (getrusage) of `glossrt render
+#: glossy-cornell` at 64x48 .. 1536x1152: 1 spp frames about 1100 B/px, --reference about
+#: 1650 B/px over a base of 140-320 MB (a cold kernel cache measured the same: 550 MB at
+#: 512x384 --reference); the larger, with a margin, is what every command's size check assumes
+#: (a refusal means the render could not fit, not that it would be slow)
+MEMORY_BASE = 400e6
+MEMORY_PER_PIXEL = 2000.0
+
+#: the largest seed (frame seeds are 32-bit: larger ones would wrap and repeat smaller ones)
+SEED_MAX = 2**32 - 1
+
+
+def memory_estimate(size: tuple[int, int]) -> float:
+    """Bytes a render of ``size`` (W, H) needs at its peak (see :data:`MEMORY_PER_PIXEL`)."""
+    return MEMORY_BASE + MEMORY_PER_PIXEL * size[0] * size[1]
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (``MemAvailable`` of /proc/meminfo, else
+    the free physical pages), None when unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_memory(size: tuple[int, int], what: str = "--size") -> None:
+    """Refuse, before any work, an image size whose render cannot fit in the memory available."""
+    need, avail = memory_estimate(size), _available_memory()
+    if avail is not None and need > avail:
+        raise GlossrtError(
+            f"{what} {size[0]}x{size[1]} needs about {need / 1e9:.1f} GB of memory "
+            f"({MEMORY_PER_PIXEL:.0f} bytes per pixel), but only {avail / 1e9:.1f} GB is "
+            "available; choose a smaller size")
+
+
+def _check_seed(seed: int) -> None:
+    if not 0 <= seed <= SEED_MAX:
+        raise GlossrtError(f"--seed must be in 0..{SEED_MAX} (a 32-bit seed: larger values "
+                           f"would wrap around to smaller seeds), got {seed}")
+
+
+def _path_problem(path: str) -> str | None:
+    """What is wrong with ``path`` as an output that ``Path.exists`` hides: a symbolic link loop
+    or a link to nothing; None when nothing is."""
+    if not os.path.islink(path):
+        return None
+    try:
+        os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "is a symbolic link loop"
+        return f"is a symbolic link to a missing target ({os.readlink(path)!r})"
+    return None
+
+
+def _make_dirs(p: Path) -> None:
+    """``mkdir -p p``, remembering the outermost folder it created (for :data:`_CREATED`)."""
+    missing = []
+    q = p
+    while not q.exists() and not os.path.islink(q) and q != q.parent:
+        missing.append(q)
+        q = q.parent
+    for q in reversed(missing):
+        try:
+            q.mkdir()
+        except FileExistsError:
+            continue
+        if not any(q.is_relative_to(c) for c in _CREATED):
+            _CREATED.append(q)
+
+
 def _writable_dir(path: str, inputs: tuple[str, ...] = ()) -> Path:
     """The output folder ``path``, created if missing and probed for writing; refused when it
-    is empty, an existing file, or one of the ``inputs`` folders (writing there would replace
-    the inputs)."""
+    is empty, an existing file, a broken link, or one of the ``inputs`` folders (writing there
+    would replace the inputs)."""
     if not path:
         raise GlossrtError("the output folder is an empty path")
+    problem = _path_problem(path)
+    if problem:
+        raise GlossrtError(f"output folder {path!r} {problem}")
     p = Path(path)
     if p.exists():
         if not p.is_dir():
@@ -43,7 +133,7 @@ def _writable_dir(path: str, inputs: tuple[str, ...] = ()) -> Path:
                 raise GlossrtError(f"output folder {path!r} is the input folder {src!r}: its "
                                    "frames would be overwritten; choose another --out")
     try:
-        p.mkdir(parents=True, exist_ok=True)
+        _make_dirs(p)
         with tempfile.NamedTemporaryFile(dir=p, prefix=".glossrt-probe-"):
             pass
     except OSError as e:
@@ -52,10 +142,14 @@ def _writable_dir(path: str, inputs: tuple[str, ...] = ()) -> Path:
 
 
 def _output_file(path: str, what: str, keep: tuple[Path, ...] = ()) -> Path:
-    """An output file ``path`` checked before any work: not empty, not a folder, not one of
-    the files ``keep`` (inputs), never an existing EXR; its folder is created."""
+    """An output file ``path`` checked before any work: not empty, not a folder, not a broken
+    link, not one of the files ``keep`` (inputs), never an existing EXR; its folder is created
+    and probed for writing (a write that fails after the work would lose the work)."""
     if not path:
         raise GlossrtError(f"{what}: the output file is an empty path")
+    problem = _path_problem(path)
+    if problem:
+        raise GlossrtError(f"{what}: {path!r} {problem}")
     p = Path(path)
     if p.is_dir():
         raise GlossrtError(f"{what}: {path!r} is a folder, not a file")
@@ -63,11 +157,82 @@ def _output_file(path: str, what: str, keep: tuple[Path, ...] = ()) -> Path:
                        or any(k.exists() and os.path.samefile(p, k) for k in keep)):
         raise GlossrtError(f"{what}: {path!r} is an input or an image; refusing to overwrite it")
     try:
-        p.parent.mkdir(parents=True, exist_ok=True)
+        _make_dirs(p.parent)
     except OSError as e:
         raise GlossrtError(f"{what}: cannot create the folder of {path!r}: "
                            f"{e.strerror or e}") from None
+    try:
+        with tempfile.NamedTemporaryFile(dir=p.parent, prefix=f".{p.name}.probe-"):
+            pass
+    except OSError as e:
+        raise GlossrtError(f"{what}: cannot write into the folder of {path!r} "
+                           f"({e.strerror or e})") from None
     return p
+
+
+def _scene_files(scene: str) -> list[Path]:
+    """A scene's input files: an XML scene file and the files it names (``<include>``s,
+    meshes, textures; relative names resolved against its folder as Mitsuba does, then the
+    working folder), for the checks that no output replaces one. Built-in scenes: none."""
+    if not os.path.isfile(scene):
+        return []
+    files: list[Path] = []
+    todo, seen = [Path(scene)], set()
+    while todo:
+        f = todo.pop()
+        real = f.resolve()
+        if real in seen:
+            continue
+        seen.add(real)
+        files.append(f)
+        if f.suffix.lower() != ".xml":
+            continue
+        try:
+            root = ET.parse(f).getroot()
+        except (ET.ParseError, OSError, ValueError):
+            continue
+        for el in root.iter():
+            name = (el.get("filename") if el.tag == "include" else
+                    el.get("value") if el.tag == "string" and el.get("name") == "filename"
+                    else None)
+            if not name or "$" in name:
+                continue
+            for base in (f.parent, Path.cwd()):
+                if (base / name).is_file():
+                    todo.append(base / name)
+                    break
+    return files
+
+
+def _refuse_overwrite(outputs, inputs, what: str) -> None:
+    """Refuse (before any work) when an output path is one of the input files (the same file,
+    also through links or another spelling)."""
+    inputs = [Path(i) for i in inputs]
+    for out in outputs:
+        if not os.path.exists(out):
+            continue
+        for src in inputs:
+            try:
+                same = os.path.samefile(out, src)
+            except OSError:
+                continue
+            if same:
+                raise GlossrtError(f"{what}: {str(out)!r} is the input {str(src)!r}; writing "
+                                   "there would replace it; choose another output")
+
+
+def _refuse_inputs_inside(folder: str, inputs, suffixes: tuple[str, ...], what: str) -> None:
+    """Refuse an output folder holding an input file that the command might write over (the
+    folder gets files of the given ``suffixes``, in it or in subfolders)."""
+    if not os.path.isdir(folder):
+        return
+    root = Path(folder).resolve()
+    for src in inputs:
+        real = Path(src).resolve()
+        if real.is_relative_to(root) and real.suffix.lower() in suffixes:
+            raise GlossrtError(f"{what}: the input {str(src)!r} lies in the output folder "
+                               f"{folder!r}, which gets {'/'.join(suffixes)} files; move it "
+                               "or choose another --out")
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -110,7 +275,10 @@ def cmd_render(args) -> int:
         raise GlossrtError(f"--every must be >= 1, got {args.every}")
     if args.start < 0:
         raise GlossrtError(f"--start must be >= 0, got {args.start}")
+    _check_seed(args.seed)
     size = scenes.parse_size(args.size) if args.size else None
+    if size is not None:
+        _check_memory(size)
     reference = args.reference or args.mitsuba or args.spp > 1
     if args.specaa is not None:
         from .specaa import parse_method
@@ -119,10 +287,14 @@ def cmd_render(args) -> int:
         if reference:
             raise GlossrtError("--specaa shades 1 spp frames; its supersampled reference is "
                                "`glossrt experiment --which specaa`")
+    todo = list(range(args.start, args.start + args.frames, args.every))
+    _refuse_overwrite([Path(args.out) / frame_filename(i) for i in todo],
+                      _scene_files(args.scene), "render --out")
     setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
+    if size is None:
+        _check_memory(setup.size, "the scene's film size")
     r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
     out = _writable_dir(args.out)
-    todo = list(range(args.start, args.start + args.frames, args.every))
     spp = args.spp if (args.spp > 1 or not reference) else 256
     bad = 0
     tex_cache: dict = {}
@@ -137,7 +309,8 @@ def cmd_render(args) -> int:
                 f = Frame(channels={"color": mi.TensorXf(img)}, camera=cam,
                           prev_camera=setup.camera(i - 1) if i > 0 else cam, index=i,
                           meta={"scene": setup.name, "spp": spp, "reference": "mitsuba-path",
-                                "max_depth": r.max_depth})
+                                "max_depth": r.mitsuba_max_depth,
+                                "max_depth_from": r.max_depth_from})
                 p.update((k + 1) * spp)
             elif reference:
                 f = r.render_reference(i, spp, progress=lambda d, n, k=k: p.update(k * spp + d))
@@ -183,19 +356,20 @@ def cmd_denoise(args) -> int:
     import drjit as dr
 
     from . import denoise
-    from .frame import Frame, load_sequence
+    from .frame import RADIANCE, Frame, load_sequence
     from .progress import Progress
 
     if not os.path.isdir(args.in_dir):
         raise GlossrtError(f"not a folder: {args.in_dir}")
     d = denoise.make(args.method)
     frames = load_sequence(args.in_dir, require=getattr(d, "needs", ()) or ("color",))
+    names = [Path(f.source).name for f in frames]
     out = _writable_dir(args.out, inputs=(args.in_dir,))
     # frames go to a hidden folder first and into --out only when every frame is done, so a
     # failure part-way (bad input in a later frame) leaves --out as it was
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".glossrt-denoise-"))
-    names = [Path(f.source).name for f in frames]
     seconds = []
+    bad_total = {"nonfinite": 0, "negative": 0}
     try:
         with Progress(len(frames), f"{args.method} {frames[0].width}x{frames[0].height}") as p:
             for k, f in enumerate(frames):
@@ -207,6 +381,7 @@ def cmd_denoise(args) -> int:
                 channels = dict(f.channels)
                 channels["color"] = img
                 meta = dict(f.meta, denoiser=args.method, denoise_seconds=seconds[-1])
+                meta.update(_radiance_problems(f, ("color", *RADIANCE), bad_total))
                 g = Frame(channels=channels, camera=f.camera, prev_camera=f.prev_camera,
                           index=f.index, meta=meta)
                 g.save(tmp / names[k])
@@ -219,7 +394,40 @@ def cmd_denoise(args) -> int:
     print(f"wrote {len(frames)} frame(s) to {out}; {args.method}: "
           f"{1000 * sorted(steady)[len(steady) // 2]:.1f} ms per frame (median, after the first)")
     _warn_stale(out, names)
+    if bad_total["nonfinite"] or bad_total["negative"]:
+        print(f"warning: the input frames have {bad_total['nonfinite']} non-finite (NaN/Inf) "
+              f"and {bad_total['negative']} negative radiance value(s), which the denoiser "
+              "does not take as light (counts per frame and channel in the EXR header, "
+              "meta.input_nonfinite and meta.input_negative)", file=sys.stderr)
     return 0
+
+
+def _radiance_problems(frame, channels, totals: dict) -> dict:
+    """Counts of NaN/Inf and of negative values in ``frame``'s radiance ``channels`` (those
+    it has), per channel, as output frame metadata (``input_nonfinite``, ``input_negative``:
+    only nonzero counts); adds them to ``totals``."""
+    import numpy as np
+
+    nonfinite, negative = {}, {}
+    for name in channels:
+        if name not in frame.channels:
+            continue
+        a = frame.numpy(name)
+        finite = np.isfinite(a)
+        n_bad = int(np.count_nonzero(~finite))
+        n_neg = int(np.count_nonzero(finite & (a < 0)))
+        if n_bad:
+            nonfinite[name] = n_bad
+        if n_neg:
+            negative[name] = n_neg
+    totals["nonfinite"] += sum(nonfinite.values())
+    totals["negative"] += sum(negative.values())
+    meta = {}
+    if nonfinite:
+        meta["input_nonfinite"] = nonfinite
+    if negative:
+        meta["input_negative"] = negative
+    return meta
 
 
 def cmd_experiment(args) -> int:
@@ -232,7 +440,15 @@ def cmd_experiment(args) -> int:
             raise GlossrtError(f"--{opt.replace('_', '-')} must be >= 1, got {getattr(args, opt)}")
     if args.published is not None and not os.path.isfile(args.published):
         raise GlossrtError(f"--published: no such file: {args.published}")
+    if args.resolution < 1:
+        raise GlossrtError(f"--resolution must be >= 1, got {args.resolution}")
+    if args.polygons < 0:
+        raise GlossrtError(f"--polygons must be >= 0, got {args.polygons}")
     size = parse_size(args.size)
+    _check_memory(size)
+    if args.published is not None:
+        _refuse_inputs_inside(args.out, [args.published], (".md", ".json", ".png", ".html"),
+                              "experiment --out")
     out = _writable_dir(args.out)
     if args.which == "lobes":
         return _experiment_lobes(out, size, args.spp)
@@ -352,7 +568,9 @@ def _experiment_specaa(out, size, spp: int, frames: int) -> int:
     t = se.timing(size=size)
     vd = res.reference_vs_direct
     md = (f"## against the supersampled reference ({w}x{h}, {spp} spp; temporal: "
-          f"{res.frames} frames, reference {spp} spp)\n\n{res.markdown()}\n\n"
+          f"{res.frames} frames, reference {spp} spp, box filter; the Gaussian columns: "
+          f"against the reference with Tokuyoshi's Gaussian pixel filter, variance 0.25)"
+          f"\n\n{res.markdown()}\n\n"
           f"The reference against Mitsuba's own direct integrator ({4 * spp} spp): relative "
           f"L1 {vd['rel_l1']:.3f}, ratio of the means {vd['mean_ratio']:.3f}.\n\n"
           f"## shading time (frozen, {w}x{h})\n\n{se.timing_markdown(t)}")
@@ -405,6 +623,9 @@ def cmd_light(args) -> int:
         args.spp = 1 if args.method == "ratio" else 64
     if args.spp < 1:
         raise GlossrtError(f"--spp must be >= 1, got {args.spp}")
+    if args.samples < 1:
+        raise GlossrtError(f"--samples must be >= 1, got {args.samples}")
+    _check_seed(args.seed)
     trees = None
     if args.method == "bspvt":
         from .lights.bspvt import BSPVT
@@ -413,7 +634,16 @@ def cmd_light(args) -> int:
             raise GlossrtError("--method bspvt needs --bspvt FILE (glossrt bspvt build)")
         trees = BSPVT.load(args.bspvt)
     size = scenes.parse_size(args.size) if args.size else None
+    if size is not None:
+        _check_memory(size)
+    names = [frame_filename(i) for i in range(args.frames)]
+    _refuse_overwrite([Path(args.out) / n for n in names]
+                      + [Path(args.out) / (n.rsplit(".", 1)[0] + ".png") for n in names],
+                      _scene_files(args.scene) + ([Path(args.bspvt)] if args.bspvt else []),
+                      "light --out")
     setup = scenes.load(args.scene, size=size, frames=args.frames)
+    if size is None:
+        _check_memory(setup.size, "the scene's film size")
     if args.method != "mc":  # the Monte Carlo reference shades anisotropic lobes
         check_isotropic(setup)  # before any work or output
     r = render.Renderer(setup, seed=args.seed)
@@ -491,7 +721,9 @@ def cmd_bspvt(args) -> int:
     from . import scenes
     from .lights.shadows import build_scene_trees
 
-    out = _output_file(args.out, "bspvt build --out")
+    if args.resolution < 1:
+        raise GlossrtError(f"--resolution must be >= 1, got {args.resolution}")
+    out = _output_file(args.out, "bspvt build --out", keep=tuple(_scene_files(args.scene)))
     setup = scenes.load(args.scene)
     trees = build_scene_trees(setup.scene, resolution=args.resolution, epsilon=args.epsilon,
                               method=args.method, progress=True, engine=args.engine)
@@ -507,6 +739,9 @@ def cmd_bspvt(args) -> int:
 def cmd_ltc_fit(args) -> int:
     from .lights import ltc_fit
 
+    if args.size is not None and args.size < 2:
+        raise GlossrtError(f"--size must be >= 2, got {args.size}")
+    _output_file(args.out, "ltc-fit --out")
     argv = ["--out", args.out, "--distribution", args.distribution, "--metric", args.metric]
     argv += ["--size", str(args.size)] if args.size else []
     return ltc_fit.main(argv)
@@ -532,12 +767,18 @@ def cmd_compare(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .demo import run_demo
-    from .scenes import parse_size
+    from . import scenes
+    from .demo import check_demo_args, run_demo
 
+    size = scenes.parse_size(args.size)
+    check_demo_args(size, args.frames, ref_spp=args.spp)
+    _check_memory(size)
+    _refuse_inputs_inside(args.out, _scene_files(args.scene), (".exr", ".png", ".html"),
+                          "demo --out")
+    scenes.load(args.scene, size=(8, 8))  # a bad scene fails before any output
     _writable_dir(args.out)
-    path = run_demo(args.out, size=parse_size(args.size), frames=args.frames,
-                    ref_spp=args.spp, scene=args.scene)
+    path = run_demo(args.out, size=size, frames=args.frames, ref_spp=args.spp,
+                    scene=args.scene)
     print(f"report: {path}")
     return 0
 
@@ -546,8 +787,12 @@ def cmd_bench(args) -> int:
     from . import bench
     from .scenes import parse_size
 
+    size = parse_size(args.size)
+    bench.check_args(repeats=args.repeats, warmup=args.warmup, min_sample=args.min_sample,
+                     names=args.only or None)
+    _check_memory(size)
     js = _output_file(args.json, "bench --json") if args.json is not None else None
-    res = bench.run(args.only or None, size=parse_size(args.size), repeats=args.repeats,
+    res = bench.run(args.only or None, size=size, repeats=args.repeats,
                     warmup=args.warmup, log=lambda s: print(s, file=sys.stderr),
                     min_sample=args.min_sample)
     text = json.dumps(res, indent=2)
@@ -557,26 +802,59 @@ def cmd_bench(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose help can end with text computed only when the help is shown
+    (``render --help``'s list of built-in scenes imports the scene library)."""
+
+    def __init__(self, *a, more_help=None, **kw):
+        super().__init__(*a, **kw)
+        self.more_help = more_help
+
+    def format_help(self) -> str:
+        text = super().format_help()
+        return text + self.more_help() if self.more_help is not None else text
+
+
+def _builtin_scenes_help() -> str:
+    import textwrap
+
+    from .scenes import BUILTIN, library  # noqa: F401  (library registers the scenes)
+
+    width = max(len(n) for n in BUILTIN)
+    return "\nbuilt-in scenes:\n" + "".join(
+        textwrap.fill(BUILTIN[n][1], 96, initial_indent=f"  {n:{width}s}  ",
+                      subsequent_indent=" " * (width + 4)) + "\n" for n in sorted(BUILTIN))
+
+
+DEVICE_CHOICES = ["auto", "cpu", "gpu"]
+DEVICE_HELP = "backend (default: env GLOSSRT_DEVICE or auto)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = _Parser(
         prog="glossrt", description="Real-time rendering of glossy surfaces (Mitsuba 3 + Dr.Jit).",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", choices=["auto", "cpu", "gpu"], default=None,
-                    help="backend (default: env GLOSSRT_DEVICE or auto)")
-    sub = ap.add_subparsers(dest="command", required=True)
+    ap.add_argument("--device", choices=DEVICE_CHOICES, default=None, help=DEVICE_HELP)
+    sub = ap.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    def add(name, fn, help_, example):
+    def add(name, fn, help_, example, more_help=None):
         p = sub.add_parser(name, help=help_, description=help_, epilog=f"example:\n  {example}",
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
+                           formatter_class=argparse.RawDescriptionHelpFormatter,
+                           more_help=more_help)
         p.set_defaults(fn=fn)
+        # also after the command (`glossrt render X --device cpu`); SUPPRESS: an option not
+        # given here leaves the one given before the command
+        p.add_argument("--device", choices=DEVICE_CHOICES, default=argparse.SUPPRESS,
+                       help=DEVICE_HELP + "; also accepted before the command")
         return p
 
     add("info", cmd_info, "print variant, device, versions and the libLLVM in use",
         "glossrt info")
 
     p = add("render", cmd_render, "render 1 spp frames (or converged references) to EXR",
-            "glossrt render glossy-cornell --out out/cornell --frames 8 --size 320x240")
-    p.add_argument("scene", help="built-in scene name (see README) or Mitsuba XML path")
+            "glossrt render glossy-cornell --out out/cornell --frames 8 --size 320x240",
+            more_help=_builtin_scenes_help)
+    p.add_argument("scene", help="built-in scene name (listed below) or Mitsuba XML path")
     p.add_argument("--out", required=True, help="output folder (one EXR per frame)")
     p.add_argument("--frames", type=int, default=1)
     p.add_argument("--start", type=int, default=0, help="first frame index")
@@ -587,15 +865,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="orbit the camera by DEG degrees in total over the frames "
                         "(scenes without their own animation)")
     p.add_argument("--max-depth", type=int, default=None,
-                   help="Mitsuba max_depth (default 3, or the XML integrator's)")
-    p.add_argument("--seed", type=int, default=0)
+                   help="Mitsuba max_depth, -1 = no limit (default: the scene file's "
+                        "integrator's, <include>d files too; -1, Mitsuba's default, for a "
+                        "file without one; 3 for the built-in scenes)")
+    p.add_argument("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
     p.add_argument("--reference", action="store_true",
                    help="converged frames (pixel-centre primary hits), --spp defaults to 256")
     p.add_argument("--specaa", default=None, metavar="METHOD",
                    help="also write channel 'specaa': direct light from the scene's point, "
                         "directional and polygon lights with specular antialiasing METHOD "
                         "(none, halfvector, halfvector-bbox, avgnormal, avgnormal-max, "
-                        "avgnormal-eig, projected)")
+                        "avgnormal-eig, projected), optionally METHOD:kappa=K to clamp the "
+                        "added roughness (e.g. avgnormal-eig:kappa=0.18; "
+                        "projected:kappa=none)")
     p.add_argument("--mitsuba", action="store_true",
                    help="anti-aliased reference from Mitsuba's own path integrator "
                         "(color only)")
@@ -630,7 +912,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-shadows", action="store_true", help="mc: no visibility (as LTC)")
     p.add_argument("--frames", type=int, default=1)
     p.add_argument("--size", help="WxH (default: the scene's film size)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
     p.add_argument("--out", required=True, help="output folder (EXR + PNG per frame)")
 
     p = add("bspvt", cmd_bspvt,
@@ -686,7 +968,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "accuracy and images (uses --size, --spp, --polygons, --published); "
                         "bspvt: Okuno & Iwasaki shadows and Table 1 (--size, --spp, "
                         "--resolution); highlights: Kimura & Tokoi convergence and Table 1 "
-                        "(--size, --spp = reference samples)")
+                        "(--size, --spp = reference samples); specaa: Kaplanyan et al. / "
+                        "Tokuyoshi specular antialiasing against the supersampled reference "
+                        "and shading times (--size, --spp, --frames: at most 16)")
     p.add_argument("--resolution", type=int, default=64,
                    help="bspvt: cube-map face size of the visibility maps")
     p.add_argument("--polygons", type=int, default=2000,
@@ -710,15 +994,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--scene", default="glossy-cornell")
     p.add_argument("--size", default="160x120")
-    p.add_argument("--frames", type=int, default=8)
+    p.add_argument("--frames", type=int, default=8,
+                   help="1 spp frames (at least 2: the report shows the motion from one frame "
+                        "to the next)")
     p.add_argument("--spp", type=int, default=256, help="reference samples per pixel")
 
     p = add("bench", cmd_bench, "registered benchmarks (median of repeats), JSON out",
             "glossrt bench --json bench.json --size 640x360")
     p.add_argument("--json")
     p.add_argument("--size", default="640x360")
-    p.add_argument("--repeats", type=int, default=9)
-    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=9,
+                   help="timed samples per case, >= 1 (side-by-side ratios take at least 3)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed calls first, >= 0")
     p.add_argument("--min-sample", type=float, default=MIN_SAMPLE, metavar="SECONDS",
                    help="time calls shorter than this in back-to-back batches (0: one call "
                         "per sample)")
@@ -730,20 +1017,59 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:
     return f"glossrt: warning: {message}\n"
 
 
+#: options whose value may start with "-" and a digit without being a number ("-64x48"):
+#: argparse would take it for an option and say only "expected one argument"
+_DASH_VALUES = ("--size",)
+
+
+def _join_dash_values(argv: list[str]) -> list[str]:
+    """``--size -64x48`` as ``--size=-64x48``, so the size check names the bad size."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in _DASH_VALUES and i + 1 < len(argv) and re.match(r"-\d", argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
+def _remove_created() -> None:
+    """After a failure: remove the folders this run created that hold no file (frames it
+    finished, each written whole, are kept; no empty folder stays behind)."""
+    while _CREATED:
+        top = _CREATED.pop()
+        for folder, _, _ in os.walk(top, topdown=False):
+            try:
+                os.rmdir(folder)
+            except OSError:
+                pass
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = _join_dash_values(list(sys.argv[1:] if argv is None else argv))
     args = build_parser().parse_args(argv)
     warnings.formatwarning = _one_line_warning  # library warnings as one line, no source
+    _CREATED.clear()
+    ok = False
     try:
         from . import backend
 
         backend.use(args.device)
-        return args.fn(args)
+        rc = args.fn(args)
+        ok = rc == 0
+        return rc
     except GlossrtError as e:
         print(f"glossrt: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("glossrt: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if not ok:
+            _remove_created()
+        _CREATED.clear()
 
 
 if __name__ == "__main__":

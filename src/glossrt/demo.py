@@ -13,6 +13,7 @@ import drjit as dr
 import numpy as np
 
 from . import backend
+from .errors import GlossrtError
 from .report import DemoContext, Report, build_report, register_section
 
 
@@ -345,19 +346,43 @@ def section_timings(ctx: DemoContext, report: Report) -> None:
     s.table(["stage", "seconds"], [[k, v] for k, v in ctx.timings.items()])
 
 
+#: the fewest 1 spp frames the report needs (the frames section shows frame 0's motion to
+#: frame 1; per-frame timings are over the frames after the first)
+MIN_FRAMES = 2
+
+
+def check_demo_args(size: tuple[int, int], frames: int, ref_every: int = 4, ref_spp: int = 256,
+                    mitsuba_spp: int = 256) -> None:
+    """Refuse, before any work, arguments :func:`run_demo` cannot make a report of."""
+    if frames < MIN_FRAMES:
+        raise GlossrtError(f"demo: --frames must be >= {MIN_FRAMES} (the report shows the "
+                           f"motion from one frame to the next), got {frames}")
+    for name, v in (("--spp", ref_spp), ("ref_every", ref_every), ("mitsuba_spp", mitsuba_spp)):
+        if v < 1:
+            raise GlossrtError(f"demo: {name} must be >= 1, got {v}")
+    if size[0] < 1 or size[1] < 1:
+        raise GlossrtError(f"demo: the size must be positive, got {size[0]}x{size[1]}")
+
+
 def run_demo(out: str | Path, size: tuple[int, int] = (160, 120), frames: int = 8,
              ref_every: int = 4, ref_spp: int = 256, mitsuba_spp: int = 256,
              scene: str = "glossy-cornell", log=print) -> Path:
-    """Render, measure and report; returns the path of ``index.html``."""
+    """Render, measure and report; returns the path of ``index.html``. Bad arguments
+    (:func:`check_demo_args`) and scenes fail before anything is written."""
     from . import render, scenes
     from .frame import frame_filename
     from .progress import Progress
 
+    check_demo_args(size, frames, ref_every, ref_spp, mitsuba_spp)
     out = Path(out)
-    (out / "frames").mkdir(parents=True, exist_ok=True)
-    (out / "references").mkdir(parents=True, exist_ok=True)
-    timings: dict[str, float] = {}
     setup = scenes.load(scene, size=size, frames=frames)
+    for sub in ("frames", "references"):
+        try:
+            (out / sub).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise GlossrtError(f"demo: cannot create the folder {str(out / sub)!r}: "
+                               f"{e.strerror or e}") from None
+    timings: dict[str, float] = {}
     r = render.Renderer(setup)
 
     t0 = time.perf_counter()
