@@ -285,11 +285,15 @@ def test_roughness_map_both_filters_reduce_error(roughness_map):
     assert roughness_map["lobe"] < 0.5 * roughness_map["input"]
 
 
-@pytest.mark.xfail(reason="does not hold at the paper's parameters (beta 20, kappa 100, "
-                   f"sigma_n^2 0.01) with glossrt's screen kernel; measured MSE {MEASURED}; "
-                   "not tuned", strict=False)
-def test_roughness_map_lobe_beats_normal(roughness_map):
-    assert roughness_map["lobe"] <= 0.8 * roughness_map["normal"]
+def test_roughness_map_lobe_vs_normal_measured(roughness_map):
+    # Tokuyoshi 2015, fig. 4 claims lobe-aware weights (eqs. 2-7) beat normal-aware ones on
+    # the roughness map. At this test's 96x72 that does not hold (a negative result, stated in
+    # docs/RESULTS.md; issue 28 re-measures at the paper's 640x360): the lobe-aware MSE is
+    # 1.04x the normal-aware one (MEASURED). Asserted on the measured side, so the test fails
+    # both if the lobe weights get worse and if they start to win (then the claim holds here
+    # and this test and RESULTS must say so).
+    ratio = roughness_map["lobe"] / roughness_map["normal"]
+    assert 0.9 < ratio < 1.15, (ratio, MEASURED)
 
 
 # -- weight="screen": the sharpness-adapted screen kernel (fig. 4(c) baseline, glossrt's form) ---
