@@ -17,8 +17,8 @@ backend.ensure()
 import mitsuba as mi  # noqa: E402
 
 from glossrt.errors import GlossrtError  # noqa: E402
-from glossrt.lights import bspvt  # noqa: E402
 from glossrt.lights.bspvt import BSPVT  # noqa: E402
+from glossrt.lights.bspvt import build as bspvt  # noqa: E402
 
 T = mi.ScalarTransform4f
 

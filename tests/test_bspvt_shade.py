@@ -1,4 +1,4 @@
-"""glossrt.lights.bspvt_shade: shadowed LTC shading with per-vertex visibility trees
+"""glossrt.lights.bspvt.shade: shadowed LTC shading with per-vertex visibility trees
 (Okuno & Iwasaki, eq. 2).
 
 Trees are built by hand / by a tiny random NumPy builder here (random lines through random
@@ -34,8 +34,9 @@ import mitsuba as mi  # noqa: E402
 
 from glossrt.errors import GlossrtError  # noqa: E402
 from glossrt.jit import owned  # noqa: E402
-from glossrt.lights import bspvt_shade as bs  # noqa: E402
-from glossrt.lights.ltc import (  # noqa: E402
+from glossrt.lights.bspvt import shade as bs  # noqa: E402
+from glossrt.lights.ltc.fit import ltc_eval  # noqa: E402
+from glossrt.lights.ltc.shade import (  # noqa: E402
     PrefilteredTexture,
     _integrals,
     _local,
@@ -44,7 +45,7 @@ from glossrt.lights.ltc import (  # noqa: E402
     ltc_frame,
     polygon_integral,
 )
-from glossrt.lights.ltc_fit import ltc_eval, minv_matrix  # noqa: E402
+from glossrt.lights.ltc.table import minv_matrix  # noqa: E402
 from glossrt.lights.polygon import clamped_cosine_integral, shading_frame, to_local  # noqa: E402
 
 #: float32 agreement of a sum of pieces with the whole-light integral: each cosine_integral

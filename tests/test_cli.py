@@ -241,7 +241,7 @@ def test_frozen_on_frames_replays_the_same_result():
 
 
 def test_round_robin_pairs_samples():
-    from glossrt.bench import paired_ratio, round_robin
+    from glossrt.timing import paired_ratio, round_robin
 
     calls = []
     times = round_robin({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")},
@@ -252,12 +252,20 @@ def test_round_robin_pairs_samples():
     assert paired_ratio([2.0, 4.0, 3.0], [1.0, 2.0, 3.0]) == 2.0
 
 
+def test_steady_median_skips_the_first_frame():
+    from glossrt.timing import steady_median
+
+    assert steady_median([9.0, 1.0, 3.0, 2.0]) == 2.0  # the first (compiling) call dropped
+    assert steady_median([9.0, 1.0, 3.0]) == 2.0  # even count: the mean of the middle two
+    assert steady_median([4.0]) == 4.0
+
+
 def test_round_robin_batches_short_calls():
     """With ``min_sample``, a call shorter than it is repeated back to back within a sample
     and the sample is the time per call; a long call stays single."""
     import time
 
-    from glossrt.bench import round_robin
+    from glossrt.timing import round_robin
 
     calls = {"short": 0, "long": 0}
 

@@ -220,7 +220,8 @@ def test_outputs_are_checked_before_the_work(tiny_sequence, tmp_path, capsys, mo
     """An output whose folder cannot be written is refused before the work (which it would
     lose): the work functions must not even be called."""
     from glossrt import bench, compare
-    from glossrt.lights import ltc_fit, shadows
+    from glossrt.lights.bspvt import scene as shadows
+    from glossrt.lights.ltc import fit as ltc_fit
 
     def never(*a, **kw):
         raise AssertionError("the work ran")

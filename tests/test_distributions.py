@@ -361,9 +361,9 @@ def test_bspvt_matches_mitsuba_direct(distribution, bspvt_max):
     ``direct`` integrator: 0.31 on the Beckmann floor when shaded as GGX (0.08 declared
     GGX); measured 0.20 and 0.07 now (the rest: LTC's fit of the lobe, the trees' 16 x 16
     visibility and the pixel filter)."""
+    from glossrt.lights.bspvt import build_scene_trees, shade_bspvt
     from glossrt.lights.scene import polygon_lights
     from glossrt.lights.shading import f0_image
-    from glossrt.lights.shadows import build_scene_trees, shade_bspvt
 
     setup = _box_over_floor(distribution)
     r = render.Renderer(setup)
@@ -631,10 +631,10 @@ def test_bspvt_vertex_mode_takes_the_exact_materials():
     polygon-light are 2-3x dimmer than Lambert with the raw reflectance), with an F0 image
     Schlick's and the raw reflectance. Image means of the two modes agree within 3%."""
     from glossrt.bspvt_experiments import _setup
+    from glossrt.lights.bspvt import build_scene_trees, shade_bspvt
     from glossrt.lights.scene import polygon_lights
     from glossrt.lights.shading import f0_image
     from glossrt.lights.shading import fresnel_image as materials
-    from glossrt.lights.shadows import build_scene_trees, shade_bspvt
 
     setup = _setup(1.0, (48, 36), (3, 12, 6))
     trees = build_scene_trees(setup.scene, 8, 0.0, progress=False)

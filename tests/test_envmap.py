@@ -1,4 +1,4 @@
-"""glossrt.lights.envmap: light environment cube maps (Kimura & Tokoi 2004, issue 7).
+"""glossrt.lights.highlights.envmap: light environment cube maps (Kimura & Tokoi 2004, issue 7).
 
 * rendering against independent computations: the solid angle of a quad (Van Oosterom &
   Strackee's formula, exact where the quad's edges fall on texel boundaries, within a
@@ -26,8 +26,8 @@ backend.ensure()
 import mitsuba as mi  # noqa: E402
 
 from glossrt.errors import GlossrtError  # noqa: E402
-from glossrt.lights.bspvt import cube_dir, cube_directions, texel_centres  # noqa: E402
-from glossrt.lights.envmap import (  # noqa: E402
+from glossrt.lights.bspvt.build import cube_dir, cube_directions, texel_centres  # noqa: E402
+from glossrt.lights.highlights.envmap import (  # noqa: E402
     SPHERE_EPS,
     CubeMapSet,
     LightCubeMap,

@@ -161,6 +161,20 @@ def test_camera_dict_round_trip():
         Camera(np.eye(4), 180.0, (4, 4))
 
 
+def test_camera_focal_length_and_pixel_angle():
+    """One place for the focal-length arithmetic: ``focal_px = (W / 2) / tan(fov / 2)``, a
+    point ``(x, y, z)`` in camera space lands ``focal_px * y / z`` pixels above the centre,
+    and one pixel subtends ``2 tan(fov / 2) / W`` at the centre."""
+    cam = Camera(np.eye(4), 60.0, (640, 360))
+    t = np.tan(np.radians(60.0) / 2.0)
+    assert cam.tan_half_fov == pytest.approx(t, rel=1e-15)
+    assert cam.focal_px == pytest.approx(320.0 / t, rel=1e-15)
+    assert cam.pixel_angle() == pytest.approx(2.0 * t / 640, rel=1e-15)
+    assert cam.pixel_angle(320) == pytest.approx(2.0 * t / 320, rel=1e-15)
+    px = cam.project(np.array([0.0, 0.25, 2.0]))  # identity to_world: camera space
+    assert px[1] == pytest.approx(180.0 - cam.focal_px * 0.125, rel=1e-12)
+
+
 @pytest.mark.parametrize("fov,res", [(45.0, (64, 40)), (80.0, (31, 57))])
 def test_project_matches_mitsuba_sample_ray(fov: float, res: tuple[int, int]):
     to_world = mi.ScalarTransform4f().look_at(origin=[1, 2, 3], target=[0, 0.3, 0], up=[0, 1, 0])

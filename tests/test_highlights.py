@@ -21,8 +21,8 @@ backend.ensure()
 
 from glossrt.brdf import ellipsoidal as el  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
-from glossrt.lights.envmap import CubeMapSet  # noqa: E402
 from glossrt.lights.highlights import HighlightRenderer, reference, shade_plain  # noqa: E402
+from glossrt.lights.highlights.envmap import CubeMapSet  # noqa: E402
 from test_lights_mc import CAM, Light, plane_frame  # noqa: E402
 
 
@@ -162,7 +162,7 @@ def test_frozen_path_matches_the_traced_one():
     estimator's result (hash samples, no culling) on every frame of a moving camera, and
     records once per distribution."""
     from glossrt import render, scenes
-    from glossrt.lights import highlights as H
+    from glossrt.lights.highlights import render as H
     from glossrt.lights.scene import polygon_lights
     from glossrt.lights.shading import f0_image
 

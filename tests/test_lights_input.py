@@ -24,10 +24,13 @@ import mitsuba as mi  # noqa: E402
 
 from glossrt import render, scenes  # noqa: E402
 from glossrt.errors import GlossrtError, SceneError  # noqa: E402
-from glossrt.lights import bspvt  # noqa: E402
-from glossrt.lights.bspvt import BSPVT  # noqa: E402
+from glossrt.lights.bspvt import (  # noqa: E402
+    BSPVT,  # noqa: E402
+    build_scene_trees,
+    shade_bspvt,
+)
+from glossrt.lights.bspvt import build as bspvt  # noqa: E402
 from glossrt.lights.scene import polygon_lights  # noqa: E402
-from glossrt.lights.shadows import build_scene_trees, shade_bspvt  # noqa: E402
 from glossrt.scenes.teapot import grid_mesh, mesh_shape  # noqa: E402
 
 T = mi.ScalarTransform4f

@@ -36,7 +36,7 @@ def test_polygon_integral_against_quadrature():
     masses differ by at most the total variation, half the fit's L1 error ``err_l1`` (stored
     per cell); bilinear interpolation between cells gets the largest ``err_l1`` of the 4
     surrounding cells, x 1.3 for its estimation error, + 0.01 for interpolation."""
-    from glossrt.lights.ltc_fit import LTCTable, default_table_path
+    from glossrt.lights.ltc.table import LTCTable, default_table_path
 
     rng = np.random.default_rng(5)
     cases = random_polygons(rng, 600)
@@ -144,7 +144,7 @@ def test_frozen_shading_replays_the_moving_light():
     moving light and the moving G-buffer, recording once (new light positions are inputs, not
     baked constants)."""
     from glossrt import render, scenes
-    from glossrt.lights import ltc
+    from glossrt.lights.ltc import shade as ltc
     from glossrt.lights.scene import polygon_lights
     from glossrt.lights.shading import f0_image
 
@@ -180,7 +180,7 @@ def test_prefiltered_levels_equal_scipys_gaussian_filter():
     # subsampled (the independent computation the levels were first built with)
     from scipy.ndimage import gaussian_filter
 
-    from glossrt.lights.ltc import strided_gaussian
+    from glossrt.lights.ltc.shade import strided_gaussian
 
     rng = np.random.default_rng(4)
     img = rng.uniform(0, 1, (23, 37)).astype(np.float64)

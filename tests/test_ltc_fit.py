@@ -1,4 +1,4 @@
-"""Tests of the LTC fit of the GGX lobe and its shipped table (glossrt.lights.ltc_fit).
+"""Tests of the LTC fit of the GGX lobe and its shipped table (glossrt.lights.ltc.fit).
 
 Every reference here is computed independently of the module, in float64 NumPy: the GGX lobe
 (GGX D, Mitsuba's separable Smith G1(wo) G1(wi), F = 1) is re-implemented below from its
@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from glossrt.lights import ltc_fit
+from glossrt.lights.ltc import fit as ltc_fit
+from glossrt.lights.ltc import table as ltc_table
 
 F64 = dr.float64_array_t(mi.Float)
 
@@ -182,13 +183,13 @@ def clipped_cosine_polygon(q):
 
 @pytest.fixture(scope="module")
 def shipped() -> dict[str, np.ndarray]:
-    with np.load(ltc_fit.default_table_path(), allow_pickle=False) as f:
+    with np.load(ltc_table.default_table_path(), allow_pickle=False) as f:
         return {k: f[k] for k in f.files}
 
 
 @pytest.fixture(scope="module")
-def table() -> ltc_fit.LTCTable:
-    return ltc_fit.LTCTable.load()
+def table() -> ltc_table.LTCTable:
+    return ltc_table.LTCTable.load()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -208,8 +209,8 @@ def test_refit_cells_match_shipped_table(shipped, j, i):
     coefficients by <= 8e-6 relative, 1e-7 (a million times the rounding) by <= 5.8e-4 and
     L1 by <= 1.2e-4. Tolerances: 2e-3 relative to the cell's largest coefficient, 2e-3 on
     L1 (>= 3.5x the 1e-7 case)."""
-    r, u = ltc_fit.grid_axes(64)
-    alpha, cos_o = ltc_fit.node_config(r, u)
+    r, u = ltc_table.grid_axes(64)
+    alpha, cos_o = ltc_table.node_config(r, u)
     starts, iso = ltc_fit.warm_start(shipped["params"], shipped["avg_phi"], j, i)
     assert iso == (i == 0)
     cell = ltc_fit.fit_cell(alpha[j], cos_o[i], starts, isotropic=iso)
@@ -235,7 +236,7 @@ def test_norm_and_fres_against_independent_quadrature(shipped, table, j, i):
     included), median 5e-7 and 2e-8: the error of the module's 2^16-point visible-normal
     Hammersley quadrature (the reference is converged to <= 8e-7). The tolerance 1e-4 leaves
     ~4x."""
-    alpha, cos_o = ltc_fit.node_config(shipped["r"][j], shipped["u"][i])
+    alpha, cos_o = ltc_table.node_config(shipped["r"][j], shipped["u"][i])
     norm, fres = moments_quadrature(float(alpha), float(cos_o))
     assert shipped["norm"][j, i] == pytest.approx(norm, abs=1e-4)
     assert shipped["fres"][j, i] == pytest.approx(fres, abs=1e-4)
@@ -250,7 +251,7 @@ def test_schlick_identity(shipped):
     quadrature with F inside matches the identity (exact: F is linear in F0), and the
     table's values give the same number within their accuracy (test above)."""
     j, i = 30, 40
-    alpha, cos_o = (float(x) for x in ltc_fit.node_config(shipped["r"][j], shipped["u"][i]))
+    alpha, cos_o = (float(x) for x in ltc_table.node_config(shipped["r"][j], shipped["u"][i]))
     norm, fres = moments_quadrature(alpha, cos_o)
     for f0 in (0.04, 0.5, 0.95):
         e, _ = moments_quadrature(alpha, cos_o, f0=f0)
@@ -292,10 +293,10 @@ def _lobe_polygon_errors(shipped, j, i, n_quads=12, seed=0):
     samples reflected about (so both the LTC's and the BRDF's mass are probed); angular
     half-extents from a quarter to twice the lobe's spread (at most 0.6 rad); quads are kept
     only when above the horizon (great arcs between points above it stay above it)."""
-    alpha, cos_o = (float(x) for x in ltc_fit.node_config(shipped["r"][j], shipped["u"][i]))
+    alpha, cos_o = (float(x) for x in ltc_table.node_config(shipped["r"][j], shipped["u"][i]))
     wo = view(cos_o)
     norm = float(shipped["norm"][j, i])
-    minv = ltc_fit.minv_matrix(shipped["minv"][j, i].astype(np.float64))
+    minv = ltc_table.minv_matrix(shipped["minv"][j, i].astype(np.float64))
     m = np.linalg.inv(minv)
     rng = np.random.default_rng(seed + 1000 * j + i)
     spread = min(1.0, 3.0 * alpha + 0.01)  # the lobe is ~2 alpha wide
@@ -378,7 +379,7 @@ def test_ltc_sample_follows_ltc_eval(shipped, j, i):
     ``ltc_eval`` (24 x 48 equal-area bins over the sphere, bins with < 5 expected samples
     merged), for two fitted matrices (a tilted and a grazing anisotropic lobe); and the
     bin probabilities sum to 1 (``ltc_eval`` integrates to 1)."""
-    minv = ltc_fit.minv_matrix(shipped["minv"][j, i].astype(np.float64))
+    minv = ltc_table.minv_matrix(shipped["minv"][j, i].astype(np.float64))
     m = np.linalg.inv(minv)
     ze, pe, w, weights = _sphere_bins()
     d = ltc_fit.ltc_eval(minv, w)
@@ -405,7 +406,7 @@ def test_narrow_ltc_integrates_to_one(shipped):
     """``ltc_eval`` integrates to 1 for a narrow, tilted fitted lobe too: quadrature in polar
     coordinates about the lobe's peak, ``theta = pi s^2`` (nodes crowd near the peak)."""
     j, i = 6, 40
-    minv = ltc_fit.minv_matrix(shipped["minv"][j, i].astype(np.float64))
+    minv = ltc_table.minv_matrix(shipped["minv"][j, i].astype(np.float64))
     peak = np.linalg.inv(minv) @ [0.0, 0.0, 1.0]
     peak /= np.linalg.norm(peak)
     t1 = np.cross(peak, [0.0, 1.0, 0.0])
@@ -427,7 +428,7 @@ def test_narrow_ltc_integrates_to_one(shipped):
 def test_drjit_eval_and_sample_match_numpy(shipped):
     """The Dr.Jit paths of ltc_eval / ltc_sample / minv_matrix agree with the NumPy ones."""
     coeffs = shipped["minv"][40, 50].astype(np.float64)
-    minv = ltc_fit.minv_matrix(coeffs)
+    minv = ltc_table.minv_matrix(coeffs)
     m = np.linalg.inv(minv)
     rng = np.random.default_rng(3)
     u = rng.random((1000, 2))
@@ -438,7 +439,7 @@ def test_drjit_eval_and_sample_match_numpy(shipped):
     s_np = ltc_fit.ltc_sample(m, u)
     np.testing.assert_allclose(np.stack([s_dr.x.numpy(), s_dr.y.numpy(), s_dr.z.numpy()], -1),
                                s_np, rtol=0, atol=1e-12)
-    minv_dr = ltc_fit.minv_matrix(dr.float64_array_t(mi.Vector4f)(*map(float, coeffs)))
+    minv_dr = ltc_table.minv_matrix(dr.float64_array_t(mi.Vector4f)(*map(float, coeffs)))
     d_dr = ltc_fit.ltc_eval(minv_dr, v64(F64(s_np[:, 0]), F64(s_np[:, 1]), F64(s_np[:, 2])))
     np.testing.assert_allclose(d_dr.numpy(), ltc_fit.ltc_eval(minv, s_np), rtol=1e-10)
 
@@ -463,7 +464,7 @@ def test_world_minv_rotates_the_frame(table):
                             mi.Vector3f(*map(float, wo_np)))
     d_world = ltc_fit.ltc_eval(wm, mi.Vector3f(*(mi.Float(world[:, k]) for k in range(3))))
     c_np, _, _ = table.lookup_np(alpha, cos_o)
-    d_local = ltc_fit.ltc_eval(ltc_fit.minv_matrix(c_np), local)
+    d_local = ltc_fit.ltc_eval(ltc_table.minv_matrix(c_np), local)
     np.testing.assert_allclose(d_world.numpy(), d_local, rtol=2e-4, atol=1e-6)
 
 
@@ -480,7 +481,7 @@ def test_table_layout_and_sanity(shipped):
     separable Smith term is not monotonic in roughness). The slack 3e-5 is the accuracy of
     norm and fres (test 2). Every coefficient is bounded (|c| < 2): the earlier (2, 2)
     normalisation reached 1.2e13 at grazing views of smooth lobes (35 cells beyond float16)."""
-    assert int(shipped["format"]) == ltc_fit.TABLE_FORMAT == 2
+    assert int(shipped["format"]) == ltc_table.TABLE_FORMAT == 2
     assert str(shipped["distribution"]) == "ggx"
     assert shipped["minv"].shape == (64, 64, 4)
     assert shipped["norm"].shape == shipped["fres"].shape == (64, 64)
@@ -537,7 +538,7 @@ def test_lookup_between_nodes_is_as_good_as_the_nodes(table, shipped):
     coeffs, norm, _ = table.lookup_np(alpha, cos_o)
     e1 = shipped["err_l1"]
     for k in range(len(js)):
-        m = np.linalg.inv(ltc_fit.minv_matrix(coeffs[k]))
+        m = np.linalg.inv(ltc_table.minv_matrix(coeffs[k]))
         _, l1 = ltc_fit.lobe_errors(alpha[k], cos_o[k], m)
         j, i = js[k], is_[k]
         worst = max(e1[j, i], e1[j + 1, i], e1[j, i + 1], e1[j + 1, i + 1])
@@ -589,7 +590,7 @@ def test_main_writes_a_small_table(tmp_path):
         assert f["minv"].shape == (3, 3, 4)
         assert f["norm"].shape == f["fres"].shape == (3, 3)
         assert np.all(np.isfinite(f["minv"]))
-        t = ltc_fit.LTCTable.load(out)
+        t = ltc_table.LTCTable.load(out)
     assert t.n_r == t.n_u == 3
 
 
@@ -616,7 +617,7 @@ def test_cli_fits_a_beckmann_table(tmp_path):
 
 @pytest.fixture(scope="module")
 def beckmann() -> dict[str, np.ndarray]:
-    with np.load(ltc_fit.default_table_path("beckmann"), allow_pickle=False) as f:
+    with np.load(ltc_table.default_table_path("beckmann"), allow_pickle=False) as f:
         return {k: f[k] for k in f.files}
 
 
@@ -639,7 +640,7 @@ def test_beckmann_norm_matches_mitsuba(beckmann, j, i):
     grid of 1200 x 2400 directions (independent of glossrt's quadrature and D/G1 code).
     (Mitsuba's Beckmann *sampling* weights are off by 0.1% at alpha = 1 near grazing, so
     they are not used here.)"""
-    alpha, cos_o = (float(x) for x in ltc_fit.node_config(beckmann["r"][j], beckmann["u"][i]))
+    alpha, cos_o = (float(x) for x in ltc_table.node_config(beckmann["r"][j], beckmann["u"][i]))
     bsdf = mi.load_dict({"type": "roughconductor", "alpha": alpha})  # Beckmann by default
     nt, nphi = 1200, 2400
     th = (np.arange(nt) + 0.5) / nt * 0.5 * math.pi
@@ -658,8 +659,8 @@ def test_beckmann_refit_cell_matches_shipped(beckmann):
     """A cell re-fitted from its neighbours' parameters, as fit_table does, gives the shipped
     coefficients (the fit is deterministic)."""
     j, i = 30, 20
-    r, u = ltc_fit.grid_axes(64)
-    alpha, cos_o = ltc_fit.node_config(r, u)
+    r, u = ltc_table.grid_axes(64)
+    alpha, cos_o = ltc_table.node_config(r, u)
     starts, iso = ltc_fit.warm_start(beckmann["params"], beckmann["avg_phi"], j, i)
     cell = ltc_fit.fit_cell(alpha[j], cos_o[i], starts, isotropic=iso, distribution="beckmann")
     np.testing.assert_allclose(cell.coeffs, beckmann["minv"][j, i].astype(np.float64),
@@ -675,4 +676,4 @@ def test_old_table_layout_is_refused(tmp_path, shipped):
     path = tmp_path / "old.npz"
     np.savez(path, **old)
     with pytest.raises(GlossrtError, match="format 1.*refit"):
-        ltc_fit.LTCTable.load(path)
+        ltc_table.LTCTable.load(path)

@@ -20,7 +20,7 @@ backend.ensure()
 
 from glossrt import ltc_experiments as le  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
-from glossrt.lights.ltc_fit import LTCTable, minv_matrix  # noqa: E402
+from glossrt.lights.ltc.table import LTCTable, minv_matrix  # noqa: E402
 
 MIRROR = Path("/work/.mirror/selfshadow+ltc_code/repo")  # where `fetch` keeps a copy
 

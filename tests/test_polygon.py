@@ -745,7 +745,7 @@ def _ltc_quadrature(quad, n_view, alpha, m=600):
     |det M^-1| / |M^-1 w|^3`` (Heitz et al. 2016, eq. 1), D_o = max(z, 0) / pi; midpoint rule
     on an m x m grid of the quad's area (dw = cos_l dA / r^2), float64. The LTC coefficients
     from the table's NumPy lookup."""
-    from glossrt.lights.ltc_fit import LTCTable, minv_matrix
+    from glossrt.lights.ltc.table import LTCTable, minv_matrix
 
     coeffs, norm, _ = LTCTable.load().lookup_np(alpha, n_view[2])
     minv = minv_matrix(coeffs)
@@ -775,7 +775,7 @@ def test_ltc_polygon_integral_is_scale_invariant_near_the_plane():
     |m|`` (projected on the unit disk, the region is a half disk and a half ellipse of
     semi-axes 1 and cos beta)."""
     from glossrt.lights.ltc import polygon_integral
-    from glossrt.lights.ltc_fit import minv_matrix
+    from glossrt.lights.ltc.table import minv_matrix
 
     quad = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
     nrm = np.array([0.0, 0.0, 1.0])

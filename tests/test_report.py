@@ -155,3 +155,22 @@ def test_register_same_name_replaces(clean_registry):
 
     dup = [(n, o, f) for n, o, f in rp.registered_sections() if n == "test-dup"]
     assert dup == [("test-dup", 2, two)]
+
+
+def test_montage_writes_a_grid_without_switching_the_backend(tmp_path):
+    """report.figures.montage: the experiments' image grids, drawn on an Agg canvas without
+    pyplot, so a notebook's backend is left as the user chose it."""
+    import matplotlib
+
+    from glossrt.report.figures import Panel, montage
+
+    before = matplotlib.get_backend()
+    rng = np.random.default_rng(0)
+    img = rng.random((12, 16, 3))
+    grid = [[Panel(img, "image"), Panel(img[..., 0], "error", "magma", 0.0, 0.5,
+                                        colorbar={"fraction": 0.046, "pad": 0.02})],
+            [Panel(img, "short row")]]
+    out = montage(tmp_path / "m.png", grid, (4.0, 3.0), dpi=50)
+    assert out == tmp_path / "m.png"
+    assert mpimg.imread(out).shape[:2] == (150, 200)
+    assert matplotlib.get_backend() == before

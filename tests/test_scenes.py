@@ -106,6 +106,13 @@ def test_size_override():
     assert f.camera.resolution == (40, 30)
 
 
+def test_load_static_holds_the_rest_pose():
+    setup = scenes.load_static("glossy-cornell", size=(40, 30))
+    assert not setup.animated and setup.size == (40, 30)
+    np.testing.assert_array_equal(setup.camera_matrix(7), setup.rest_camera)
+    assert setup.object_transforms(7) == {}
+
+
 def test_set_frame_moves_camera_and_objects():
     setup = scenes.load("glossy-cornell", size=SIZE)
     sphere_shape = next(s for s in setup.scene.shapes() if s.id() == "sphere")

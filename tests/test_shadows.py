@@ -1,4 +1,4 @@
-"""glossrt.lights.shadows: BSPVT shadows of Frames (Okuno & Iwasaki) and the glue to scenes.
+"""glossrt.lights.bspvt.scene: BSPVT shadows of Frames (Okuno & Iwasaki) and the glue to scenes.
 
 * pixel_triangles finds the triangle and barycentrics each pixel sees (they rebuild the
   G-buffer's positions);
@@ -23,18 +23,18 @@ import mitsuba as mi  # noqa: E402
 from glossrt import render, scenes  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
 from glossrt.lights.bspvt import scene_vertices  # noqa: E402
-from glossrt.lights.bspvt_shade import shade_pixels, shade_vertices  # noqa: E402
-from glossrt.lights.ltc import shade_frame  # noqa: E402
-from glossrt.lights.mc import render_mc  # noqa: E402
-from glossrt.lights.scene import polygon_lights  # noqa: E402
-from glossrt.lights.shading import f0_image  # noqa: E402
-from glossrt.lights.shadows import (  # noqa: E402
+from glossrt.lights.bspvt.scene import (  # noqa: E402
     build_scene_trees,
     pixel_triangles,
     scene_meshes,
     shade_bspvt,
     vertex_materials,
 )
+from glossrt.lights.bspvt.shade import shade_pixels, shade_vertices  # noqa: E402
+from glossrt.lights.ltc import shade_frame  # noqa: E402
+from glossrt.lights.mc import render_mc  # noqa: E402
+from glossrt.lights.scene import polygon_lights  # noqa: E402
+from glossrt.lights.shading import f0_image  # noqa: E402
 from glossrt.scenes.library import polygon_light_scene  # noqa: E402
 from glossrt.scenes.teapot import grid_mesh, mesh_shape  # noqa: E402
 
@@ -191,8 +191,8 @@ def test_cli_build_and_shade(tmp_path, capsys):
 def test_vertex_inside_geometry_is_dark_not_nan():
     """A vertex inside a closed mesh sees nothing: every texel blocked, one leaf of value 0
     per face, and its shading is exactly 0 (no NaN), while a vertex outside is lit."""
-    from glossrt.lights.bspvt import build_trees, occluders, visibility_cubemaps
-    from glossrt.lights.bspvt_shade import shade_vertices
+    from glossrt.lights.bspvt.build import build_trees, occluders, visibility_cubemaps
+    from glossrt.lights.bspvt.shade import shade_vertices
     from glossrt.scenes.teapot import sphere_mesh
 
     scene = mi.load_dict({"type": "scene", "ball": mesh_shape("ball", *sphere_mesh(8))})

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import platform
 import statistics
 import time
@@ -17,11 +16,9 @@ from dataclasses import dataclass, field
 
 from . import backend
 from .errors import GlossrtError
+from .timing import MIN_SAMPLE, paired_ratio, round_robin
 
 BENCHMARKS: dict[str, Callable[[BenchContext], dict]] = {}
-#: default shortest sample (s): calls of a few ms are timed in batches this long, because on a
-#: shared machine a single short call moves by tens of percent from one sample to the next
-MIN_SAMPLE = 0.05
 
 
 @dataclass
@@ -29,13 +26,15 @@ class BenchContext:
     size: tuple[int, int] = (640, 360)
     warmup: int = 3
     repeats: int = 9
-    #: shortest time of one sample (s): faster calls are repeated within it (see round_robin)
+    #: shortest time of one sample (s): faster calls are repeated within it
+    #: (see :func:`glossrt.timing.round_robin`)
     min_sample: float = MIN_SAMPLE
     extra: dict = field(default_factory=dict)
 
     @property
     def turns(self) -> int:
-        """Repeats of a :func:`round_robin` (at least 3, so a median of ratios means something)."""
+        """Repeats of a :func:`glossrt.timing.round_robin` (at least 3, so a median of ratios
+        means something)."""
         return max(3, self.repeats)
 
 
@@ -47,49 +46,6 @@ def benchmark(name: str):
         return fn
 
     return deco
-
-
-def round_robin(cases: dict[str, Callable[[], object]], warmup: int,
-                repeats: int, min_sample: float = 0.0) -> dict[str, list[float]]:
-    """Wall times (s) per call of every case, called in turn: repeat i times each case once, so
-    the i-th samples of all cases are taken within moments of each other and a slow spell of
-    the machine hits them alike (ratios: :func:`paired_ratio`).
-
-    ``min_sample > 0``: a case whose call (timed once after the warm-up) is shorter is called
-    ``ceil(min_sample / t)`` times back to back per sample, and the sample is the batch's time
-    divided by its count, as ``timeit`` does; one preempted call then moves a sample by a
-    fraction of itself instead of doubling it."""
-    import drjit as dr
-
-    for fn in cases.values():
-        for _ in range(warmup):
-            fn()
-    dr.sync_thread()
-    batch = dict.fromkeys(cases, 1)
-    if min_sample > 0:
-        for name, fn in cases.items():
-            batch[name] = max(1, math.ceil(min_sample / max(_timed(fn, 1), 1e-9)))
-    times: dict[str, list[float]] = {k: [] for k in cases}
-    for _ in range(repeats):
-        for name, fn in cases.items():
-            times[name].append(_timed(fn, batch[name]))
-    return times
-
-
-def _timed(fn: Callable[[], object], count: int) -> float:
-    """Seconds per call of ``count`` calls of ``fn`` back to back (the device synchronised)."""
-    import drjit as dr
-
-    t0 = time.perf_counter()
-    for _ in range(count):
-        fn()
-    dr.sync_thread()
-    return (time.perf_counter() - t0) / count
-
-
-def paired_ratio(num: list[float], den: list[float]) -> float:
-    """Median over repeats of ``num[i] / den[i]`` (samples from :func:`round_robin`)."""
-    return statistics.median(a / b for a, b in zip(num, den, strict=True))
 
 
 @benchmark("render-vs-mitsuba-path")
@@ -154,10 +110,7 @@ def denoisers(ctx: BenchContext) -> dict:
     # reprojection succeeds everywhere and the history stays full while the 4 frames cycle
     # (feeding one frame over and over with its motion vectors would disocclude most pixels
     # and time the spatial-variance fallback instead of the steady state)
-    setup = scenes.load("glossy-cornell", size=ctx.size)
-    setup.camera_path = None
-    setup.object_paths = {}
-    r = render.Renderer(setup)
+    r = render.Renderer(scenes.load_static("glossy-cornell", size=ctx.size))
     frames = [r.render(i) for i in range(4)]
     configs = {
         "svgf": ("svgf", {}),
@@ -363,11 +316,11 @@ def bspvt(ctx: BenchContext) -> dict:
     512 vertices (``tree_engines``). GPU targets (issue 6): build 50x faster than the
     paper's 2.7 min for 17K vertices; per-vertex shading of 512x512 at 200 fps or more."""
     from . import render, scenes
+    from .lights.bspvt import build_scene_trees, shade_bspvt
     from .lights.ltc import shade_frame
     from .lights.ratio import render_ratio
     from .lights.scene import polygon_lights
     from .lights.shading import fresnel_image
-    from .lights.shadows import build_scene_trees, shade_bspvt
 
     w, h = ctx.size
     setup = scenes.load("polygon-light", size=(w, h))
@@ -406,7 +359,7 @@ def _bspvt_engines(scene, res: int, count: int) -> dict:
     3.24 s), and whether the engines' trees are identical."""
     import numpy as np
 
-    from .lights import bspvt
+    from .lights.bspvt import build as bspvt
 
     pos, nrm, _ = bspvt.scene_vertices(scene)
     sel = np.linspace(0, len(pos) - 1, min(count, len(pos))).astype(int)

@@ -76,37 +76,27 @@ class ShadowResults:
     def montage(self, path: str | Path, eps: float = 1e-2) -> Path:
         """Per run: reference, BSPVT per pixel, its absolute error, unshadowed LTC's absolute
         error (paper fig. 8: upper row, and the lower row's error)."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
+        from .report.figures import Panel, montage
         from .report.page import tonemap
 
         keys = list(self.images)
         w, h = self.size
-        fig, axes = plt.subplots(len(keys), 4, figsize=(12, 12 * len(keys) * h / (4 * w)
-                                                        + 0.6 * len(keys)), squeeze=False)
-        for r, k in enumerate(keys):
+        lum = np.array([0.2126, 0.7152, 0.0722])
+        grid = []
+        for k in keys:
             im = self.images[k]
             ref = im["reference"]
             vmax = max(float(np.percentile(ref, 99)), 1e-6) * 0.25
-            lum = np.array([0.2126, 0.7152, 0.0722])
-            panels = [(tonemap(ref), None, f"{k}: Monte Carlo {self.ref_spp} spp (shadows)"),
-                      (tonemap(im["bspvt-pixel"]), None, "BSPVT per pixel"),
-                      (np.abs(im["bspvt-pixel"] - ref) @ lum, "magma", "|BSPVT - MC|"),
-                      (np.abs(im["ltc (no shadows)"] - ref) @ lum, "magma",
-                       "|LTC without shadows - MC|")]
-            for c, (img, cmap, title) in enumerate(panels):
-                ax = axes[r, c]
-                ax.imshow(img, cmap=cmap, vmin=0 if cmap else None,
-                          vmax=vmax if cmap else None, interpolation="nearest")
-                ax.set_title(title, fontsize=7)
-                ax.axis("off")
-        fig.tight_layout()
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        return Path(path)
+            grid.append([
+                Panel(tonemap(ref), f"{k}: Monte Carlo {self.ref_spp} spp (shadows)",
+                      fontsize=7),
+                Panel(tonemap(im["bspvt-pixel"]), "BSPVT per pixel", fontsize=7),
+                Panel(np.abs(im["bspvt-pixel"] - ref) @ lum, "|BSPVT - MC|", "magma", 0, vmax,
+                      fontsize=7),
+                Panel(np.abs(im["ltc (no shadows)"] - ref) @ lum, "|LTC without shadows - MC|",
+                      "magma", 0, vmax, fontsize=7)])
+        return montage(path, grid, (12, 12 * len(keys) * h / (4 * w) + 0.6 * len(keys)),
+                       dpi=100)
 
 
 def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
@@ -116,12 +106,12 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
     docstring), ``frames`` of the moving light; trees built once per alpha (visibility does
     not depend on the material: built once, shared)."""
     from . import render
+    from .lights.bspvt import build_scene_trees, shade_bspvt
     from .lights.ltc import shade_frame
     from .lights.mc import render_mc
     from .lights.ratio import render_ratio
     from .lights.scene import polygon_lights
     from .lights.shading import fresnel_image
-    from .lights.shadows import build_scene_trees, shade_bspvt
 
     say = progress or (lambda _m: None)
     res = ShadowResults(tuple(size), ref_spp, resolution)
@@ -171,7 +161,7 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
 def table1(densities: dict | None = None, resolution: int = 64, epsilon: float = 0.0,
            progress: Callable[[str], None] | None = None) -> list[dict]:
     """The paper's Table 1 for ``polygon-light`` at each density (module docstring)."""
-    from .lights.shadows import build_scene_trees
+    from .lights.bspvt import build_scene_trees
 
     say = progress or (lambda _m: None)
     rows = []

@@ -15,8 +15,8 @@ import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from .bench import MIN_SAMPLE
 from .errors import GlossrtError
+from .timing import MIN_SAMPLE, steady_median
 
 EXAMPLES = """examples:
   glossrt info
@@ -351,13 +351,11 @@ def _add_specaa(setup, frame, index: int, method: str, textures: dict) -> None:
 
 def cmd_denoise(args) -> int:
     import shutil
-    import time
-
-    import drjit as dr
 
     from . import denoise
     from .frame import RADIANCE, Frame, load_sequence
     from .progress import Progress
+    from .timing import timed_eval
 
     if not os.path.isdir(args.in_dir):
         raise GlossrtError(f"not a folder: {args.in_dir}")
@@ -373,11 +371,8 @@ def cmd_denoise(args) -> int:
     try:
         with Progress(len(frames), f"{args.method} {frames[0].width}x{frames[0].height}") as p:
             for k, f in enumerate(frames):
-                t0 = time.perf_counter()
-                img = d(f)
-                dr.eval(img)
-                dr.sync_thread()
-                seconds.append(time.perf_counter() - t0)
+                img, secs = timed_eval(d, f)
+                seconds.append(secs)
                 channels = dict(f.channels)
                 channels["color"] = img
                 meta = dict(f.meta, denoiser=args.method, denoise_seconds=seconds[-1])
@@ -390,9 +385,8 @@ def cmd_denoise(args) -> int:
             os.replace(tmp / name, out / name)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    steady = seconds[1:] or seconds
     print(f"wrote {len(frames)} frame(s) to {out}; {args.method}: "
-          f"{1000 * sorted(steady)[len(steady) // 2]:.1f} ms per frame (median, after the first)")
+          f"{1000 * steady_median(seconds):.1f} ms per frame (median, after the first)")
     _warn_stale(out, names)
     if bad_total["nonfinite"] or bad_total["negative"]:
         print(f"warning: the input frames have {bad_total['nonfinite']} non-finite (NaN/Inf) "
@@ -666,7 +660,7 @@ def cmd_light(args) -> int:
                 img = shade_frame(gb, lights, f0=f0, textures=cache)
                 p.update(i + 1)
             elif args.method == "bspvt":
-                from .lights.shadows import shade_bspvt
+                from .lights.bspvt import shade_bspvt
 
                 # per vertex the frozen (fused) traversal is fastest; per pixel, on the CPU,
                 # the traced one-kernel traversal (docs/PERFORMANCE.md)
@@ -709,9 +703,8 @@ def cmd_light(args) -> int:
             name = frame_filename(i)
             f.save(out / name)
             matplotlib.image.imsave(out / (name.rsplit(".", 1)[0] + ".png"), tonemap(img))
-    later = times[1:] or times
     print(f"wrote {args.frames} frame(s) to {out}; {args.method}: "
-          f"{1000 * sorted(later)[len(later) // 2]:.1f} ms per frame (median)")
+          f"{1000 * steady_median(times):.1f} ms per frame (median)")
     _warn_stale(out, [frame_filename(i) for i in range(args.frames)])
     return 0
 
@@ -719,7 +712,7 @@ def cmd_light(args) -> int:
 def cmd_bspvt(args) -> int:
     """glossrt bspvt build: Okuno & Iwasaki's precomputation for a scene, with Table-1 stats."""
     from . import scenes
-    from .lights.shadows import build_scene_trees
+    from .lights.bspvt import build_scene_trees
 
     if args.resolution < 1:
         raise GlossrtError(f"--resolution must be >= 1, got {args.resolution}")
@@ -737,7 +730,7 @@ def cmd_bspvt(args) -> int:
 
 
 def cmd_ltc_fit(args) -> int:
-    from .lights import ltc_fit
+    from .lights.ltc import fit as ltc_fit
 
     if args.size is not None and args.size < 2:
         raise GlossrtError(f"--size must be >= 2, got {args.size}")

@@ -155,12 +155,10 @@ def section_denoisers(ctx: DemoContext, report: Report) -> None:
         s.paragraph(f"{m}: not run here ({why}).")
     s.images_row([(k, v) for k, v in res.images.items()], name="denoised")
     if res.temporal:
-        import matplotlib
+        from .report.figures import new_figure
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(6, 3.2))
+        fig = new_figure((6, 3.2))
+        ax = fig.add_subplot()
         for m, te in res.temporal.items():
             ax.semilogy(range(1, len(te) + 1), te, label=m)
         ax.set_xlabel("frame")

@@ -7,13 +7,12 @@ sequence (Schied 2017, sec. 5.4 / fig. 10).
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
-import drjit as dr
 import numpy as np
 
 from . import metrics
+from .timing import steady_median, timed_eval
 
 DEFAULT_METHODS = ("svgf", "svgf-lobe", "svgf-spatial-variance", "atrous", "atrous-temporal",
                    "oidn")
@@ -77,11 +76,8 @@ def _run_sequence(method: str, frames: list) -> tuple[list, list[float]]:
     d = denoise.make(method)
     outs, secs = [], []
     for f in frames:
-        t0 = time.perf_counter()
-        img = d(f)
-        dr.eval(img)
-        dr.sync_thread()
-        secs.append(time.perf_counter() - t0)
+        img, t = timed_eval(d, f)
+        secs.append(t)
         outs.append(img)
     return outs, secs
 
@@ -100,10 +96,7 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
         sequence = [r.render(i) for i in range(frames)]
         references = [r.render_reference(i, ref_spp) for i in range(0, frames, ref_every)]
     refs = {f.index: f for f in references}
-    static_setup = scenes.load(scene, size=size)
-    static_setup.camera_path = None
-    static_setup.object_paths = {}
-    rs = render.Renderer(static_setup)
+    rs = render.Renderer(scenes.load_static(scene, size=size))
     static = [rs.render(i) for i in range(static_frames)]
     for k, m in enumerate(methods):
         why = _available(m)
@@ -111,8 +104,7 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
             res.skipped[m] = why
             continue
         outs, secs = _run_sequence(m, sequence)
-        steady = secs[1:] or secs
-        res.seconds[m] = float(np.median(steady))
+        res.seconds[m] = steady_median(secs)
         rows = []
         for f, img in zip(sequence, outs, strict=True):
             if f.index in refs:

@@ -1,5 +1,5 @@
 """Writing files so that an interrupted write never leaves half of one: frames
-(:meth:`glossrt.frame.Frame.save`), BSPVT trees (:meth:`glossrt.lights.bspvt.BSPVT.save`) and
+(:meth:`glossrt.frame.Frame.save`), BSPVT trees (:meth:`glossrt.lights.bspvt.build.BSPVT.save`) and
 the command line's JSON outputs all go through :func:`replacing`."""
 
 from __future__ import annotations

@@ -187,6 +187,23 @@ class Camera:
         """Inverse of :attr:`to_world` (4x4 float64)."""
         return np.linalg.inv(self.to_world)
 
+    @property
+    def tan_half_fov(self) -> float:
+        """``tan(fov / 2)`` of the horizontal field of view: half the image plane's width at
+        unit distance (float64)."""
+        return math.tan(math.radians(self.fov) / 2.0)
+
+    @property
+    def focal_px(self) -> float:
+        """The focal length in pixels, ``(W / 2) / tan(fov / 2)`` (float64): a camera-space
+        point ``(x, y, z)`` lands ``focal_px * (x, y) / z`` pixels from the image centre."""
+        return (self.resolution[0] / 2) / self.tan_half_fov
+
+    def pixel_angle(self, width: int | None = None) -> float:
+        """``2 tan(fov / 2) / W``: the angle (radians) one pixel subtends at the image centre,
+        for an image ``width`` pixels wide (default: the camera's ``W``)."""
+        return 2.0 * self.tan_half_fov / (self.resolution[0] if width is None else width)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form; :meth:`from_dict` restores it exactly (floats are written by repr)."""
         return {
@@ -243,11 +260,11 @@ class Camera:
         c = p @ inv[:3, :3].T + inv[:3, 3]
         x, y, z = c[..., 0], c[..., 1], c[..., 2]
         w, h = self.resolution
-        t = math.tan(math.radians(self.fov) / 2.0)
+        t, focal = self.tan_half_fov, self.focal_px
         with np.errstate(divide="ignore", invalid="ignore"):
             zs = np.where(z > 0.0, z, np.nan)
             px = 0.5 * w * (1.0 - (x / zs) / t)
-            py = 0.5 * h - (y / zs) * (0.5 * w / t)
+            py = 0.5 * h - (y / zs) * focal
         return np.stack([px, py], axis=-1)
 
 

@@ -65,25 +65,14 @@ class Convergence:
         return "\n".join(lines)
 
     def montage(self, path: str | Path) -> Path:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
+        """Every image tone-mapped, one per row, titled with its key."""
+        from .report.figures import Panel, montage
         from .report.page import tonemap
 
         keys = list(self.images)
         w, h = self.size
-        fig, axes = plt.subplots(len(keys), 1, figsize=(8, len(keys) * 8 * h / w + 0.3),
-                                 squeeze=False)
-        for ax, k in zip(axes[:, 0], keys, strict=True):
-            ax.imshow(tonemap(self.images[k]), interpolation="nearest")
-            ax.set_title(k, fontsize=8)
-            ax.axis("off")
-        fig.tight_layout()
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        return Path(path)
+        grid = [[Panel(tonemap(self.images[k]), k)] for k in keys]
+        return montage(path, grid, (8, len(keys) * 8 * h / w + 0.3), dpi=100)
 
 
 def convergence(size=(320, 180), ref_samples: int = 2048, counts=SAMPLE_COUNTS,
@@ -163,8 +152,8 @@ def timing(size=(640, 360), repeats: int = 5) -> dict:
     rendered once (their cost, per frame for moving lights, is reported apart)."""
     import drjit as dr
 
-    from .bench import paired_ratio, round_robin
     from .lights.highlights import HighlightRenderer, shade_plain
+    from .timing import paired_ratio, round_robin
 
     setup, gb, lights, f0 = _frame(size)
     hr = HighlightRenderer()

@@ -424,14 +424,10 @@ class Fig6Result:
         """Save a figure like the paper's fig. 6: one panel per method (normal, lobe), MSE
         against the parameter (log x), one line per sphere, the mean over the spheres in
         purple, optima marked. Returns ``path``."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from .report.figures import subplots
 
         methods = [m for m in ("normal", "lobe") if m in self.curves]
-        fig, axes = plt.subplots(1, len(methods), figsize=(5.2 * len(methods), 4.0),
-                                 sharey=True, squeeze=False)
+        fig, axes = subplots(1, len(methods), (5.2 * len(methods), 4.0), sharey=True)
         colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:brown"]
         for ax, m in zip(axes[0], methods, strict=True):
             c = self.curves[m]
@@ -458,7 +454,6 @@ class Fig6Result:
                      "(cf. Tokuyoshi 2015, fig. 6)", fontsize=10)
         fig.tight_layout()
         fig.savefig(path, dpi=110)
-        plt.close(fig)
         return path
 
 

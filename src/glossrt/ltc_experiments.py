@@ -1,6 +1,6 @@
 """Measurements behind docs/RESULTS.md for polygon lights with LTC (issue 5).
 
-* :func:`accuracy`: :func:`glossrt.lights.ltc.polygon_integral` against the float64 area
+* :func:`accuracy`: :func:`glossrt.lights.ltc.shade.polygon_integral` against the float64 area
   quadrature of the same BRDF (:mod:`glossrt.lights.quadrature`) for random quads and
   triangles, views and roughnesses: median / 90th / 99th percentile relative error;
 * :func:`images`: LTC shading of ``polygon-light`` (per GGX alpha) against an unshadowed Monte
@@ -69,7 +69,7 @@ def accuracy(n: int = 2000, seed: int = 5, m: int = 400, table=None,
     0.1: stats, ..., "share": {label: stats}, "view": {label: stats}}. ``table``: the LTC
     table to score (default glossrt's, see :func:`load_published_table`)."""
     from .lights.ltc import polygon_integral
-    from .lights.ltc_fit import brdf_moments
+    from .lights.ltc.fit import brdf_moments
     from .lights.quadrature import polygon_quadrature
 
     cases = random_polygons(np.random.default_rng(seed), n)
@@ -136,7 +136,7 @@ PUBLISHED_ALPHA_MIN = 1e-5
 def load_published_table(path: str | Path):
     """The published GGX LTC table of Heitz et al. 2016 from a copy of ``fit/results/ltc.js``
     of https://github.com/selfshadow/ltc_code (BSD 2-clause; the user supplies the file,
-    glossrt does not ship it), as an :class:`~glossrt.lights.ltc_fit.LTCTable` in glossrt's
+    glossrt does not ship it), as an :class:`~glossrt.lights.ltc.table.LTCTable` in glossrt's
     layout, for :func:`compare_with_published`.
 
     The file holds ``g_ltc_1`` (per cell ``M^-1`` normalised by its middle element, as glm's
@@ -147,7 +147,7 @@ def load_published_table(path: str | Path):
     import re
 
     from .errors import GlossrtError
-    from .lights.ltc_fit import LTCTable
+    from .lights.ltc.table import LTCTable
 
     text = Path(path).read_text()
     num = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
@@ -174,9 +174,10 @@ def load_published_table(path: str | Path):
 
 
 def _cell_l1(table, norm: np.ndarray, cells: list[tuple[int, int]]) -> np.ndarray:
-    """The fit error L1 (:func:`glossrt.lights.ltc_fit.lobe_errors`) of ``table``'s matrices
+    """The fit error L1 (:func:`glossrt.lights.ltc.fit.lobe_errors`) of ``table``'s matrices
     at glossrt's nodes ``cells`` (lobe norms from glossrt's table, the same for both)."""
-    from .lights.ltc_fit import _Objective, grid_axes, minv_matrix, node_config
+    from .lights.ltc.fit import _Objective
+    from .lights.ltc.table import grid_axes, minv_matrix, node_config
 
     alpha, cos_o = node_config(*grid_axes(table.n_r))
     coeffs = table.host["minv"].astype(np.float64)
@@ -199,7 +200,7 @@ def compare_with_published(path: str | Path, polygons: int = 2000, cell_step: in
     :func:`accuracy` on ``polygons`` random polygons against the float64 quadrature.
     Returns {"cells", "l1": {"glossrt": stats, "published": stats, "glossrt_better": n},
     "polygons": {"glossrt": accuracy, "published": accuracy}, "norm_max_diff"}."""
-    from .lights.ltc_fit import LTCTable
+    from .lights.ltc.table import LTCTable
 
     say = progress or (lambda _m: None)
     ours = LTCTable.load()
@@ -265,36 +266,23 @@ class LTCImageResults:
     def montage(self, path: str | Path, eps: float = 1e-2) -> Path:
         """One PNG: a row per run (LTC | Monte Carlo reference | relative error
         ``|LTC - MC| / (MC + eps)`` on a 0-50% colour scale), paper fig. 8, lower row."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
+        from .report.figures import Panel, montage
         from .report.page import tonemap
 
         n = len(self.labels)
         h, w = self.size[1], self.size[0]
-        fig, axes = plt.subplots(n, 3, figsize=(9.6, 9.6 * n * h / (3 * w) + 0.6 * n),
-                                 squeeze=False)
-        for r, label in enumerate(self.labels):
+        lum = np.array([0.2126, 0.7152, 0.0722])
+        grid = []
+        for label in self.labels:
             ltc = self.images[f"{label}: LTC"]
             ref = self.images[f"{label}: Monte Carlo {self.ref_spp} spp"]
-            lum = lambda x: x @ np.array([0.2126, 0.7152, 0.0722])  # noqa: E731
-            rel = np.abs(lum(ltc) - lum(ref)) / (lum(ref) + eps)
-            panels = [(tonemap(ltc), None, f"{label}: LTC"),
-                      (tonemap(ref), None, f"Monte Carlo, {self.ref_spp} spp (no shadows)"),
-                      (rel, "magma", "relative error (0 to 50%)")]
-            for c, (img, cmap, title) in enumerate(panels):
-                ax = axes[r, c]
-                im = ax.imshow(img, cmap=cmap, vmin=0.0 if cmap else None,
-                               vmax=0.5 if cmap else None, interpolation="nearest")
-                ax.set_title(title, fontsize=8)
-                ax.axis("off")
-            fig.colorbar(im, ax=axes[r, 2], fraction=0.046, pad=0.02)
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        return Path(path)
+            rel = np.abs(ltc @ lum - ref @ lum) / (ref @ lum + eps)
+            grid.append([
+                Panel(tonemap(ltc), f"{label}: LTC"),
+                Panel(tonemap(ref), f"Monte Carlo, {self.ref_spp} spp (no shadows)"),
+                Panel(rel, "relative error (0 to 50%)", "magma", 0.0, 0.5,
+                      colorbar={"fraction": 0.046, "pad": 0.02})])
+        return montage(path, grid, (9.6, 9.6 * n * h / (3 * w) + 0.6 * n), dpi=110)
 
     def markdown(self) -> str:
         lines = ["| " + " | ".join(self.COLUMNS) + " |", "|" + "---|" * len(self.COLUMNS)]

@@ -86,11 +86,7 @@ class SpecAAResults:
     def montage(self, path: str | Path, crop: tuple[slice, slice] | None = None) -> Path:
         """The paper's figs. 1-3 side by side: every method and the reference (tone-mapped),
         with ``|image - reference|`` under each; ``crop`` (rows, cols) zooms in."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
+        from .report.figures import Panel, montage
         from .report.page import tonemap
 
         keys = list(self.images)
@@ -99,23 +95,15 @@ class SpecAAResults:
         rows = 2 * ((len(keys) + cols - 1) // cols)
         crop = crop or (slice(None), slice(None))
         h, w = ref[crop].shape[:2]
-        fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, rows * 3.2 * h / w + 0.4),
-                                 squeeze=False)
-        for ax in axes.ravel():
-            ax.axis("off")
+        grid: list[list[Panel | None]] = [[None] * cols for _ in range(rows)]
         scale = max(float(np.percentile(np.abs(ref[crop]), 99.5)), 1e-6)
         for i, k in enumerate(keys):
             r, c = 2 * (i // cols), i % cols
-            axes[r, c].imshow(tonemap(self.images[k][crop]), interpolation="nearest")
-            axes[r, c].set_title(k, fontsize=8)
+            grid[r][c] = Panel(tonemap(self.images[k][crop]), k, fontsize=8)
             err = np.abs(self.images[k][crop] - ref[crop]).mean(axis=-1)
-            axes[r + 1, c].imshow(err, cmap="magma", vmin=0, vmax=0.5 * scale,
-                                  interpolation="nearest")
-            axes[r + 1, c].set_title(f"|{k} - reference|", fontsize=7)
-        fig.tight_layout()
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        return Path(path)
+            grid[r + 1][c] = Panel(err, f"|{k} - reference|", "magma", 0, 0.5 * scale,
+                                   fontsize=7)
+        return montage(path, grid, (3.2 * cols, rows * 3.2 * h / w + 0.4), dpi=100)
 
 
 def _flat_mask(setup, frame) -> np.ndarray:
@@ -232,15 +220,15 @@ def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE,
            min_sample: float | None = None) -> dict:
     """Shading time per method and its ratio to unfiltered shading (median of per-repeat
     ratios), the methods called in turn (frozen kernels, the real-time path; calls shorter
-    than ``min_sample`` seconds, default :data:`glossrt.bench.MIN_SAMPLE`, timed in batches,
-    :func:`glossrt.bench.round_robin`)."""
+    than ``min_sample`` seconds, default :data:`glossrt.timing.MIN_SAMPLE`, timed in batches,
+    :func:`glossrt.timing.round_robin`)."""
     import statistics
 
     from . import render, scenes, specaa
-    from .bench import MIN_SAMPLE, paired_ratio, round_robin
     from .lights.analytic import analytic_lights
     from .lights.scene import polygon_lights
     from .lights.shading import f0_image
+    from .timing import MIN_SAMPLE, paired_ratio, round_robin
 
     methods = tuple(methods or specaa.METHODS)
     setup = scenes.load(scene, size=size)

@@ -6,7 +6,7 @@ dielectric term ``fresnel(wo.h, eta)`` (both times ``specular_reflectance``). gl
 the same functions (Mitsuba's own ``mi.fresnel_conductor`` / ``mi.fresnel``) per lane:
 :func:`fresnel_exact`.
 
-A split-sum table (:mod:`glossrt.brdf.ggx`, :mod:`glossrt.lights.ltc_fit`) stores, per view and
+A split-sum table (:mod:`glossrt.brdf.ggx`, :mod:`glossrt.lights.ltc.fit`) stores, per view and
 roughness, the lobe's mass ``norm = A + B`` and its Schlick moment ``fres = B``
 (``integral rho cos (1 - wo.h)^5``). Schlick's form ``F0 (norm - fres) + fres`` is exact for
 Schlick's Fresnel only. glossrt instead evaluates the exact term at the *effective* angle whose

@@ -73,8 +73,6 @@ value recompiles). Results agree with the Python-float call to float32 rounding.
 
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
 
@@ -126,7 +124,7 @@ def pixel_angle(frame) -> float:
     ``weight="screen"``, see the module docstring)."""
     if frame.camera is None:
         raise FrameError(f"{frame.where}: weight='screen' needs the camera (field of view)")
-    return 2.0 * math.tan(math.radians(frame.camera.fov) / 2.0) / frame.width
+    return frame.camera.pixel_angle(frame.width)
 
 
 def screen_sigma(lambda_, theta_px: float, k_s: float = K_S, sigma_min: float = SIGMA_MIN,

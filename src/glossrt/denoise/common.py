@@ -261,7 +261,7 @@ def pixel_view_directions(frame, grid: Grid, purpose: str = "this filter") -> mi
     jx, jy = frame_jitter(frame)
     cw, chh = cam.resolution
     sx, sy = cw / frame.width, chh / frame.height
-    t = math.tan(math.radians(cam.fov) / 2.0)
+    t = cam.tan_half_fov
     rot = np.asarray(cam.to_world, np.float64)[:3, :3]
     # camera-space direction of pixel (x, y): affine in x and y (Camera.project inverted)
     step_x = rot @ np.array([-2.0 * t * sx / cw, 0.0, 0.0])

@@ -9,7 +9,7 @@ unshadowed integrand)::
     int L f cos V dw = int L f cos dw * (int L f cos V dw / int L f cos dw)
 
 is exact whatever computes each factor. Here the first factor (the unshadowed light ``A``)
-is analytic, by LTC (:func:`glossrt.lights.ltc.shade_frame`), and the second, the
+is analytic, by LTC (:func:`glossrt.lights.ltc.shade.shade_frame`), and the second, the
 *illumination-weighted shadow*, is the ratio ``S / U`` of two Monte Carlo estimates made with
 the **same** samples: ``S`` with shadow rays, ``U`` without (the paper's ratio estimator).
 Both are denoised with the **same** filter weights (the paper filters the two stochastic
@@ -296,7 +296,7 @@ def filtered_ratio(frame, shadowed: np.ndarray, unshadowed: np.ndarray,
 @dataclass
 class RatioImages:
     """What :func:`render_ratio` computed, all (H, W, 3) float32: ``image`` the result;
-    ``analytic`` the unshadowed LTC image (:func:`glossrt.lights.ltc.shade_frame`),
+    ``analytic`` the unshadowed LTC image (:func:`glossrt.lights.ltc.shade.shade_frame`),
     ``analytic_diffuse`` / ``analytic_specular`` its two terms; the noisy
     ``shadowed_*`` / ``unshadowed_*`` Monte Carlo estimates (same samples); their filtered
     versions ``shadowed_*_denoised`` / ``unshadowed_*_denoised`` (the noisy ones when
@@ -375,7 +375,7 @@ def render_ratio(frame, lights: list, scene=None, spp: int = 1, f0: np.ndarray |
                  progress: Callable[[int, int], None] | None = None,
                  per_light: bool = True, **filter_params) -> RatioImages:
     """Shadowed direct light of ``frame``'s G-buffer from the polygon ``lights`` by the ratio
-    estimator (module docstring): unshadowed LTC (:func:`glossrt.lights.ltc.shade_frame`,
+    estimator (module docstring): unshadowed LTC (:func:`glossrt.lights.ltc.shade.shade_frame`,
     ``f0`` per pixel as there) times the ratio of shadowed to unshadowed Monte Carlo
     estimates from the same ``spp`` samples per pixel (``seed``; shadow rays through
     ``scene``, a Mitsuba scene or SceneSetup, ``None``: no shadows, ratio 1), denoised with

@@ -9,8 +9,6 @@ convention (docs/FORMATS.md): the pixel centre (x+0.5, y+0.5) was at
 
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -29,8 +27,7 @@ class MotionInputs:
             rel[m] = objs_prev.get(m, np.eye(4)) @ np.linalg.inv(cur)
         w, h = prev_camera.resolution
         w2c = np.linalg.inv(np.asarray(prev_camera.to_world, dtype=np.float64))
-        focal = (w / 2) / math.tan(math.radians(prev_camera.fov) / 2)
-        prev = np.concatenate([w2c.ravel(), [focal, w / 2, h / 2]])
+        prev = np.concatenate([w2c.ravel(), [prev_camera.focal_px, w / 2, h / 2]])
         # from Python lists: NumPy-backed inputs can make dr.freeze re-record (alignment)
         self.rel = mi.Float(rel.astype(np.float32).ravel().tolist())
         self.prev = mi.Float(prev.astype(np.float32).tolist())

@@ -559,6 +559,16 @@ def load(
     return setup
 
 
+def load_static(name_or_path: str, *, size: tuple[int, int] | None = None) -> SceneSetup:
+    """:func:`load` with the animation removed: the camera and every object stay at their rest
+    pose in all frames, so consecutive frames differ only in their noise (temporal-error and
+    steady-state timing sequences)."""
+    setup = load(name_or_path, size=size)
+    setup.camera_path = None
+    setup.object_paths = {}
+    return setup
+
+
 def from_spec(name: str, spec: SceneSpec, *, size: tuple[int, int] | None = None) -> SceneSetup:
     """A :class:`SceneSetup` from a scene description (what a built-in's function returns,
     e.g. :func:`glossrt.scenes.library.polygon_light_scene` with non-default options), with

@@ -10,8 +10,8 @@ where the ``P_i`` are the pieces into which the lines of a vertex's visibility t
 light polygon ``P`` (projected onto that vertex's visibility cube map), and ``v_i`` is the mean
 visibility stored at the tree leaf the piece falls into. Each piece integral is evaluated with
 linearly transformed cosines (Heitz, Dupuy, Hill, Neubelt 2016) exactly as
-:func:`glossrt.lights.ltc._integrals` does for a whole light: the clamped-cosine integral of the
-piece (diffuse, ``i_d``) and of the piece transformed by the LTC's ``M^-1`` (specular, ``i_s``),
+:func:`glossrt.lights.ltc.shade._integrals` does for a whole light: the clamped-cosine integral of
+the piece (diffuse, ``i_d``) and of the piece transformed by the LTC's ``M^-1`` (specular, ``i_s``),
 both with the horizon clipping and one- / two-sided handling of
 :func:`glossrt.lights.polygon.cosine_integral`. With an all-visible tree the sums equal the
 unshadowed ``_integrals`` of the whole light (the pieces partition it).
@@ -56,7 +56,7 @@ each piece's integral is weighted by the prefiltered texture looked up where the
 vector form factor (its mean direction, in the untransformed or ``M^-1`` space) meets the
 *whole* light's plane, with the whole light's affine uv map and the filter width from that
 distance and the whole light's area. (For a single piece covering the light this is exactly
-:func:`glossrt.lights.ltc._texture_lookup`.)
+:func:`glossrt.lights.ltc.shade._texture_lookup`.)
 
 Two shading modes on top of :func:`visible_integrals`: :func:`shade_vertices` (the paper's
 per-vertex shading, at each tree's own vertex position and normal) and :func:`shade_pixels`
@@ -73,7 +73,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from .. import backend
+from ... import backend
 
 backend.ensure()
 
@@ -81,9 +81,9 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..errors import GlossrtError  # noqa: E402
-from ..jit import no_gc, opaque, owned  # noqa: E402
-from .ltc import (  # noqa: E402
+from ...errors import GlossrtError  # noqa: E402
+from ...jit import no_gc, opaque, owned  # noqa: E402
+from ..ltc.shade import (  # noqa: E402
     PrefilteredTexture,
     _apply_minv,
     _device_lights,
@@ -97,8 +97,8 @@ from .ltc import (  # noqa: E402
     ltc_frame,
     prefiltered,
 )
-from .polygon import _edge_sum, cosine_integral  # noqa: E402
-from .shading import ShadingPoints, light_vertices  # noqa: E402
+from ..polygon import _edge_sum, cosine_integral  # noqa: E402
+from ..shading import ShadingPoints, light_vertices  # noqa: E402
 
 __all__ = ["KMAX", "TRAVERSALS", "DeviceTrees", "shade_pixels", "shade_points", "shade_vertices",
            "visible_integrals"]
@@ -173,7 +173,7 @@ class DeviceTrees:
     ``lines`` (3 N floats: ``a, b, c`` per node), ``children`` (2 N: left, right), ``leaf_value``
     (L), ``roots`` (6 V: per vertex and face), ``positions`` / ``normals`` (V lanes);
     ``n_vertices`` = V and ``depth`` = most internal nodes on a root-to-leaf path. Build it with
-    :meth:`of` from any object with the attributes of :class:`glossrt.lights.bspvt.BSPVT`."""
+    :meth:`of` from any object with the attributes of :class:`glossrt.lights.bspvt.build.BSPVT`."""
 
     lines: mi.Float
     children: mi.Int32
@@ -772,7 +772,6 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
     > 0; at a leaf it integrates the piece (:func:`_piece_integrals`) into the lane's sums.
     The six faces' sums are added per query at the end. Same pieces as the other
     traversals; no textured lights."""
-    k = KMAX
     t1, t2 = ltc_frame(n, wo)
 
     def whole():
@@ -792,6 +791,36 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
     q = lanes - f * nq
     lane_live = dr.gather(mi.Bool, live, q)
     slots = len(world) + 4  # the light clipped by a face's four frustum planes
+    code0, cnt0, keep, *st0 = _fused_roots(dev, tree_index, rel, q, f, lane_live, width, slots)
+    keep &= lane_live
+    leaf0 = code0 < 0
+    val0 = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code0), leaf0)
+    start = keep & (~leaf0 | (val0 > 0.0))
+    frame = (dr.gather(mi.Vector3f, t1, q), dr.gather(mi.Vector3f, t2, q),
+             dr.gather(mi.Vector3f, n, q))
+    lane_coeffs = dr.gather(mi.Vector4f, coeffs, q)
+    acc_d, acc_s, n_split, n_piece = _fused_walk(dev, start, code0, cnt0, st0[:slots],
+                                                 st0[slots:], f, frame, lane_coeffs,
+                                                 two_sided, width)
+    i_d = i_s = None
+    for face in range(6):  # the six faces' sums per query
+        idx = dr.arange(mi.UInt32, width) + face * nq
+        d_f, s_f = dr.gather(mi.Float, acc_d, idx), dr.gather(mi.Float, acc_s, idx)
+        i_d = d_f if i_d is None else i_d + d_f
+        i_s = s_f if i_s is None else i_s + s_f
+    if stats is not None:
+        stats.update(levels=int(dr.max(n_split + n_piece)[0]),
+                     items=int(dr.sum(n_split)[0]), pieces=int(dr.sum(n_piece)[0]),
+                     live=int(dr.sum(mi.UInt32(live))[0]))
+    # exact zeros where the whole light gives 0 (as ltc._integrals)
+    return dr.select(whole_d > 0.0, i_d, 0.0), dr.select(whole_s > 0.0, i_s, 0.0)
+
+
+def _fused_roots(dev: DeviceTrees, tree_index: mi.UInt32, rel: list, q: mi.UInt32,
+                 f: mi.UInt32, lane_live: mi.Bool, width: int, slots: int) -> tuple:
+    """:func:`_fused_integrals`' root items, one lane per query ``q`` and face ``f``:
+    ``(code, n, keep, *s, *t)`` of :func:`_root_items` (``slots`` vertex slots each), zeros
+    on lanes that are not ``lane_live`` (packets without a live lane skip the clipping)."""
 
     def clip_roots():
         roots, keep = _root_items(dev, tree_index, rel, q, f)
@@ -802,16 +831,19 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
         return (dr.zeros(mi.Int32, 6 * width), dr.zeros(mi.UInt32, 6 * width),
                 dr.zeros(mi.Bool, 6 * width), *[mi.Float(z) for _ in range(2 * slots)])
 
-    code0, cnt0, keep, *st0 = dr.if_stmt((), lane_live, clip_roots, no_roots)
-    keep &= lane_live
-    leaf0 = code0 < 0
-    val0 = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code0), leaf0)
-    start = keep & (~leaf0 | (val0 > 0.0))
-    frame = (dr.gather(mi.Vector3f, t1, q), dr.gather(mi.Vector3f, t2, q),
-             dr.gather(mi.Vector3f, n, q))
-    lane_coeffs = dr.gather(mi.Vector4f, coeffs, q)
+    return dr.if_stmt((), lane_live, clip_roots, no_roots)
+
+
+def _fused_walk(dev: DeviceTrees, start: mi.Bool, code0: mi.Int32, cnt0: mi.UInt32, s0: list,
+                t0: list, f: mi.UInt32, frame: tuple, lane_coeffs: mi.Vector4f, two_sided,
+                width: int) -> tuple:
+    """:func:`_fused_integrals`' loop: from each ``start`` lane's root piece (``code0``,
+    ``cnt0`` vertices ``(s0, t0)``), pop, split and integrate until the lane's stack is
+    empty. Returns per lane (query x face) ``(acc_d, acc_s, n_split, n_piece)``: the
+    visibility-weighted integrals (evaluated) and the nodes split and leaf pieces integrated."""
+    k = KMAX
     # internal nodes and leaf pieces waiting to be integrated: at most depth + 2 entries
-    codes, counts, ls, lt = _stack(dev.depth + 3, k, code0, cnt0, st0[:slots], st0[slots:])
+    codes, counts, ls, lt = _stack(dev.depth + 3, k, code0, cnt0, s0, t0)
     one, none = mi.UInt32(1), mi.UInt32(0)
 
     def cond(sp, acc_d, acc_s, n_split, n_piece, codes, counts, ls, lt):
@@ -863,19 +895,8 @@ def _fused_integrals(dev: DeviceTrees, tree_index: mi.UInt32, p: mi.Point3f, n: 
     ctr = dr.zeros(mi.UInt32, 6 * width)
     _, acc_d, acc_s, n_split, n_piece, *_ = dr.while_loop(
         (sp, acc, mi.Float(acc), ctr, mi.UInt32(ctr), codes, counts, ls, lt), cond, body)
-    dr.eval(acc_d, acc_s)  # one loop kernel for both (the gathers below would run it twice)
-    i_d = i_s = None
-    for face in range(6):
-        idx = dr.arange(mi.UInt32, width) + face * nq
-        d_f, s_f = dr.gather(mi.Float, acc_d, idx), dr.gather(mi.Float, acc_s, idx)
-        i_d = d_f if i_d is None else i_d + d_f
-        i_s = s_f if i_s is None else i_s + s_f
-    if stats is not None:
-        stats.update(levels=int(dr.max(n_split + n_piece)[0]),
-                     items=int(dr.sum(n_split)[0]), pieces=int(dr.sum(n_piece)[0]),
-                     live=int(dr.sum(mi.UInt32(live))[0]))
-    # exact zeros where the whole light gives 0 (as ltc._integrals)
-    return dr.select(whole_d > 0.0, i_d, 0.0), dr.select(whole_s > 0.0, i_s, 0.0)
+    dr.eval(acc_d, acc_s)  # one loop kernel for both (the caller's gathers would run it twice)
+    return acc_d, acc_s, n_split, n_piece
 
 
 def _check_traversal(traversal: str) -> None:
@@ -903,6 +924,83 @@ def _check_lanes(tree_index, dev: DeviceTrees, *vecs) -> None:
     if not bool(fin[0]):
         raise GlossrtError("shading points, normals, views or LTC coefficients contain NaN or "
                            "Inf")
+
+
+def _texture_arg(texture: tuple | None, n_vertices: int) -> tuple | None:
+    """:func:`visible_integrals`' ``texture`` ``(light, PrefilteredTexture)``, checked, as the
+    ``(light_uv(light), texture)`` the pieces read; ``None`` for an untextured light."""
+    if texture is None:
+        return None
+    light, tex = texture
+    if not isinstance(tex, PrefilteredTexture):
+        raise GlossrtError("texture must be (light, PrefilteredTexture)")
+    uv = np.asarray(getattr(light, "uv", None), np.float64)
+    if uv.shape != (n_vertices, 2) or not np.all(np.isfinite(uv)):
+        raise GlossrtError(f"a textured light needs finite uv ({n_vertices}, 2), got "
+                           f"{uv.shape}")
+    return (light_uv(light), tex)
+
+
+def _whole_light(world: list, p, n, wo, coeffs, two_sided, textured: bool) -> tuple:
+    """Per query: the shading frame (:class:`_Queries`, with the light's texture planes when
+    ``textured``), the light's vertices relative to ``p`` and the whole light's diffuse and
+    specular integrals (for exact zeros and pruning), evaluated."""
+    t1, t2 = ltc_frame(n, wo)
+    local = _local(world, p, t1, t2, n)
+    local_s = _apply_minv(coeffs, local)
+    whole_d = cosine_integral(local, None, two_sided)
+    whole_s = cosine_integral(local_s, None, two_sided)
+    rel = [mi.Vector3f(v - p) for v in world]
+    qd = _Queries(t1, t2, n, coeffs)
+    if textured:
+        qd.plane_d, qd.plane_s = _tex_plane(local), _tex_plane(local_s)
+    dr.eval(qd.t1, qd.t2, qd.n, qd.coeffs, whole_d, whole_s, rel, qd.plane_d, qd.plane_s)
+    return qd, rel, whole_d, whole_s
+
+
+def _root_pass(dev: DeviceTrees, tree_index: mi.UInt32, rel: list, live: mi.UInt32,
+               n_live: int, qd: _Queries, acc: dict, two_sided, tex_arg) -> _Items | None:
+    """The root items of the ``live`` queries: query x face, the light clipped to each face's
+    frustum and projected. Faces whose root is a leaf are integrated into ``acc`` at once;
+    returns the items whose root is a node, to traverse (``None``: there are none)."""
+    lanes = dr.arange(mi.UInt32, 6 * n_live)
+    nq = dr.opaque(mi.UInt32, n_live)
+    f = lanes // nq
+    q = dr.gather(mi.UInt32, live, lanes - f * nq)
+    roots, keep = _root_items(dev, tree_index, rel, q, f)
+    code = roots.code
+    leaf = code < 0
+    val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code), leaf)
+    keep_int, keep_leaf = keep & ~leaf, keep & leaf & (val > 0.0)
+    dr.eval(roots.fields(), keep_int, keep_leaf)
+    idx_l = dr.compress(keep_leaf)
+    if dr.width(idx_l):
+        _accumulate(roots.take(idx_l).trim(), dev, qd, acc, two_sided, tex_arg)
+    idx_i = dr.compress(keep_int)
+    return roots.take(idx_i) if dr.width(idx_i) else None
+
+
+def _wavefront(dev: DeviceTrees, items: _Items, qd: _Queries, acc: dict, two_sided, tex_arg,
+               st: dict) -> None:
+    """The ``"wavefront"`` traversal: one tree level per pass, the pieces that reach a leaf
+    integrated into ``acc``, the others split again (``st`` counts levels and items)."""
+    while items is not None:
+        dr.eval(items.fields())
+        items = items.trim()
+        st["levels"] += 1
+        st["items"] += dr.width(items.n)
+        if st["levels"] > dev.depth:
+            raise GlossrtError("BSPVT traversal deeper than the trees (internal error)")
+        n_items = dr.opaque(mi.UInt32, dr.width(items.n))
+        keep_int, keep_leaf = _children_masks(dev, items, n_items)
+        dr.eval(keep_int, keep_leaf)
+        idx_l = dr.compress(keep_leaf)
+        if dr.width(idx_l):
+            pieces = _split(dev, items, idx_l, n_items)
+            dr.eval(pieces.fields())
+            _accumulate(pieces.trim(), dev, qd, acc, two_sided, tex_arg)
+        idx_i = dr.compress(keep_int)
+        items = _split(dev, items, idx_i, n_items) if dr.width(idx_i) else None
 
 
 def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Vector3f,
@@ -960,18 +1058,7 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     _check_lanes(tree_index, dev, p, n, wo, coeffs)
     # opaque: one- and two-sided lights share kernels (cosine_integral takes a per-lane mask)
     two_sided = dr.opaque(mi.Bool, bool(two_sided))
-    if texture is not None:
-        light, tex = texture
-        if not isinstance(tex, PrefilteredTexture):
-            raise GlossrtError("texture must be (light, PrefilteredTexture)")
-        uv = np.asarray(getattr(light, "uv", None), np.float64)
-        if uv.shape != (len(lv), 2) or not np.all(np.isfinite(uv)):
-            raise GlossrtError(f"a textured light needs finite uv ({len(lv)}, 2), got "
-                               f"{uv.shape}")
-        tex_arg = (light_uv(light), tex)
-    else:
-        tex_arg = None
-
+    tex_arg = _texture_arg(texture, len(lv))
     world = [mi.Point3f(*opaque(v)) for v in lv]
     if traversal == "fused":
         if tex_arg is not None:
@@ -983,17 +1070,8 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
         if stats is not None:
             stats.update(st, queries=width)
         return i_d, i_s
-    # per query: shading frame, whole-light integrals (for exact zeros and pruning)
-    t1, t2 = ltc_frame(n, wo)
-    local = _local(world, p, t1, t2, n)
-    local_s = _apply_minv(coeffs, local)
-    whole_d = cosine_integral(local, None, two_sided)
-    whole_s = cosine_integral(local_s, None, two_sided)
-    rel = [mi.Vector3f(v - p) for v in world]
-    qd = _Queries(t1, t2, n, coeffs)
-    if tex_arg is not None:
-        qd.plane_d, qd.plane_s = _tex_plane(local), _tex_plane(local_s)
-    dr.eval(qd.t1, qd.t2, qd.n, qd.coeffs, whole_d, whole_s, rel, qd.plane_d, qd.plane_s)
+    qd, rel, whole_d, whole_s = _whole_light(world, p, n, wo, coeffs, two_sided,
+                                             tex_arg is not None)
     lit = (whole_d > 0.0) | (whole_s > 0.0)
     live = dr.compress(lit if active is None else lit & active)
     zero = mi.Color3f(0.0) if tex_arg is not None else mi.Float(0.0)
@@ -1001,46 +1079,14 @@ def visible_integrals(trees: Any, tree_index: mi.UInt32, p: mi.Point3f, n: mi.Ve
     st = {"levels": 0, "items": 0}
     n_live = dr.width(live)
     if n_live:
-        # root items: query x face, the light clipped to each face's frustum, projected
-        lanes = dr.arange(mi.UInt32, 6 * n_live)
-        nq = dr.opaque(mi.UInt32, n_live)
-        f = lanes // nq
-        q = dr.gather(mi.UInt32, live, lanes - f * nq)
-        roots, keep = _root_items(dev, tree_index, rel, q, f)
-        code = roots.code
-        leaf = code < 0
-        val = dr.gather(mi.Float, dev.leaf_value, mi.UInt32(~code), leaf)
-        keep_int, keep_leaf = keep & ~leaf, keep & leaf & (val > 0.0)
-        dr.eval(roots.fields(), keep_int, keep_leaf)
-        idx_l = dr.compress(keep_leaf)
-        if dr.width(idx_l):
-            _accumulate(roots.take(idx_l).trim(), dev, qd, acc, two_sided, tex_arg)
-        idx_i = dr.compress(keep_int)
-        items = roots.take(idx_i) if dr.width(idx_i) else None
-        del roots
+        items = _root_pass(dev, tree_index, rel, live, n_live, qd, acc, two_sided, tex_arg)
         if items is not None and traversal == "kernel":
             dr.eval(items.fields())
             for pieces in _traverse(dev, items, st if stats is not None else None):
                 dr.eval(pieces.fields())
                 _accumulate(pieces.trim(), dev, qd, acc, two_sided, tex_arg)
-            items = None
-        while items is not None:
-            dr.eval(items.fields())
-            items = items.trim()
-            st["levels"] += 1
-            st["items"] += dr.width(items.n)
-            if st["levels"] > dev.depth:
-                raise GlossrtError("BSPVT traversal deeper than the trees (internal error)")
-            n_items = dr.opaque(mi.UInt32, dr.width(items.n))
-            keep_int, keep_leaf = _children_masks(dev, items, n_items)
-            dr.eval(keep_int, keep_leaf)
-            idx_l = dr.compress(keep_leaf)
-            if dr.width(idx_l):
-                pieces = _split(dev, items, idx_l, n_items)
-                dr.eval(pieces.fields())
-                _accumulate(pieces.trim(), dev, qd, acc, two_sided, tex_arg)
-            idx_i = dr.compress(keep_int)
-            items = _split(dev, items, idx_i, n_items) if dr.width(idx_i) else None
+        elif items is not None:
+            _wavefront(dev, items, qd, acc, two_sided, tex_arg, st)
     # exact zeros where the whole light gives 0 (as ltc._integrals)
     i_d = dr.select(whole_d > 0.0, acc["d"], zero)
     i_s = dr.select(whole_s > 0.0, acc["s"], zero)
@@ -1127,7 +1173,7 @@ def shade_points(trees: Any, lights: Sequence, sp: ShadingPoints,
 
     Each lane reads the trees ``tree_index[j]`` (one ``mi.UInt32`` per lane each) and blends
     the shadowed integrals with ``weights[j]`` (default: one tree, weight 1). The BRDF is
-    combined as in :func:`glossrt.lights.ltc.shade_frame`: diffuse ``L albedo i_d``, specular
+    combined as in :func:`glossrt.lights.ltc.shade.shade_frame`: diffuse ``L albedo i_d``, specular
     ``L (F0 (norm - fres) + fres) i_s``; 0 where ``sp.hit`` is False. ``textures``: a cache
     {id(light texture): PrefilteredTexture} reused across calls; ``traversal``: as
     :func:`visible_integrals`.
@@ -1189,7 +1235,7 @@ def _np_vec(name: str, x: Any, rows: int, cols: int | None = 3) -> np.ndarray:
 
 def _points(p, n, wo, alpha, albedo, f0, rows: int, hit=None,
             beckmann=None) -> ShadingPoints:
-    from ..brdf.ggx import ALPHA_MIN
+    from ...brdf.ggx import ALPHA_MIN
 
     p = _np_vec("positions", p, rows)
     n = _np_vec("normals", n, rows)

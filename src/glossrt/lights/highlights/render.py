@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 
-from .. import backend
+from ... import backend
 
 backend.ensure()
 
@@ -45,12 +45,12 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..brdf import microfacet as mf  # noqa: E402
-from ..brdf.ggx import ALPHA_MIN  # noqa: E402
-from ..denoise.common import check_frame, merge, split  # noqa: E402
-from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque  # noqa: E402
-from .shading import (  # noqa: E402
+from ...brdf import microfacet as mf  # noqa: E402
+from ...brdf.ggx import ALPHA_MIN  # noqa: E402
+from ...denoise.common import check_frame, merge, split  # noqa: E402
+from ...errors import GlossrtError  # noqa: E402
+from ...jit import opaque  # noqa: E402
+from ..shading import (  # noqa: E402
     NEEDS,
     ShadingPoints,
     f0_tensor,
@@ -65,8 +65,8 @@ def shade_plain(frame, lights: list, f0: np.ndarray | None = None) -> np.ndarray
     centroid with intensity ``radiance x area x cos`` (a small Lambertian emitter), GGX
     specular (the shared BRDF of :mod:`glossrt.lights.shading`) and Schlick F; no light
     shape, no environment map. Specular only, like the highlight methods. (H, W, 3)."""
-    from .scene import PolygonLight
-    from .shading import brdf_cos
+    from ..scene import PolygonLight
+    from ..shading import brdf_cos
 
     sp = ShadingPoints.of(frame, f0)
     total = dr.zeros(mi.Color3f, frame.width * frame.height)
@@ -125,7 +125,7 @@ def _ratio(alpha: float, beckmann: bool) -> float:
     Beckmann; :func:`glossrt.brdf.ellipsoidal.ratio_from_alpha`), at least that of median
     alpha 1e-6 (smooth alphas, :data:`ALPHA_SMOOTH`, sample the mirror's normal instead;
     their ratio serves the culling's spread)."""
-    from ..brdf import ellipsoidal as el
+    from ...brdf import ellipsoidal as el
 
     a = float(el.median_alpha(alpha, "beckmann" if beckmann else "ggx"))
     return float(el.ratio_from_alpha(min(max(a, 1e-6), el.ALPHA_MAX)))
@@ -139,7 +139,7 @@ def _estimate(sp: ShadingPoints, env, pix_x, pix_y, pix_idx, alpha: float, sampl
     use sample indices ``offset + k`` (``offset`` an opaque ``mi.UInt32`` for references
     summed over batches, so one kernel serves every batch); ``fis_samples``: the sample
     count that sets GGX's filtered-importance-sampling level (default ``samples``)."""
-    from ..brdf import ellipsoidal as el
+    from ...brdf import ellipsoidal as el
 
     n, v = sp.n, sp.wo
     total = dr.zeros(mi.Color3f, dr.width(n))
@@ -202,7 +202,7 @@ def _ratio_dr(alpha: mi.Float, beckmann=False) -> mi.Float:
     ``R = sqrt(1 + alpha^2) / alpha - 1`` of the median-matched GGX alpha, ``alpha sqrt(ln 2)``
     on Beckmann lanes, clamped to ``(0, ALPHA_MAX]``, so R >= 1; smooth lanes take the
     mirror's normals instead, :data:`ALPHA_SMOOTH`)."""
-    from ..brdf.ellipsoidal import ALPHA_MAX, BECKMANN_MEDIAN
+    from ...brdf.ellipsoidal import ALPHA_MAX, BECKMANN_MEDIAN
 
     alpha = mf.by_distribution(beckmann, lambda: alpha * BECKMANN_MEDIAN, lambda: alpha)
     a = dr.clip(alpha, 1e-6, ALPHA_MAX)
@@ -249,7 +249,7 @@ def spread_angle(alpha: float, distribution: str, q: float = 0.99,
     ``|delta|`` quantile (``D_s`` is symmetric: ``delta(1/2 + q/2)``), else the material's
     ``theta_h`` quantile of the projected NDF: GGX ``P(tan^2 theta < x) = x / (alpha^2 + x)``,
     Beckmann (``beckmann``) ``1 - exp(-x / alpha^2)``."""
-    from ..brdf import ellipsoidal as el
+    from ...brdf import ellipsoidal as el
 
     if distribution == "ellipsoidal":
         return float(el.ellipsoidal_sample(0.5 + 0.5 * q, _ratio(alpha, beckmann)))
@@ -261,7 +261,7 @@ def spread_angle(alpha: float, distribution: str, q: float = 0.99,
 
 def _probe_table(maps) -> tuple[np.ndarray, np.ndarray]:
     """``(probes (n_ids, 3), known (n_ids,))``: the point each mesh id's cube map was
-    rendered from (:attr:`glossrt.lights.envmap.LightCubeMap.probe`), where known."""
+    rendered from (:attr:`glossrt.lights.highlights.envmap.LightCubeMap.probe`), where known."""
     n = int(maps._n_ids)
     probes, known = np.zeros((n, 3)), np.zeros(n, bool)
     for i, m in maps.maps.items():
@@ -319,15 +319,15 @@ class HighlightRenderer:
 
     def maps(self, setup, frame_index: int, lights: list | None = None):
         """The light cube maps of ``setup`` at ``frame_index`` (probe per object)."""
+        from ..scene import polygon_lights
         from .envmap import CubeMapSet, probe_points
-        from .scene import polygon_lights
 
         lights = polygon_lights(setup, frame_index) if lights is None else lights
         return CubeMapSet.render(lights, probe_points(setup), self.resolution,
                                  supersample=self.supersample)
 
     def _texture(self, ratio: float):
-        from ..brdf.ellipsoidal import NormalTexture
+        from ...brdf.ellipsoidal import NormalTexture
 
         key = round(ratio, 9)
         if key not in self._textures:
@@ -338,7 +338,7 @@ class HighlightRenderer:
                      frame_index: int = 0) -> mi.TensorXf:
         """The frozen path's image as an (H, W, 3) ``mi.TensorXf`` left on the device (the
         real-time use; ``frozen=True`` renderers only)."""
-        from ..jit import no_gc
+        from ...jit import no_gc
 
         if not self.frozen:
             raise GlossrtError("shade_tensor is the frozen path: HighlightRenderer(frozen=True)")
@@ -363,7 +363,7 @@ class HighlightRenderer:
         light cube ``maps`` (:meth:`maps`); ``f0`` per pixel (default 0: then only ``F``'s
         Fresnel term lights it; pass :func:`glossrt.lights.shading.fresnel_image` for the
         exact terms or :func:`~glossrt.lights.shading.f0_image` for Schlick's)."""
-        from ..brdf import ellipsoidal as el
+        from ...brdf import ellipsoidal as el
         from .envmap import cull_mask, light_spheres, lobe_spread
 
         check_frame(frame, NEEDS)
@@ -446,8 +446,8 @@ def shade_highlights(setup, frame, frame_index: int = 0, lights: list | None = N
                      f0: np.ndarray | None = None, **options) -> np.ndarray:
     """One-call form: light cube maps of ``setup`` at ``frame_index`` and the highlights of
     ``frame`` (options of :class:`HighlightRenderer`)."""
-    from .scene import polygon_lights
-    from .shading import fresnel_image
+    from ..scene import polygon_lights
+    from ..shading import fresnel_image
 
     lights = polygon_lights(setup, frame_index) if lights is None else lights
     hr = HighlightRenderer(**options)

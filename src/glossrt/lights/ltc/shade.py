@@ -1,6 +1,6 @@
 """Polygon-light shading with linearly transformed cosines (Heitz, Dupuy, Hill, Neubelt 2016,
 "Real-Time Polygonal-Light Shading with Linearly Transformed Cosines"), using glossrt's own
-LTC fit of GGX (:mod:`glossrt.lights.ltc_fit`) and polygon integration
+LTC fit of GGX (:mod:`glossrt.lights.ltc.fit`) and polygon integration
 (:mod:`glossrt.lights.polygon`).
 
 For a shading point with normal ``n``, view ``wo`` and GGX ``alpha``, in the frame whose x axis
@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from .. import backend
+from ... import backend
 
 backend.ensure()
 
@@ -42,11 +42,11 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..denoise.common import check_frame, merge  # noqa: E402
-from ..errors import FrameError, GlossrtError  # noqa: E402
-from ..jit import no_gc, opaque  # noqa: E402
-from .polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
-from .shading import (  # noqa: E402
+from ...denoise.common import check_frame, merge  # noqa: E402
+from ...errors import FrameError, GlossrtError  # noqa: E402
+from ...jit import no_gc, opaque  # noqa: E402
+from ..polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
+from ..shading import (  # noqa: E402
     NEEDS,
     ShadingPoints,
     f0_tensor,
@@ -54,13 +54,12 @@ from .shading import (  # noqa: E402
     refuse_anisotropic,
     shading_channels,
 )
+from .table import LTCTable  # noqa: E402
 
 __all__ = ["PrefilteredTexture", "ltc_frame", "polygon_integral", "shade_frame", "shade_tensor"]
 
 
 def _table():
-    from .ltc_fit import LTCTable
-
     return LTCTable.load()
 
 
@@ -84,7 +83,7 @@ def _local(verts_world: Sequence, p, t1, t2, n) -> list:
 
 def _apply_minv(coeffs, verts: list) -> list:
     """``M^-1 v`` with Heitz's canonical ``M^-1 = [[a, 0, b], [0, 1, 0], [c, 0, d]]``
-    (divided by its middle element, :func:`glossrt.lights.ltc_fit.minv_matrix`)."""
+    (divided by its middle element, :func:`glossrt.lights.ltc.table.minv_matrix`)."""
     a, b, c, d = coeffs
     return [mi.Vector3f(a * v.x + b * v.z, v.y, c * v.x + d * v.z) for v in verts]
 
@@ -113,7 +112,7 @@ def polygon_integral(vertices, normal, view, alpha, two_sided: bool = True,
     shading point* (world axes, 3 <= K <= 8), ``normal`` and ``view`` (..., 3) unit vectors
     (``view`` points away from the surface, towards the eye), ``alpha`` (...). Returns (...).
     One-sided polygons emit towards their counter-clockwise side (see
-    :mod:`glossrt.lights.polygon`). ``table``: an :class:`~glossrt.lights.ltc_fit.LTCTable`
+    :mod:`glossrt.lights.polygon`). ``table``: an :class:`~glossrt.lights.ltc.table.LTCTable`
     (default: glossrt's shipped fits), e.g. another fit to compare (a table of one
     distribution is used as it is).
 
@@ -199,7 +198,7 @@ def _check_planar(verts: np.ndarray) -> None:
     """GlossrtError unless every polygon of ``verts`` (P, K, 3) is planar within the
     tolerance the scene loader gives mesh lights (:data:`glossrt.lights.scene.PLANE_TOL` of
     its size: the largest distance of a vertex from the best-fit plane)."""
-    from .scene import PLANE_TOL
+    from ..scene import PLANE_TOL
 
     if verts.shape[1] == 3:
         return

@@ -106,17 +106,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .. import backend
+from ... import backend
 
 backend.ensure()
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-from ..errors import GlossrtError  # noqa: E402
-from ..fileio import replacing  # noqa: E402
-from ..jit import owned  # noqa: E402
-from ..progress import Progress  # noqa: E402
+from ...errors import GlossrtError  # noqa: E402
+from ...fileio import replacing  # noqa: E402
+from ...jit import owned  # noqa: E402
+from ...progress import Progress  # noqa: E402
 
 __all__ = [
     "BSPVT",
@@ -263,7 +263,7 @@ def occluders(scene: mi.Scene) -> mi.Scene:
     shared with ``scene`` (their ids are kept: Mitsuba renames objects put in a scene dict).
     The new scene does not follow later edits of ``scene`` (moving objects): visibility is
     precomputed for the static geometry."""
-    from ..scenes import stable_shapes
+    from ...scenes import stable_shapes
 
     shapes = {}
     for i, s in enumerate(stable_shapes(scene)):
@@ -309,7 +309,7 @@ def scene_vertices(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     occlude. Normals are the mesh's vertex normals (``vertex_normals_buffer``) or, for meshes
     without them, area-weighted averages of the adjacent face normals (zero for a vertex on
     no face), unit length, in world space like the positions."""
-    from ..scenes import stable_shapes
+    from ...scenes import stable_shapes
 
     pos, nrm, offsets, total = [], [], [], 0
     for s in stable_shapes(scene):
@@ -1391,6 +1391,69 @@ def _check_vis(vis) -> np.ndarray:
     return _binary(a, "visibility cube maps")
 
 
+def _check_build_args(epsilon, method: str, stalled: str, max_leaves, max_depth) -> float:
+    """:func:`build_trees`' settings checked (one clear error each); returns ``epsilon`` as a
+    float."""
+    eps = float(epsilon)
+    if not (math.isfinite(eps) and eps >= 0):
+        raise GlossrtError(f"epsilon must be finite and >= 0, got {epsilon}")
+    if method not in ("batched", "nelder-mead"):
+        raise GlossrtError(f"unknown method {method!r} (batched or nelder-mead)")
+    if stalled not in ("split", "leaf"):
+        raise GlossrtError(f"stalled must be 'split' or 'leaf', got {stalled!r}")
+    if max_leaves is not None and (int(max_leaves) != max_leaves or max_leaves < 1):
+        raise GlossrtError(f"max_leaves must be a positive integer, got {max_leaves}")
+    if int(max_depth) != max_depth or not (0 <= max_depth <= 60):
+        raise GlossrtError(f"max_depth must be an integer in 0..60, got {max_depth}")
+    return eps
+
+
+def _build_batched(maps: np.ndarray, ones: np.ndarray, active: np.ndarray,
+                   root_ids: np.ndarray, clusters: _Clusters, splits: dict, stats: dict,
+                   r: int, angles, eps: float, max_depth: int, stalled: str, engine: str,
+                   chunk_work: int | None, threads: int | None, progress: bool) -> None:
+    """:func:`build_trees`' ``"batched"`` search: the ``active`` faces' maps in chunks of
+    about ``chunk_work`` texels x angles (:func:`_build_chunk`, side by side on ``threads``
+    NumPy threads), their clusters added to ``clusters`` and their splits to ``splits`` with
+    global cluster ids, ``stats["stalled_splits"]`` counted."""
+    ang = _Angles.get(r, angles)
+    if chunk_work is None:
+        chunk_work = CHUNK_WORK if engine == "numpy" else (
+            CHUNK_WORK_DRJIT_CUDA if mi.variant().startswith("cuda") else CHUNK_WORK_DRJIT)
+    per = max(1, int(chunk_work) // (len(ang.theta) * r * r))
+    chunks = [active[i:i + per] for i in range(0, len(active), per)]
+    if threads is None:
+        threads = min(os.cpu_count() or 1, MAX_THREADS) if engine == "numpy" else 1
+    if int(threads) != threads or threads < 1:
+        raise GlossrtError(f"threads must be a positive integer, got {threads}")
+    workers = max(1, min(int(threads), len(chunks)))
+
+    def run(chunk):
+        return _build_chunk(maps[chunk], ang, chunk, ones[chunk], eps, max_depth, stalled,
+                            engine)
+
+    with Progress(len(active), f"BSPVT build {r}x{r}", enabled=progress) as bar, \
+            ThreadPoolExecutor(workers) as pool:
+        done = 0
+        # NumPy releases the GIL in its array loops: chunks can run side by side
+        results = pool.map(run, chunks) if workers > 1 else map(run, chunks)
+        for chunk, (tab, sid, sline, st) in zip(chunks, results, strict=True):
+            # chunk-local ids: 0..M-1 the faces' roots, M.. the new clusters in order
+            m, base = len(chunk), clusters.count
+
+            def glob(i, m=m, base=base, roots=root_ids[chunk]):
+                return np.where(i < m, roots[np.minimum(i, m - 1)], base + i - m)
+
+            if len(tab["id"]):
+                clusters.add(tab["map"], tab["code"], tab["n"], tab["ones"],
+                             glob(tab["parent"]), tab["side"])
+            splits["id"].append(glob(sid))
+            splits["line"].append(sline)
+            stats["stalled_splits"] += st
+            done += len(chunk)
+            bar.update(done)
+
+
 def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAULT_ANGLES,
                 max_leaves: int | None = None, max_depth: int = DEFAULT_MAX_DEPTH,
                 stalled: str = "split", positions=None, normals=None,
@@ -1417,17 +1480,7 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
     v = _check_vis(vis)
     nv, r = v.shape[0], v.shape[2]
     r2 = r * r
-    eps = float(epsilon)
-    if not (math.isfinite(eps) and eps >= 0):
-        raise GlossrtError(f"epsilon must be finite and >= 0, got {epsilon}")
-    if method not in ("batched", "nelder-mead"):
-        raise GlossrtError(f"unknown method {method!r} (batched or nelder-mead)")
-    if stalled not in ("split", "leaf"):
-        raise GlossrtError(f"stalled must be 'split' or 'leaf', got {stalled!r}")
-    if max_leaves is not None and (int(max_leaves) != max_leaves or max_leaves < 1):
-        raise GlossrtError(f"max_leaves must be a positive integer, got {max_leaves}")
-    if int(max_depth) != max_depth or not (0 <= max_depth <= 60):
-        raise GlossrtError(f"max_depth must be an integer in 0..60, got {max_depth}")
+    eps = _check_build_args(epsilon, method, stalled, max_leaves, max_depth)
     pos = np.zeros((nv, 3)) if positions is None else _check_points("positions", positions, nv)
     nrm = np.zeros((nv, 3)) if normals is None else _check_points("normals", normals, nv)
 
@@ -1442,42 +1495,8 @@ def build_trees(vis, epsilon: float = 0.0, method: str = "batched", angles=DEFAU
     if engine not in ENGINES:
         raise GlossrtError(f"unknown engine {engine!r}; choose one of {ENGINES}")
     if method == "batched":
-        ang = _Angles.get(r, angles)
-        if chunk_work is None:
-            chunk_work = CHUNK_WORK if engine == "numpy" else (
-                CHUNK_WORK_DRJIT_CUDA if mi.variant().startswith("cuda") else CHUNK_WORK_DRJIT)
-        per = max(1, int(chunk_work) // (len(ang.theta) * r2))
-        chunks = [active[i:i + per] for i in range(0, len(active), per)]
-        if threads is None:
-            threads = min(os.cpu_count() or 1, MAX_THREADS) if engine == "numpy" else 1
-        if int(threads) != threads or threads < 1:
-            raise GlossrtError(f"threads must be a positive integer, got {threads}")
-        workers = max(1, min(int(threads), len(chunks)))
-
-        def run(chunk):
-            return _build_chunk(maps[chunk], ang, chunk, ones[chunk], eps, max_depth, stalled,
-                                engine)
-
-        with Progress(len(active), f"BSPVT build {r}x{r}", enabled=progress) as bar, \
-                ThreadPoolExecutor(workers) as pool:
-            done = 0
-            # NumPy releases the GIL in its array loops: chunks can run side by side
-            results = pool.map(run, chunks) if workers > 1 else map(run, chunks)
-            for chunk, (tab, sid, sline, st) in zip(chunks, results, strict=True):
-                # chunk-local ids: 0..M-1 the faces' roots, M.. the new clusters in order
-                m, base = len(chunk), clusters.count
-
-                def glob(i, m=m, base=base, roots=root_ids[chunk]):
-                    return np.where(i < m, roots[np.minimum(i, m - 1)], base + i - m)
-
-                if len(tab["id"]):
-                    clusters.add(tab["map"], tab["code"], tab["n"], tab["ones"],
-                                 glob(tab["parent"]), tab["side"])
-                splits["id"].append(glob(sid))
-                splits["line"].append(sline)
-                stats["stalled_splits"] += st
-                done += len(chunk)
-                bar.update(done)
+        _build_batched(maps, ones, active, root_ids, clusters, splits, stats, r, angles, eps,
+                       max_depth, stalled, engine, chunk_work, threads, progress)
         budget = max_leaves
     else:
         with Progress(len(active), "BSPVT build (Nelder-Mead)", enabled=progress) as bar:

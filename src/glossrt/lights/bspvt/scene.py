@@ -1,11 +1,13 @@
 """Shadowed polygon-light shading of Frames (issue 6): the glue between scenes, G-buffers and
-the BSPVT pieces (:mod:`glossrt.lights.bspvt` builds the trees, :mod:`glossrt.lights.bspvt_shade`
-integrates the visible pieces) and the ratio-estimator peer (:mod:`glossrt.lights.ratio`).
+the BSPVT pieces (:mod:`glossrt.lights.bspvt.build` builds the trees,
+:mod:`glossrt.lights.bspvt.shade` integrates the visible pieces) and the ratio-estimator peer
+(:mod:`glossrt.lights.ratio`). :func:`match_scene` holds every check that trees fit the scene
+as it is now; :func:`shade_bspvt` runs it once per frame.
 
 * :func:`build_scene_trees`: visibility cube maps of every mesh vertex of a scene (emitters
   removed) and their trees, with the build statistics of the paper's Table 1;
 * :func:`pixel_triangles`: for each pixel of a G-buffer, the triangle it sees (three global
-  vertex indices, in the numbering of :func:`glossrt.lights.bspvt.scene_vertices`) and its
+  vertex indices, in the numbering of :func:`glossrt.lights.bspvt.build.scene_vertices`) and its
   barycentric coordinates, by tracing a ray from the camera to the pixel's ``position``;
 * :func:`shade_bspvt`: direct light with BSPVT shadows of a Frame, per vertex (Okuno &
   Iwasaki's mode: vertices shaded with their own view and material, colours interpolated
@@ -17,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .. import backend
+from ... import backend
 
 backend.ensure()
 
@@ -25,11 +27,12 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..denoise.common import check_frame, merge, split  # noqa: E402
-from ..errors import FrameError, GlossrtError  # noqa: E402
-from ..jit import opaque, owned  # noqa: E402
-from .shading import (  # noqa: E402
+from ...denoise.common import check_frame, merge, split  # noqa: E402
+from ...errors import FrameError, GlossrtError  # noqa: E402
+from ...jit import opaque, owned  # noqa: E402
+from ..shading import (  # noqa: E402
     MATERIAL_ROW,
+    NEEDS,
     ShadingPoints,
     _take,
     material_rows_at,
@@ -37,44 +40,43 @@ from .shading import (  # noqa: E402
     points_with_materials,
     refuse_anisotropic,
 )
+from . import build, shade  # noqa: E402
 
 MODES = ("vertex", "pixel")
-#: :func:`check_trees_match` tolerances: stored vertex positions against the scene's, as a
-#: fraction of the scene's bounding-box diagonal (float32 storage rounds the coordinates to
-#: ~6e-8 of their size), and stored unit normals against the scene's (absolute)
-MATCH_POSITION_TOL = 1e-4
-MATCH_NORMAL_TOL = 1e-3
 
 
 def scene_meshes(scene: mi.Scene) -> list:
     """The non-emitting ``mi.Mesh`` shapes in the order of
-    :func:`glossrt.lights.bspvt.scene_vertices` (whose ``offsets`` number their vertices)."""
-    from ..scenes import stable_shapes
+    :func:`glossrt.lights.bspvt.build.scene_vertices` (whose ``offsets`` number their vertices)."""
+    from ...scenes import stable_shapes
 
-    return [s for s in stable_shapes(scene) if isinstance(s, mi.Mesh) and not s.is_emitter()]
+    return _meshes_of(stable_shapes(scene))
+
+
+def _meshes_of(shapes: list) -> list:
+    """:func:`scene_meshes` of shapes already in ``stable_shapes`` order."""
+    return [s for s in shapes if isinstance(s, mi.Mesh) and not s.is_emitter()]
 
 
 def build_scene_trees(scene: mi.Scene, resolution: int = 64, epsilon: float = 0.0,
                       method: str = "batched", progress: bool = True, **kwargs):
     """Okuno & Iwasaki's precomputation for ``scene``: visibility cube maps at every vertex
     of its non-emitting meshes against its non-emitting shapes
-    (:func:`glossrt.lights.bspvt.visibility_cubemaps` on
-    :func:`glossrt.lights.bspvt.occluders`), then the trees
-    (:func:`glossrt.lights.bspvt.build_trees`, ``kwargs`` passed on). The returned trees'
+    (:func:`glossrt.lights.bspvt.build.visibility_cubemaps` on
+    :func:`glossrt.lights.bspvt.build.occluders`), then the trees
+    (:func:`glossrt.lights.bspvt.build.build_trees`, ``kwargs`` passed on). The returned trees'
     ``info`` adds the visibility and total seconds (``stats()`` has the tree build's)."""
     import time
 
-    from . import bspvt
-
-    pos, nrm, _ = bspvt.scene_vertices(scene)
+    pos, nrm, _ = build.scene_vertices(scene)
     if len(pos) == 0:
         raise GlossrtError("the scene has no mesh vertices to precompute visibility at "
                            "(BSPVT needs triangle meshes; analytic shapes only occlude)")
     t0 = time.perf_counter()
-    vis = bspvt.visibility_cubemaps(bspvt.occluders(scene), pos, nrm, resolution,
+    vis = build.visibility_cubemaps(build.occluders(scene), pos, nrm, resolution,
                                     progress=progress)
     t1 = time.perf_counter()
-    trees = bspvt.build_trees(vis, epsilon, method, positions=pos, normals=nrm,
+    trees = build.build_trees(vis, epsilon, method, positions=pos, normals=nrm,
                               progress=progress, **kwargs)
     t2 = time.perf_counter()
     trees.info.update({"visibility_seconds": t1 - t0, "tree_seconds": t2 - t1,
@@ -85,32 +87,10 @@ def build_scene_trees(scene: mi.Scene, resolution: int = 64, epsilon: float = 0.
     return trees
 
 
-def occluder_bounds(scene: mi.Scene) -> list[dict]:
-    """Id and bounding box (``min``, ``max``) of each non-emitting shape that is not a mesh
-    (analytic spheres, ...), in :func:`glossrt.scenes.stable_shapes` order: what the trees'
-    ``info["occluder_bounds"]`` records at build time. Meshes are compared vertex by vertex
-    instead (the trees' ``positions``)."""
-    from ..scenes import stable_shapes
-
-    return _bounds_of(stable_shapes(scene))
-
-
-def _bounds_of(shapes: list) -> list[dict]:
-    """:func:`occluder_bounds` of shapes already in ``stable_shapes`` order."""
-    out = []
-    for s in shapes:
-        if s.is_emitter() or isinstance(s, mi.Mesh):
-            continue
-        b = s.bbox()
-        out.append({"shape": s.id(), "min": [float(b.min[i]) for i in range(3)],
-                    "max": [float(b.max[i]) for i in range(3)]})
-    return out
-
-
 def vertex_beckmann(scene: mi.Scene) -> np.ndarray:
     """Per vertex (numbering of :func:`scene_vertices`): whether its mesh's rough lobe has
     Beckmann's distribution (V,) bool (:func:`glossrt.render.materials.describe_bsdf`)."""
-    from ..render.materials import describe_bsdf
+    from ...render.materials import describe_bsdf
 
     return np.concatenate([np.full(m.vertex_count(), describe_bsdf(m.bsdf()).beckmann)
                            for m in scene_meshes(scene)] or [np.zeros(0, bool)])
@@ -122,8 +102,8 @@ def vertex_materials(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarra
     :func:`glossrt.lights.shading.f0_image` take them
     (:func:`glossrt.render.materials.describe_bsdf`), the albedo as the renderer's
     ``albedo_diffuse`` (``eval_diffuse_reflectance`` at the vertex's texture coordinates)."""
-    from ..brdf.ggx import ALPHA_MIN
-    from ..render.materials import describe_bsdf
+    from ...brdf.ggx import ALPHA_MIN
+    from ...render.materials import describe_bsdf
 
     alpha, albedo, f0 = [], [], []
     for m in scene_meshes(scene):
@@ -177,7 +157,7 @@ def _pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets) -> tuple:
     check_frame(frame, ("position", "mesh_id"))
     if frame.camera is None:
         raise FrameError(f"{frame.where}: per-vertex shading needs the camera")
-    from ..scenes import _registry_id
+    from ...scenes import _registry_id
 
     p = mi.Point3f(*split(frame["position"]))
     hit = split(frame["mesh_id"])[0] > 0
@@ -209,10 +189,8 @@ def _shade_pixel_mode(frame, dev, lights: list, triangles: tuple, f0, textures,
                       traversal: str, frozen: bool) -> mi.TensorXf:
     """Per-pixel mode on the device: each pixel evaluates its triangle's three vertex trees
     with its own G-buffer point, normal, view and material
-    (:func:`glossrt.lights.bspvt_shade.shade_points`, barycentric weights); pixels without a
+    (:func:`glossrt.lights.bspvt.shade.shade_points`, barycentric weights); pixels without a
     triangle (background, lights, analytic shapes) are not traversed and get 0."""
-    from . import bspvt_shade
-
     verts, bary, valid = triangles
     sp = ShadingPoints.of(frame, f0)
     hit = sp.hit & valid
@@ -221,14 +199,14 @@ def _shade_pixel_mode(frame, dev, lights: list, triangles: tuple, f0, textures,
                        dr.select(hit, dr.normalize(sp.n), up), dr.select(hit, sp.wo, up),
                        sp.alpha, sp.albedo, sp.f0, hit, sp.beckmann, sp.fresnel)
     if frozen:  # every pixel a lane (a fixed size: the recording replays frame after frame)
-        d, s = bspvt_shade.shade_points(dev, lights, sp, verts, bary, textures=textures,
+        d, s = shade.shade_points(dev, lights, sp, verts, bary, textures=textures,
                                         traversal=traversal, frozen=True)
         out = d + s
     else:  # only the shaded pixels (compacted): fewer lanes for the whole-light integrals
         idx = dr.compress(hit)
         out = dr.zeros(mi.Color3f, dr.width(hit))
         if dr.width(idx):
-            d, s = bspvt_shade.shade_points(
+            d, s = shade.shade_points(
                 dev, lights, _take(sp, idx), [dr.gather(mi.UInt32, v, idx) for v in verts],
                 [dr.gather(mi.Float, b, idx) for b in bary], textures=textures,
                 traversal=traversal)
@@ -251,29 +229,27 @@ def _shade_vertex_mode(scene: mi.Scene, frame, dev, lights: list, triangles: tup
                        textures, traversal: str, frozen: bool,
                        materials: bool = False) -> mi.TensorXf:
     """Per-vertex mode on the device: every tree vertex shaded at its own position and normal
-    towards the camera (:func:`glossrt.lights.bspvt_shade.shade_points`), then blended per
+    towards the camera (:func:`glossrt.lights.bspvt.shade.shade_points`), then blended per
     pixel by the barycentrics of the triangle it sees."""
-    from . import bspvt_shade
-
     verts, bary, valid = triangles
     nv = dev.n_vertices
     cam = mi.Point3f(*opaque(frame.camera.position))
     to_cam = cam - dev.positions
     wo = to_cam / dr.maximum(dr.norm(to_cam), 1e-12)
     alpha, albedo, vf0 = vertex_materials(scene)
-    beckmann = bspvt_shade._beckmann_lanes(vertex_beckmann(scene), nv)
+    beckmann = shade._beckmann_lanes(vertex_beckmann(scene), nv)
     # as shade_vertices: views at or below a vertex's tangent plane shade it black
     hit = dr.dot(dev.normals, wo) > 0
     if materials:
         # the exact Fresnel terms and coated diffuse lobes (as fresnel_image per pixel)
         sp = points_with_materials(dev.positions, dev.normals, wo, owned(mi.Float, alpha),
-                                   bspvt_shade._dr_vec(mi.Color3f, albedo), hit, beckmann,
+                                   shade._dr_vec(mi.Color3f, albedo), hit, beckmann,
                                    _vertex_material_rows(scene, dev, frame.camera.position))
     else:
         sp = ShadingPoints(dev.positions, dev.normals, wo, owned(mi.Float, alpha),
-                           bspvt_shade._dr_vec(mi.Color3f, albedo),
-                           bspvt_shade._dr_vec(mi.Color3f, vf0), hit, beckmann)
-    d, s = bspvt_shade.shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)],
+                           shade._dr_vec(mi.Color3f, albedo),
+                           shade._dr_vec(mi.Color3f, vf0), hit, beckmann)
+    d, s = shade.shade_points(dev, lights, sp, [dr.arange(mi.UInt32, nv)],
                                     textures=textures, traversal=traversal, frozen=frozen)
     col = d + s
     out = dr.zeros(mi.Color3f, dr.width(valid))
@@ -295,25 +271,19 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     mode takes materials per mesh (:func:`vertex_materials`), with the exact terms at each
     vertex's view when ``f0`` is a :func:`~glossrt.lights.shading.fresnel_image`, Schlick's
     and the raw diffuse reflectance otherwise; ``traversal``: how the trees are walked
-    (:data:`glossrt.lights.bspvt_shade.TRAVERSALS`, same result); ``frozen``: replay recorded
-    kernels (:func:`glossrt.lights.bspvt_shade.shade_points`). Pixels on shapes without
+    (:data:`glossrt.lights.bspvt.shade.TRAVERSALS`, same result); ``frozen``: replay recorded
+    kernels (:func:`glossrt.lights.bspvt.shade.shade_points`). Pixels on shapes without
     trees (the lights themselves, analytic shapes) and background pixels get 0. Trees of
     another scene, or of this one before an occluder moved, raise :class:`GlossrtError`
-    (:func:`check_trees_match`: the vertices once per trees and scene pose, the analytic
-    occluders' boxes every call)."""
-    from . import bspvt_shade
-    from .shading import NEEDS
+    (:func:`match_scene`, once per call: the vertices once per trees and scene pose, the
+    analytic occluders' boxes every call)."""
 
     if mode not in MODES:
         raise GlossrtError(f"unknown BSPVT mode {mode!r}; choose one of {MODES}")
-    meshes = scene_meshes(scene)
-    offsets = np.cumsum([0] + [m.vertex_count() for m in meshes])
-    if int(offsets[-1]) != int(trees.vertex_count):
-        raise _count_mismatch(trees, trees.vertex_count, int(offsets[-1]))
-    check_trees_match(scene, trees)
+    meshes, offsets = match_scene(scene, trees)
     check_frame(frame, NEEDS)
     refuse_anisotropic(frame, "BSPVT shading")
-    dev = bspvt_shade.DeviceTrees.of(trees)
+    dev = shade.DeviceTrees.of(trees)
     # (vertex indices, barycentrics, valid) of the triangle each pixel sees
     tri = _pixel_triangles(scene, frame, meshes, offsets[:-1])
     if mode == "vertex":
@@ -323,6 +293,37 @@ def shade_bspvt(scene: mi.Scene, frame, trees, lights: list, mode: str = "vertex
     else:
         img = _shade_pixel_mode(frame, dev, lights, tri, f0, textures, traversal, frozen)
     return np.array(img, np.float32).reshape(frame.height, frame.width, 3)
+
+
+# -- the trees against the scene -----------------------------------------------------------
+
+#: :func:`check_trees_match` tolerances: stored vertex positions against the scene's, as a
+#: fraction of the scene's bounding-box diagonal (float32 storage rounds the coordinates to
+#: ~6e-8 of their size), and stored unit normals against the scene's (absolute)
+MATCH_POSITION_TOL = 1e-4
+MATCH_NORMAL_TOL = 1e-3
+
+
+def occluder_bounds(scene: mi.Scene) -> list[dict]:
+    """Id and bounding box (``min``, ``max``) of each non-emitting shape that is not a mesh
+    (analytic spheres, ...), in :func:`glossrt.scenes.stable_shapes` order: what the trees'
+    ``info["occluder_bounds"]`` records at build time. Meshes are compared vertex by vertex
+    instead (the trees' ``positions``)."""
+    from ...scenes import stable_shapes
+
+    return _bounds_of(stable_shapes(scene))
+
+
+def _bounds_of(shapes: list) -> list[dict]:
+    """:func:`occluder_bounds` of shapes already in ``stable_shapes`` order."""
+    out = []
+    for s in shapes:
+        if s.is_emitter() or isinstance(s, mi.Mesh):
+            continue
+        b = s.bbox()
+        out.append({"shape": s.id(), "min": [float(b.min[i]) for i in range(3)],
+                    "max": [float(b.max[i]) for i in range(3)]})
+    return out
 
 
 def _count_mismatch(trees, stored: int, scene: int) -> GlossrtError:
@@ -340,7 +341,7 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
     is now. Okuno & Iwasaki precompute visibility for static occluders, so trees of another
     scene, or of this one before an occluder moved, shade wrong shadows.
 
-    * Mesh vertices (:func:`glossrt.lights.bspvt.scene_vertices`): the same count, positions
+    * Mesh vertices (:func:`glossrt.lights.bspvt.build.scene_vertices`): the same count, positions
       within :data:`MATCH_POSITION_TOL` of the scene's bounding-box diagonal, normals within
       :data:`MATCH_NORMAL_TOL`. Trees that store no geometry (all-zero positions and
       normals) are not compared. A pass is remembered on ``trees`` with the scene's identity
@@ -353,17 +354,40 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
       compared on every call (a few ``bbox()`` calls).
 
     The message names the trees' file (``trees.source``) and the largest mismatch."""
-    from ..scenes import stable_shapes
+    from ...scenes import stable_shapes
 
+    shapes = stable_shapes(scene)  # once per call: both checks below read it
+    _check_match(scene, trees, shapes, _meshes_of(shapes))
+
+
+def match_scene(scene: mi.Scene, trees) -> tuple[list, np.ndarray]:
+    """Every check that ``trees`` fit ``scene`` as it is now, in one place: what
+    :func:`shade_bspvt` runs once per frame before any work. The vertex count of the scene's
+    non-emitting meshes must be the trees' (else "built for another scene?"), then
+    :func:`check_trees_match`. The scene's shapes are listed once for both. Returns the meshes
+    (:func:`scene_meshes`) and their vertex offsets (``len(meshes) + 1`` entries, the last
+    one the vertex count), which number the trees' vertices for shading."""
+    from ...scenes import stable_shapes
+
+    shapes = stable_shapes(scene)
+    meshes = _meshes_of(shapes)
+    offsets = np.cumsum([0] + [m.vertex_count() for m in meshes])
+    if int(offsets[-1]) != int(trees.vertex_count):
+        raise _count_mismatch(trees, trees.vertex_count, int(offsets[-1]))
+    _check_match(scene, trees, shapes, meshes)
+    return meshes, offsets
+
+
+def _check_match(scene: mi.Scene, trees, shapes: list, meshes: list) -> None:
+    """:func:`check_trees_match` given the scene's ``shapes`` (``stable_shapes`` order) and
+    its non-emitting ``meshes`` among them."""
     pos_t, nrm_t = getattr(trees, "positions", None), getattr(trees, "normals", None)
     if pos_t is None or nrm_t is None:
         return
-    shapes = stable_shapes(scene)  # once per call: both checks below read it
     stored = (getattr(trees, "info", None) or {}).get("occluder_bounds")
     if stored is not None:
         _compare_occluders(scene, trees, stored, _bounds_of(shapes))
-    key = (id(scene), tuple(s.vertex_positions_buffer().index for s in shapes
-                            if isinstance(s, mi.Mesh) and not s.is_emitter()))
+    key = (id(scene), tuple(m.vertex_positions_buffer().index for m in meshes))
     cached = getattr(trees, "_glossrt_scene_match", None)
     if cached is not None and cached[0] == key and cached[1] is pos_t and cached[2] is nrm_t:
         return
@@ -380,8 +404,6 @@ def check_trees_match(scene: mi.Scene, trees) -> None:
 def _compare_occluders(scene: mi.Scene, trees, stored: list, now: list) -> None:
     """:func:`check_trees_match`'s comparison of the analytic occluders recorded at build
     time (``stored``, :func:`occluder_bounds`) with the scene's (``now``)."""
-    from . import bspvt
-
     name = _trees_name(trees)
     fix = ("BSPVT visibility is precomputed for static occluders: rebuild the trees for this "
            "pose (glossrt bspvt build), or shade a scene whose occluders move with LTC "
@@ -391,7 +413,7 @@ def _compare_occluders(scene: mi.Scene, trees, stored: list, now: list) -> None:
             f"{name} were built with the analytic occluders "
             f"{[o.get('shape') for o in stored]} but the scene has "
             f"{[o['shape'] for o in now]}: built for another scene?")
-    tol = MATCH_POSITION_TOL * bspvt._scene_diagonal(scene)
+    tol = MATCH_POSITION_TOL * build._scene_diagonal(scene)
     for o, n in zip(stored, now, strict=True):
         try:
             a = np.array([o["min"], o["max"]], np.float64)
@@ -408,13 +430,11 @@ def _compare_occluders(scene: mi.Scene, trees, stored: list, now: list) -> None:
 def _compare_geometry(scene: mi.Scene, trees, tp: np.ndarray, tn: np.ndarray) -> None:
     """:func:`check_trees_match`'s comparison of stored positions ``tp`` and normals ``tn``
     with the scene's."""
-    from . import bspvt
-
-    sp, sn, _ = bspvt.scene_vertices(scene)
+    sp, sn, _ = build.scene_vertices(scene)
     name = _trees_name(trees)
     if sp.shape != tp.shape or sn.shape != tn.shape:
         raise _count_mismatch(trees, len(tp), len(sp))
-    diag = bspvt._scene_diagonal(scene)
+    diag = build._scene_diagonal(scene)
     edit = "belong to another scene (or to this scene before an edit)"
     with np.errstate(invalid="ignore"):
         dp = np.linalg.norm(tp - sp, axis=1)

@@ -1,119 +1,35 @@
-"""Specular antialiasing by NDF filtering (Kaplanyan, Hill, Patney, Lefohn 2016, as evaluated by
-Tokuyoshi), with the covariance-matrix GGX of :mod:`glossrt.brdf.covariance_ggx`.
-
-A glossy surface whose normals vary faster than the pixel grid (a normal map, a curved mirror)
-shows highlights that alias: one shading sample per pixel catches a narrow lobe or misses it,
-and under motion the pixels flicker. NDF filtering widens the roughness by the spread of the
-half vector over the pixel footprint, so the lobe one sample sees is the footprint's average.
-
-Methods (``method=`` everywhere; :data:`METHODS` lists the evaluated ones):
-
-* ``"none"``: the unfiltered roughness ``A = alpha^2 I``.
-* ``"halfvector"`` (Tokuyoshi sec. 1.1, eqs. 1-2): the slope-space half vector's screen-space
-  differences ``dh_u, dh_v`` (fine ``ddx/ddy`` emulated on 2x2 pixel quads), the footprint's
-  slope covariance ``Sigma = sigma^2 [dh_u; dh_v]^T [dh_u; dh_v]`` with ``sigma^2 = 0.25``
-  (a Gaussian pixel filter), and the filtered roughness matrix ``A = alpha^2 I + 2 Sigma``
-  (the Beckmann convolution, applied to GGX). Per light.
-* ``"halfvector-bbox"`` (sec. 1.2): the biased, over-filtering variant: the bounding box of the
-  parallelogram spanned by ``dh_u, dh_v`` gives axis-aligned (anisotropic) roughness,
-  ``A = alpha^2 I + 2 sigma^2 diag(w_x^2, w_y^2)``, ``w = |dh_u| + |dh_v|`` per axis.
-* ``"avgnormal"`` (sec. 2): the deferred approximation, from the G-buffer normals alone: the
-  3-tap quad average ``n_bar = normalize(n + n_x + n_y)`` (the pixel and its horizontal and
-  vertical quad partners, sec. 2.1.1's shortened ``SumNeighborPixels``) replaces the half
-  vector: the differences of the normals' slopes measured about ``n_bar`` give ``Sigma``.
-* ``"avgnormal-max"``, ``"avgnormal-eig"`` (sec. 3): isotropic approximations of the
-  average-normal filter: the larger side of the bounding box (Kaplanyan et al.'s proposal),
-  or the largest eigenvalue of ``2 Sigma`` (Tokuyoshi's addition), added to ``alpha^2``.
-* ``"projected"`` (beyond the paper: Tokuyoshi & Kaplanyan, "Improved Geometric Specular
-  Antialiasing", I3D 2019, and "Stable Geometric Specular Antialiasing with Projected-Space NDF
-  Filtering", JCGT 10(2), 2021, eq. 14): isotropic, from the screen-space differences of the
-  world-space normal (the projected-space derivative, which does not blow up at grazing
-  angles like slopes do): ``alpha'^2 = min(1, alpha^2 + min(2 sigma_p^2 (|dn_u|^2 +
-  |dn_v|^2), kappa))`` with ``sigma_p^2 = 1 / (2 pi)`` and the clamp ``kappa = 0.18``. The
-  factor 2 is eq. 2's: a Beckmann ``alpha^2`` is twice the variance of the slopes, here the
-  variance ``sigma_p^2 (|dn_u|^2 + |dn_v|^2)`` of the projected normal over the footprint.
-
-Every ``SOURCE-FORM`` pair also works (``halfvector-eig``, ``avgnormal-bbox``...): sources
-``halfvector`` / ``avgnormal``, forms ``cov`` (default, anisotropic), ``bbox``, ``max``,
-``eig``. All methods clamp the filtered matrix's eigenvalues to at most 1 (GGX ``alpha <= 1``);
-``kappa`` (Kaplanyan et al.'s clamp of the added kernel's eigenvalues; default: none for the
-paper's methods, 0.18 for ``projected``) is set for any method by a suffix of its name,
-``METHOD:kappa=K`` (``avgnormal-eig:kappa=0.18``; ``projected:kappa=none`` removes
-projected's clamp), which the CLI's ``--specaa METHOD`` accepts too, or by ``kappa=``.
-
-Conventions:
-
-* Quads: pixel ``(x, y)``'s horizontal partner is ``(x ^ 1, y)``, its vertical one ``(x, y ^ 1)``
-  (a GPU's 2x2 quads; fine derivatives are the difference across the pair, the same for both
-  pixels of a pair). A partner outside the image, on the background or on another mesh
-  (``mesh_id``) counts as the pixel itself (zero difference): a G-buffer has no helper lanes.
-* Slopes: each pixel shades in its own frame ``(t, b, n)`` (``mi.Frame3f(n)``); a partner's
-  half vector (or normal) is carried into it by the smallest rotation taking the partner's
-  normal to the pixel's (:func:`transport`), so differences do not depend on how tangent
-  frames are chosen and the normal map's variation is seen through it. ``A`` is in that frame.
-* Lights: point and directional lights (:mod:`glossrt.lights.analytic`) shade with the
-  pixel's distribution (the Frame's ``distribution`` channel): the covariance GGX (Tokuyoshi,
-  appendix A.1) or the Beckmann NDF with the same roughness matrix, for which Kaplanyan et
-  al.'s ``A = alpha^2 I + 2 Sigma`` is exact in slope space
-  (:func:`glossrt.brdf.covariance_ggx.brdf_separable_dr`), with Mitsuba's separable Smith
-  term and the pixel's Fresnel term, like :mod:`glossrt.lights.shading`; polygon lights with LTC
-  (:mod:`glossrt.lights.ltc`), whose table is isotropic: anisotropic methods pass
-  ``alpha = sqrt(lambda_max(A))`` (their ``-eig`` reduction), and the half vector of a polygon
-  light points to its centroid. No shadows (direct light only, as LTC). ``masking=
-  "material"`` (beyond the paper, :data:`MASKING`) keeps the material's own alpha in the
-  Smith term of point and directional lights.
-
-The reference (:func:`reference`) averages the unfiltered shading over ``spp`` stratified
-sub-pixel positions: what filtering tries to approximate with one sample. Its pixel filter
-(:data:`PIXEL_FILTERS`) is a box (positions in the pixel) or the Gaussian of variance
-``sigma^2 = 0.25`` px^2 per axis that Tokuyoshi's eq. 1 assumes (positions spread over the
-neighbouring pixels, :func:`subpixel_offsets`).
-
-References:
-    A. Kaplanyan, S. Hill, A. Patney, A. Lefohn, "Filtering Distributions of Normals for
-    Shading Antialiasing", HPG 2016.
-    Y. Tokuyoshi, evaluation of Kaplanyan et al. 2016 (Japanese), secs. 1-3, appendix A.1.
-    Y. Tokuyoshi, A. Kaplanyan, "Stable Geometric Specular Antialiasing with Projected-Space
-    NDF Filtering", JCGT 10(2), 2021.
+"""The filtered roughness of specular antialiasing (:mod:`glossrt.specaa`): method names
+(:func:`parse_method`), 2x2 quad partners and the slope differences across them, the kernels
+of Tokuyoshi's eqs. 1-2 and their reductions (:func:`kernel`), and the filtered roughness
+matrix per pixel (:func:`filtered_roughness`, :func:`roughness_image`). The methods and
+conventions are described in the package docstring.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
-from . import backend
+from .. import backend
 
 backend.ensure()
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-from .brdf import covariance_ggx as cggx  # noqa: E402
-from .brdf import microfacet as mf  # noqa: E402
-from .denoise.common import check_frame, merge, split  # noqa: E402
-from .errors import FrameError, GlossrtError  # noqa: E402
-from .jit import no_gc, opaque  # noqa: E402
-from .lights import analytic  # noqa: E402
-from .lights import ltc as _ltc  # noqa: E402
-from .lights.shading import (  # noqa: E402
-    NEEDS,
-    ShadingPoints,
-    f0_tensor,
-    shading_channels,
-)
+from ..denoise.common import check_frame, merge, split  # noqa: E402
+from ..errors import GlossrtError  # noqa: E402
+from ..jit import opaque  # noqa: E402
+from ..lights import analytic  # noqa: E402
+from ..lights.shading import NEEDS, ShadingPoints  # noqa: E402
 
 #: the methods glossrt evaluates (any ``halfvector|avgnormal`` + ``-cov|-bbox|-max|-eig`` works)
 METHODS = ("none", "halfvector", "halfvector-bbox", "avgnormal", "avgnormal-max",
            "avgnormal-eig", "projected")
 #: variance of the Gaussian pixel filter in pixels^2 (Tokuyoshi, eq. 1)
 SIGMA2 = 0.25
-#: pixel filters of the supersampled reference (:func:`reference`): ``"box"`` (the pixel's
-#: square) or ``"gaussian"`` (variance :data:`SIGMA2` per axis, Tokuyoshi's eq. 1)
-PIXEL_FILTERS = ("box", "gaussian")
 #: pixel-filter variance and kernel clamp of projected-space filtering (Tokuyoshi & Kaplanyan
 #: 2021, eq. 14)
 SIGMA2_PROJECTED = 1.0 / (2.0 * math.pi)
@@ -168,7 +84,7 @@ def _parse_kappa(name: str, option: str) -> float | str:
 
 
 def parse_method(name: str, kappa: float | None = None, masking: str = "filtered") -> Method:
-    """The :class:`Method` of ``name`` (see the module docstring); a clear error otherwise.
+    """The :class:`Method` of ``name`` (see :mod:`glossrt.specaa`); a clear error otherwise.
     ``name`` may end in ``:kappa=K`` (a positive clamp of the added kernel's eigenvalues,
     Kaplanyan et al. 2016; ``none``: no clamp); ``kappa`` does the same as an argument (both
     given: an error unless they agree). Default clamp: ``projected`` 0.18, others none.
@@ -506,125 +422,6 @@ def filtered_roughness(q: _Quad, method: Method, light=None, kind: str = "") -> 
     return a, zero, a
 
 
-def _specular(wo: mi.Vector3f, wi: mi.Vector3f, a: tuple, sp: ShadingPoints,
-              masking: str, am: tuple | None = None) -> mi.Color3f:
-    """The pixel's lobe (local directions) with the roughness matrix ``a``: covariance GGX
-    (Tokuyoshi, appendix A.1) or, on Beckmann pixels, the Beckmann NDF with that matrix
-    (Kaplanyan et al. 2016's own case, where ``A = alpha^2 I + 2 Sigma`` is exact in slope
-    space), with Mitsuba's separable Smith term and the pixel's Fresnel term;
-    ``masking="material"``: ``G1 G1`` of the material's own roughness instead (its
-    anisotropic matrix ``am`` when given; :data:`MASKING`)."""
-    h = dr.normalize(wo + wi)
-    fr = sp.fresnel_at(dr.dot(wo, h))
-    if masking == "filtered":
-        return fr * cggx.brdf_separable_dr(wo, wi, a[0], a[1], a[2], sp.beckmann)
-    beck = sp.beckmann
-    # D of the filtered A (Tokuyoshi, eq. A.1-3 / Beckmann), G1 G1 of the material's roughness
-    d = cggx.D_lobe_dr(h, a[0], a[1], a[2], beck)
-    if am is not None:
-        g = cggx.G1_lobe_dr(wo, *am, beck) * cggx.G1_lobe_dr(wi, *am, beck)
-    else:
-        g = mf.G1(wo.z, sp.alpha, beck) * mf.G1(wi.z, sp.alpha, beck)
-    val = d * g / (4.0 * dr.maximum(wo.z * wi.z, 1e-30))
-    ok = (wo.z > 0.0) & (wi.z > 0.0)
-    return fr * dr.select(ok, val, 0.0)
-
-
-def _shade_lanes(q: _Quad, method: Method, lights: list, polygons: list, two_sided: tuple,
-                 table, textures: Sequence = ()) -> mi.Color3f:
-    sp = q.sp
-    total = dr.zeros(mi.Color3f, dr.width(sp.p))
-    frame = mi.Frame3f(q.t, q.b, sp.n)
-    wo_l = frame.to_local(sp.wo)
-    am = material_matrix(q) if method.masking == "material" else None
-    shared = None if method.per_light else filtered_roughness(q, method)
-    for light in lights:
-        wi, e = analytic.incident(light, sp.p)
-        a = shared if shared is not None else filtered_roughness(q, method, light, "analytic")
-        wi_l = frame.to_local(wi)
-        cos_i = wi_l.z
-        ok = sp.hit & (cos_i > 0) & (wo_l.z > 0)
-        spec = _specular(wo_l, wi_l, a, sp, method.masking, am) * cos_i
-        diff = sp.albedo * (cos_i / dr.pi)
-        total += dr.select(ok, e * (spec + diff), 0.0)
-    if polygons:
-        if shared is not None:
-            sp_f = replace(sp, alpha=isotropic_alpha(*shared))
-            total += _ltc._shade(sp_f, table, polygons, two_sided, textures)
-        else:
-            for k, (world, le) in enumerate(polygons):
-                centroid = sum(world[1:], world[0]) / len(world)
-                a = filtered_roughness(q, method, centroid, "polygon")
-                sp_f = replace(sp, alpha=isotropic_alpha(*a))
-                total += _ltc._shade(sp_f, table, [(world, le)], two_sided[k:k + 1],
-                                     textures[k:k + 1])
-    return dr.select(sp.hit, total, 0.0)
-
-
-def _kernel(ch: dict, cam: list, method: Method, lights: list, polygons: list,
-            two_sided: tuple, table, size: tuple[int, int], textures: Sequence = ()
-            ) -> mi.TensorXf:
-    # the image size is an explicit (key) argument: dr.freeze may replay a recording made
-    # for another size, and sizes read off the input tensors are baked into the recording
-    h, w = size
-    sp = ShadingPoints.at_camera(ch, cam)
-    q = _quad(ch, sp, mi.Point3f(*cam), size, method.per_light, method.source != "none")
-    c = _shade_lanes(q, method, lights, polygons, two_sided, table, textures)
-    return merge([c[0], c[1], c[2]], h, w)
-
-
-_kernel_frozen = dr.freeze(_kernel, warn_after=32)
-
-
-def shade_tensor(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
-                 f0: np.ndarray | None = None, kappa: float | None = None,
-                 frozen: bool = False, textures: dict | None = None,
-                 masking: str = "filtered") -> mi.TensorXf:
-    """:func:`shade` as an (H, W, 3) ``mi.TensorXf`` left on the device. ``frozen=True``
-    records the kernels once with ``dr.freeze`` and replays them for later frames of the same
-    size, method and light set (the real-time path); with a textured polygon light the
-    kernels are traced anew (as :func:`glossrt.lights.ltc.shade_tensor`). ``textures``: a
-    cache {id(texture): prefiltered} reused across frames."""
-    check_frame(frame, NEEDS)
-    if frame.camera is None:
-        raise FrameError(f"{frame.where}: specular antialiasing needs the camera")
-    m = parse_method(method, kappa, masking)
-    dev = analytic.device_lights(list(lights))
-    polys, two = _ltc._device_lights(list(polygons))
-    ch = shading_channels(frame)
-    ch["f0"] = f0_tensor(frame, f0)
-    size = (frame.height, frame.width)
-    cam = opaque(frame.camera.position)
-    with no_gc():
-        if any(getattr(lt, "texture", None) is not None for lt in polygons):
-            cache = {} if textures is None else textures
-            tex = [_ltc.prefiltered(lt, cache) for lt in polygons]
-            out = _kernel(ch, cam, m, dev, polys, two, _ltc._table(), size, tex)
-        else:
-            fn = _kernel_frozen if frozen else _kernel
-            out = fn(ch, cam, m, dev, polys, two, _ltc._table(), size)
-        dr.eval(out)
-    return out
-
-
-def shade(frame, lights: Sequence = (), polygons: Sequence = (), method: str = "none",
-          f0: np.ndarray | None = None, kappa: float | None = None,
-          frozen: bool = False, textures: dict | None = None,
-          masking: str = "filtered") -> np.ndarray:
-    """Direct light (H, W, 3) of ``frame``'s G-buffer with specular antialiasing ``method``.
-
-    ``lights``: point / directional lights (:func:`glossrt.lights.analytic.analytic_lights`);
-    ``polygons``: polygon lights (:func:`glossrt.lights.scene.polygon_lights`; textured ones
-    prefiltered as in :mod:`glossrt.lights.ltc`), shaded by LTC with the filtered roughness;
-    ``f0`` (H, W, 3) per-pixel Fresnel F0 (:func:`glossrt.lights.shading.f0_image`, default
-    0); ``kappa``: clamp of the added
-    roughness (module docstring). Diffuse (Lambert, ``albedo_diffuse``) plus GGX or Beckmann
-    specular (the ``distribution`` channel),
-    unshadowed. The frame needs position, normal, roughness, albedo_diffuse, mesh_id and
-    its camera. ``textures``: see :func:`shade_tensor`; ``masking``: :data:`MASKING`."""
-    out = shade_tensor(frame, lights, polygons, method, f0, kappa, frozen, textures, masking)
-    return np.array(out, dtype=np.float32).reshape(frame.height, frame.width, 3)
-
 
 def roughness_image(frame, method: str, light=None, kappa: float | None = None) -> np.ndarray:
     """The filtered roughness matrix per pixel, (H, W, 3) = ``(a11, a12, a22)`` in each
@@ -642,77 +439,3 @@ def roughness_image(frame, method: str, light=None, kappa: float | None = None) 
     a = filtered_roughness(q, m, dev, "analytic")
     out = merge([dr.select(sp.hit, mi.Float(v), 0.0) for v in a], h, w)
     return np.array(out, dtype=np.float32).reshape(h, w, 3)
-
-
-# -- reference --------------------------------------------------------------------------------
-#: how far a sub-pixel offset may reach from its pixel's centre, in pixels (the renderer's
-#: ``jitter_limit`` for the Gaussian pixel filter; Mitsuba's own ``gaussian`` filter stops
-#: at 4 standard deviations, 2 px for ``sigma^2 = 0.25``)
-JITTER_LIMIT = 2.0
-
-
-def _normal_quantile(u: np.ndarray, sigma: float) -> np.ndarray:
-    """``sigma * Phi^-1(u)`` (the normal distribution's inverse CDF), ``0 < u < 1``."""
-    from statistics import NormalDist
-
-    inv = NormalDist(0.0, sigma).inv_cdf
-    return np.array([inv(float(v)) for v in np.ravel(u)])
-
-
-def subpixel_offsets(spp: int, pixel_filter: str = "box") -> np.ndarray:
-    """``spp`` stratified sub-pixel offsets (x, y) in pixels from the pixel's centre, equally
-    weighted, row-major on a ``sqrt(spp)`` square grid of strata (``spp`` must be a square):
-
-    * ``"box"``: the strata's centres in [-0.5, 0.5)^2;
-    * ``"gaussian"``: the Gaussian pixel filter of variance ``sigma^2 = 0.25`` px^2 per axis
-      (Tokuyoshi, eq. 1): per axis the normal quantiles ``sigma Phi^-1((i + 1/2) / n)`` of
-      the strata's centres (equal probability each), scaled so the set's variance is exactly
-      ``sigma^2`` (the centres alone fall 8% short at n = 16: their tails are cut).
-    """
-    if pixel_filter not in PIXEL_FILTERS:
-        raise GlossrtError(f"pixel filter must be one of {PIXEL_FILTERS}, got {pixel_filter!r}")
-    n = int(round(math.sqrt(spp))) if isinstance(spp, (int, np.integer)) and spp > 0 else 0
-    if n < 1 or n * n != spp:
-        raise GlossrtError(f"reference spp must be a square number (16, 64, 256...), got {spp}")
-    u = (np.arange(n) + 0.5) / n
-    if pixel_filter == "box":
-        c = u - 0.5
-    elif n == 1:
-        c = np.zeros(1)
-    else:
-        c = _normal_quantile(u, math.sqrt(SIGMA2))
-        c *= math.sqrt(SIGMA2 / np.mean(c * c))  # symmetric: mean 0, variance sigma^2
-    gx, gy = np.meshgrid(c, c)
-    return np.stack([gx.ravel(), gy.ravel()], axis=1)
-
-
-def reference(renderer, frame_index: int, lights: Sequence = (), polygons: Sequence = (),
-              f0_of: Callable | None = None, spp: int = 256,
-              progress: Callable[[int, int], None] | None = None,
-              pixel_filter: str = "box") -> np.ndarray:
-    """Supersampled reference (H, W, 3): the unfiltered shading of :func:`shade` averaged
-    over ``spp`` stratified sub-pixel primary hits (:func:`subpixel_offsets` of
-    ``pixel_filter``: ``"box"``, or ``"gaussian"``, Tokuyoshi's eq. 1 filter, whose samples
-    reach into the neighbouring pixels) of ``renderer``'s frame ``frame_index`` (a
-    :class:`glossrt.render.Renderer`). ``f0_of(frame)`` gives each sub-sample's F0 image
-    (default: :func:`glossrt.lights.shading.f0_image` of the renderer's scene)."""
-    from .lights.shading import f0_image
-
-    offsets = subpixel_offsets(spp, pixel_filter)  # bad spp / filter: before any work
-    if f0_of is None:
-        def f0_of(fr):
-            return f0_image(renderer.setup, fr)
-
-    acc = None
-    cache: dict = {}
-    for i, (jx, jy) in enumerate(offsets):
-        fr = renderer.render(frame_index, jitter=(float(jx), float(jy)),
-                             jitter_limit=JITTER_LIMIT)
-        img = shade_tensor(fr, lights, polygons, "none", f0_of(fr), frozen=True,
-                           textures=cache)
-        acc = img if acc is None else acc + img
-        dr.eval(acc)
-        if progress is not None:
-            progress(i + 1, len(offsets))
-    h, w = renderer.height, renderer.width
-    return np.array(acc / len(offsets), dtype=np.float32).reshape(h, w, 3)

@@ -62,17 +62,17 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .. import backend
+from ... import backend
 
 backend.ensure()
 
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque, owned, owned_float  # noqa: E402
-from .bspvt import cube_coords  # noqa: E402
-from .shading import light_vertices  # noqa: E402
+from ...errors import GlossrtError  # noqa: E402
+from ...jit import opaque, owned, owned_float  # noqa: E402
+from ..bspvt.build import cube_coords  # noqa: E402
+from ..shading import light_vertices  # noqa: E402
 
 __all__ = [
     "CubeMapSet",
@@ -395,7 +395,7 @@ def _tables(res: list[int], offsets: np.ndarray):
 def _render_faces(lights: list, probe: np.ndarray, r: int, ss: int) -> np.ndarray:
     """``(6, R, R, 3)`` float64: the radiance of the nearest light per texel sample,
     averaged over the ``ss x ss`` samples of each texel."""
-    from .mc import _Light  # the Monte Carlo reference's intersection and emission
+    from ..mc import _Light  # the Monte Carlo reference's intersection and emission
 
     out = np.zeros((6, r, r, 3))
     if not lights:
@@ -574,7 +574,7 @@ def probe_points(setup, frame: int | None = None) -> dict[int, np.ndarray]:
     non-emitting shape, keyed by its 1-based ``mesh_id`` (``stable_shapes(scene)[k - 1]``).
     ``setup``: a :class:`glossrt.scenes.SceneSetup` (posed for ``frame`` first when given)
     or a bare ``mi.Scene``."""
-    from ..scenes import stable_shapes
+    from ...scenes import stable_shapes
 
     if frame is not None and hasattr(setup, "set_frame"):
         setup.set_frame(int(frame))
@@ -635,7 +635,7 @@ class CubeMapSet:
     def for_scene(cls, setup, frame: int | None = None, resolution: int = DEFAULT_RESOLUTION,
                   levels: int | None = None, supersample: int = 2) -> CubeMapSet:
         """Maps of ``setup``'s polygon lights at every default probe (:func:`probe_points`)."""
-        from .scene import polygon_lights
+        from ..scene import polygon_lights
 
         lights = polygon_lights(setup, frame)
         return cls.render(lights, probe_points(setup), resolution, levels, supersample)
