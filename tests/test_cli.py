@@ -202,7 +202,7 @@ def test_bench_json(tmp_path, capsys):
     d = res["results"]["denoisers"]
     # cost_vs_atrous: the median over repeats of each method's time over atrous' time in the
     # same repeat, recomputed here from the recorded samples, for every method that can run
-    from glossrt.experiments import _available
+    from glossrt.experiments.svgf import _available
 
     method = {"svgf-paper-2-signals": "svgf", "svgf-1-signal": "svgf"}
     ran = {m for m in ("svgf", "svgf-lobe", "svgf-paper-2-signals", "svgf-1-signal", "atrous",
@@ -226,8 +226,8 @@ def test_frozen_on_frames_replays_the_same_result():
     import numpy as np
 
     from glossrt import render, scenes
-    from glossrt.bench import frozen_on_frames
     from glossrt.denoise import bilateral, upsample
+    from glossrt.timing import frozen_on_frames
 
     full = render.Renderer(scenes.load("roughness-map", size=(32, 24))).render(0)
     low = render.Renderer(scenes.load("roughness-map", size=(16, 12))).render(0)

@@ -630,7 +630,7 @@ def test_bspvt_vertex_mode_takes_the_exact_materials():
     exact Fresnel terms and coated diffuse lobes at each vertex's view (the plastics of
     polygon-light are 2-3x dimmer than Lambert with the raw reflectance), with an F0 image
     Schlick's and the raw reflectance. Image means of the two modes agree within 3%."""
-    from glossrt.bspvt_experiments import _setup
+    from glossrt.experiments.bspvt import _setup
     from glossrt.lights.bspvt import build_scene_trees, shade_bspvt
     from glossrt.lights.scene import polygon_lights
     from glossrt.lights.shading import f0_image
@@ -696,7 +696,7 @@ def test_highlights_against_mitsuba_direct():
     against Mitsuba's direct integrator on light-shapes with the spheres' diffuse reflectance
     0 (their specular reflection alone): 13-14% dark on every sphere (measured at 160x90),
     the light map's probe approximation (the lights as seen from each sphere's centre)."""
-    from glossrt.highlight_experiments import _frame, _specular_direct
+    from glossrt.experiments.highlights import _frame, _specular_direct
     from glossrt.lights.highlights import HighlightRenderer, reference
     from glossrt.scenes.library import LIGHT_SHAPES_ALPHAS
 

@@ -13,7 +13,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from glossrt.brdf import ggx  # selects the Mitsuba variant (conftest.py already did)
+from glossrt.brdf import ggx  # (conftest.py selected the Mitsuba variant)
 
 F64 = dr.float64_array_t(mi.Float)
 

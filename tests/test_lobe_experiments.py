@@ -1,4 +1,4 @@
-"""glossrt.lobe_experiments: tiny runs of the fig. 4-6 experiments (Tokuyoshi 2015, sec. 5.1,
+"""glossrt.experiments.lobes: tiny runs of the fig. 4-6 experiments (Tokuyoshi 2015, sec. 5.1,
 5.2). Structural checks only (finite MSEs, filtering reduces the 1 spp error on the rough
 sphere, optima are the argmins of the recorded curves, the sweep agrees with single filter
 calls, the plot is written); the paper's expected outcome is *not* asserted. Run with
@@ -16,8 +16,8 @@ from glossrt import backend
 
 backend.ensure()
 
-from glossrt import lobe_experiments as le  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
+from glossrt.experiments import lobes as le  # noqa: E402
 
 SIZE = (48, 36)
 REF_SPP = 32

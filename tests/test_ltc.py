@@ -22,10 +22,10 @@ from glossrt import backend
 backend.ensure()
 
 from glossrt.errors import GlossrtError  # noqa: E402
+from glossrt.experiments.ltc import random_polygons  # noqa: E402
 from glossrt.lights.ltc import PrefilteredTexture, polygon_integral, shade_frame  # noqa: E402
 from glossrt.lights.mc import render_mc  # noqa: E402
 from glossrt.lights.quadrature import polygon_quadrature  # noqa: E402
-from glossrt.ltc_experiments import random_polygons  # noqa: E402
 from test_lights_mc import QUAD_DOWN, Light, lambert, plane_frame  # noqa: E402
 
 
@@ -197,7 +197,7 @@ def test_accuracy_groups_by_lobe_share_and_view(distribution):
     and per view angle; the share and view groups partition the cases, and every group's
     mass error stays within half the worst fit error L1 of its distribution's table (0.5 x
     1.01 for Beckmann's grazing column)."""
-    from glossrt.ltc_experiments import SHARES, VIEWS, accuracy, accuracy_markdown
+    from glossrt.experiments.ltc import SHARES, VIEWS, accuracy, accuracy_markdown
 
     acc = accuracy(80, m=96, distribution=distribution)
     assert sum(v["cases"] for v in acc["share"].values()) == 80

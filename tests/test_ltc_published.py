@@ -1,5 +1,5 @@
 """Reading Heitz et al.'s published LTC table (ltc_code's fit/results/ltc.js, not shipped)
-and scoring it like glossrt's (glossrt.ltc_experiments.compare_with_published).
+and scoring it like glossrt's (glossrt.experiments.ltc.compare_with_published).
 
 The file format is checked by writing glossrt's own table in that layout (glm column-major
 M^-1 normalised by its middle element, theta-major order) and reading it back; the real
@@ -18,8 +18,8 @@ from glossrt import backend
 
 backend.ensure()
 
-from glossrt import ltc_experiments as le  # noqa: E402
 from glossrt.errors import GlossrtError  # noqa: E402
+from glossrt.experiments import ltc as le  # noqa: E402
 from glossrt.lights.ltc.table import LTCTable, minv_matrix  # noqa: E402
 
 MIRROR = Path("/work/.mirror/selfshadow+ltc_code/repo")  # where `fetch` keeps a copy

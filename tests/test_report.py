@@ -93,8 +93,9 @@ def test_error_image_values():
 
 @pytest.fixture
 def clean_registry(monkeypatch):
-    """An empty section registry for the test (the demo's own sections may be registered
-    already when other test modules imported glossrt.demo); restored afterwards."""
+    """An empty section registry for the test (the demo's and the experiments' sections may
+    be registered already when other test modules imported glossrt.demo or an experiment
+    module); restored afterwards."""
     from glossrt.report import registry
 
     monkeypatch.setattr(registry, "_REGISTRY", {})

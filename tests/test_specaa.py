@@ -565,7 +565,7 @@ def test_frozen_replays_match_traced_under_camera_motion():
 def test_filtering_approaches_the_supersampled_reference():
     # normal-mapped, small: the deferred isotropic filter is closer to the 64-sample
     # reference than unfiltered shading, and unbiased on the flat strip
-    from glossrt import specaa_experiments as se
+    from glossrt.experiments import specaa as se
 
     res = se.evaluate(size=(64, 36), spp=64, frames=2, temporal_spp=16,
                       methods=("none", "avgnormal-eig", "halfvector"))
@@ -671,7 +671,7 @@ def test_frame_free_eigenvalue_matches_the_basis_form():
 
 
 def test_flicker_measures_change_the_reference_does_not_have():
-    from glossrt.specaa_experiments import flicker
+    from glossrt.experiments.specaa import flicker
 
     rng = np.random.default_rng(2)
     refs = [rng.uniform(0, 1, (6, 8, 3)).astype(np.float32) for _ in range(4)]

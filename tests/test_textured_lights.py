@@ -7,7 +7,7 @@ blend in log2 of the filter width.
 The error isolates the texture lookup from LTC's own error of the lobe's integral: LTC's
 texture factor ``LTC_tex / LTC_plain`` times the reference's plain light, against the
 reference's textured light (relative L1 over pixels and channels; the experiment that fitted
-the footprint scale, glossrt.ltc_experiments.texture_footprint, measures the same).
+the footprint scale, glossrt.experiments.ltc.texture_footprint, measures the same).
 
 Run with ``pytest -s`` to see the numbers.
 """
@@ -25,15 +25,15 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from glossrt.errors import GlossrtError  # noqa: E402
-from glossrt.lights.ltc import PrefilteredTexture, shade_frame  # noqa: E402
-from glossrt.lights.mc import render_mc  # noqa: E402
-from glossrt.ltc_experiments import (  # noqa: E402
+from glossrt.experiments.ltc import (  # noqa: E402
     FOOTPRINT_LIGHT,
     FOOTPRINT_UV,
     _FpLight,
     footprint_frame,
     footprint_textures,
 )
+from glossrt.lights.ltc import PrefilteredTexture, shade_frame  # noqa: E402
+from glossrt.lights.mc import render_mc  # noqa: E402
 
 SIZE = (32, 24)
 REF_SPP = 2048

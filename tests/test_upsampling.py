@@ -271,7 +271,7 @@ def test_spatio_temporal_upsampling_converges_on_a_static_view(cornell):
 
 
 def test_upsampling_experiments_run_small():
-    from glossrt import upsampling_experiments as ue
+    from glossrt.experiments import upsampling as ue
 
     res = ue.upsampling(size=(32, 24), ref_spp=16, low_spp=16)
     assert [(r["factor"], r["weight"]) for r in res.rows] == [

@@ -1,7 +1,8 @@
 """glossrt: real-time rendering of glossy surfaces with Mitsuba 3 + Dr.Jit.
 
-The package selects its Dr.Jit backend lazily (see :mod:`glossrt.backend`); modules that
-need Mitsuba types call :func:`glossrt.backend.ensure` first.
+The package selects its Dr.Jit backend lazily (see :mod:`glossrt.backend`): importing a module
+picks none; the first call that needs Mitsuba does (modules read it through
+:data:`glossrt.backend.mi`), unless :func:`glossrt.backend.use` chose one before.
 """
 
 from __future__ import annotations

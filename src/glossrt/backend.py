@@ -14,6 +14,8 @@ from __future__ import annotations
 import glob
 import os
 import re
+import types
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from .errors import BackendError
@@ -97,7 +99,7 @@ def use(device: str | None = None) -> str:
     if lib is not None and "DRJIT_LIBLLVM_PATH" not in os.environ:
         os.environ["DRJIT_LIBLLVM_PATH"] = lib.path
 
-    import mitsuba as mi
+    import mitsuba
 
     if device in ("auto", "gpu") and _cuda_works():
         variant = GPU_VARIANT
@@ -111,15 +113,94 @@ def use(device: str | None = None) -> str:
             raise BackendError("no usable libLLVM found. " + INSTALL_HINT)
         variant = CPU_VARIANT
     try:
-        mi.set_variant(variant)
+        mitsuba.set_variant(variant)
     except Exception as e:  # pragma: no cover - environment specific
         raise BackendError(f"could not set Mitsuba variant {variant}: {e}. {INSTALL_HINT}") from e
     import drjit as dr
 
     if variant == CPU_VARIANT and not dr.has_backend(dr.JitBackend.LLVM):
         raise BackendError("Dr.Jit could not load libLLVM. " + INSTALL_HINT)
+    changed = _current.get("variant") != variant
     _current.update(device=device, variant=variant)
+    if changed:
+        mi._forget()
+        for fn in list(_ON_VARIANT):
+            fn()
     return variant
+
+
+#: run after a variant is chosen (and again if it changes): see :func:`on_variant`
+_ON_VARIANT: list[Callable[[], None]] = []
+
+
+def on_variant(fn: Callable[[], None]) -> Callable[[], None]:
+    """Run ``fn()`` once a variant is chosen, and again whenever :func:`use` switches it (for
+    what must exist per variant, such as a registered Mitsuba plugin); at once if one is
+    active. Usable as a decorator; returns ``fn``."""
+    _ON_VARIANT.append(fn)
+    if _current:
+        fn()
+    return fn
+
+
+class _LazyMitsuba(types.ModuleType):
+    """The ``mitsuba`` module as glossrt's own modules use it (``from ..backend import mi``):
+    importing a glossrt module chooses no backend; the first attribute read (``mi.Float``,
+    ``mi.load_dict``, ...) calls :func:`ensure` (``GLOSSRT_DEVICE``, else auto) unless
+    :func:`use` chose one before. Attributes are the real module's, so ``isinstance`` and type
+    identity are unchanged.
+
+    Each name read is kept in the proxy's own ``__dict__``, so later reads are plain module
+    attribute reads, as fast as ``mitsuba.X`` (kernels are traced from Python on every
+    non-frozen frame; a read through a class-level ``__getattr__`` cost about 1.5 us). Names
+    not kept yet reach :meth:`_load` through the module's own ``__getattr__`` (PEP 562).
+    :func:`use` forgets them when it switches the variant (a variant set through
+    ``mitsuba.set_variant`` directly is not seen)."""
+
+    def __init__(self, name: str, doc: str) -> None:
+        super().__init__(name, doc)
+        self.__dict__["__getattr__"] = self._load
+
+    def _load(self, name: str):
+        if name.startswith("__") and name.endswith("__"):
+            raise AttributeError(name)  # copy/pickle/introspection probes choose nothing
+        ensure()
+        import mitsuba
+
+        value = getattr(mitsuba, name)
+        self.__dict__[name] = value
+        return value
+
+    def _forget(self) -> None:
+        """Drop the names kept from the previous variant."""
+        for name in [k for k in self.__dict__ if not k.startswith("__")]:
+            del self.__dict__[name]
+
+
+mi = _LazyMitsuba("mitsuba", "mitsuba, choosing glossrt's backend on first use")
+
+
+class VariantStruct:
+    """A ``DRJIT_STRUCT`` class attribute whose field types are the active variant's::
+
+        class Table:
+            DRJIT_STRUCT = VariantStruct(lambda: {"data": mi.Float, "n": int})
+
+    ``build`` runs on the first read (so, like any ``mi.X``, it chooses the backend then, not
+    when the class is defined) and again after :func:`use` switches the variant. Reads on the
+    class and on its instances give the same ``dict``, which is what Dr.Jit looks for."""
+
+    def __init__(self, build: Callable[[], dict]) -> None:
+        self._build = build
+        self._variant: str | None = None
+        self._fields: dict = {}
+
+    def __get__(self, obj: object, owner: type | None = None) -> dict:
+        variant = _current.get("variant") or ensure()
+        if variant != self._variant:
+            self._fields = self._build()
+            self._variant = variant
+        return self._fields
 
 
 def ensure() -> str:

@@ -13,6 +13,8 @@ import tempfile
 import time
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import GlossrtError
@@ -425,8 +427,6 @@ def _radiance_problems(frame, channels, totals: dict) -> dict:
 
 
 def cmd_experiment(args) -> int:
-    from . import experiments
-    from .report import Report
     from .scenes import parse_size
 
     for opt in ("frames", "spp", "ref_every", "static_frames"):
@@ -444,158 +444,8 @@ def cmd_experiment(args) -> int:
         _refuse_inputs_inside(args.out, [args.published], (".md", ".json", ".png", ".html"),
                               "experiment --out")
     out = _writable_dir(args.out)
-    if args.which == "lobes":
-        return _experiment_lobes(out, size, args.spp)
-    if args.which == "ltc":
-        return _experiment_ltc(out, size, args.spp, args.polygons, args.published)
-    if args.which == "bspvt":
-        return _experiment_bspvt(out, size, args.spp, args.resolution)
-    if args.which == "highlights":
-        return _experiment_highlights(out, size, args.spp)
-    if args.which == "specaa":
-        return _experiment_specaa(out, size, args.spp, args.frames)
-    res = experiments.denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
-                                ref_spp=args.spp, static_frames=args.static_frames)
-    md = res.markdown()
-    (out / "denoisers.md").write_text(md + "\n")
-    (out / "denoisers.json").write_text(json.dumps({
-        "size": list(res.size), "frames": res.frames, "ref_spp": res.ref_spp,
-        "quality": res.quality, "per_frame": res.per_frame, "seconds": res.seconds,
-        "temporal": res.temporal, "skipped": res.skipped}, indent=2))
-    rep = Report(out, "glossrt denoiser comparison")
-    s = rep.section("Denoisers", f"glossy-cornell {size[0]}x{size[1]}, {args.frames} frames, "
-                                 f"references {args.spp} spp every {args.ref_every} frames")
-    from .experiments import DenoiserResults
-
-    s.table(DenoiserResults.COLUMNS, res.table())
-    s.images_row(list(res.images.items()), name="denoised")
-    rep.write()
-    print(md)
-    return 0
-
-
-def _finish_experiment(out, stem: str, md: str, figure: str, data: dict | None = None) -> int:
-    """Write an experiment's ``STEM.md`` (and ``STEM.json`` with ``data``), print it."""
-    (out / f"{stem}.md").write_text(md + "\n")
-    if data is not None:
-        (out / f"{stem}.json").write_text(json.dumps(data, indent=2, default=float))
-    print(md)
-    print(f"wrote {out / (stem + '.md')} and {out / figure}")
-    return 0
-
-
-def _experiment_ltc(out, size, spp: int, polygons: int, published: str | None) -> int:
-    """Heitz et al. 2016 measurements (RESULTS.md): polygon_integral against the quadrature,
-    LTC images against Monte Carlo per alpha and textured (montage with error maps), and the
-    published table when its ltc.js is given."""
-    from . import ltc_experiments as le
-
-    parts = []
-    cmp = None
-    if published:
-        print(f"published table {published}: fit error per cell and {polygons} random "
-              "polygons, both tables ...", flush=True)
-        cmp = le.compare_with_published(published, polygons=polygons, progress=print)
-        (out / "ltc_published.json").write_text(json.dumps(cmp, indent=2, default=str))
-        parts.append("## glossrt's fit vs the published table\n\n" + le.published_markdown(cmp))
-    if polygons > 0:
-        for dist in ("beckmann", "ggx"):
-            print(f"accuracy ({dist}): {polygons} random polygons against the quadrature ...",
-                  flush=True)
-            acc = (cmp["polygons"]["glossrt"] if cmp and dist == "ggx"
-                   else le.accuracy(polygons, distribution=dist))
-            (out / f"ltc_accuracy_{dist}.json").write_text(json.dumps(acc, indent=2,
-                                                                      default=str))
-            parts.insert(0, f"## polygon_integral vs quadrature, {dist}\n\n"
-                         + le.accuracy_markdown(acc))
-    print(f"images at {size[0]}x{size[1]}, references {spp} spp ...", flush=True)
-    res = le.images(size=size, ref_spp=spp, textured=True, progress=print)
-    res.montage(out / "ltc_images.png")
-    parts.append(f"## LTC vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp)\n\n{res.markdown()}")
-    return _finish_experiment(out, "ltc", "\n\n".join(parts), "ltc_images.png")
-
-
-def _experiment_bspvt(out, size, spp: int, resolution: int) -> int:
-    """Okuno & Iwasaki measurements (RESULTS.md): shadow error per alpha and light position
-    for BSPVT per vertex / per pixel, the ratio estimator and unshadowed LTC, and Table 1."""
-    from . import bspvt_experiments as be
-
-    res = be.images(size=size, ref_spp=spp, resolution=resolution, progress=print)
-    res.montage(out / "bspvt_images.png")
-    rows = be.table1(resolution=resolution, progress=print)
-    md = (f"## shadows vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp, R = {resolution})\n\n"
-          f"mean absolute error (time per frame)\n\n{res.markdown()}\n\n"
-          f"## against Mitsuba's direct integrator ({spp} spp)\n\n{res.direct_markdown()}\n\n"
-          f"## Table 1\n\n{be.table1_markdown(rows, resolution)}")
-    return _finish_experiment(out, "bspvt", md, "bspvt_images.png",
-                              {"rows": res.rows, "table1": rows})
-
-
-def _experiment_highlights(out, size, spp: int) -> int:
-    """Kimura & Tokoi measurements (RESULTS.md): RMSE vs samples per roughness, Table 1."""
-    from . import highlight_experiments as he
-
-    conv = he.convergence(size=size, ref_samples=spp, progress=print)
-    conv.montage(out / "highlights.png")
-    t = he.timing(size=size)
-    md = (f"## RMSE against the same model's reference ({size[0]}x{size[1]}, {spp} samples)"
-          f"\n\n{conv.markdown()}\n\n## against Mitsuba's direct integrator ({spp} spp, "
-          f"the spheres' specular reflection alone; mean absolute error over the mean)\n\n"
-          f"{conv.direct_markdown()}\n\n## Table 1 (ratios to plain shading)\n\n"
-          f"{he.timing_markdown(t)}")
-    return _finish_experiment(out, "highlights", md, "highlights.png",
-                              {"rows": conv.rows, "direct": conv.direct_rows, "timing": t})
-
-
-def _experiment_specaa(out, size, spp: int, frames: int) -> int:
-    """Tokuyoshi / Kaplanyan et al. measurements (RESULTS.md): every specular antialiasing
-    method against the supersampled reference on normal-mapped (RMSE, FLIP, flat-region bias,
-    temporal error under the slow camera motion) and the shading-time ratios."""
-    from . import specaa_experiments as se
-
-    # one converged reference per frame: flicker is measured against them
-    res = se.evaluate(size=size, spp=spp, frames=min(frames, 16), temporal_spp=spp,
-                      progress=lambda m: print(m, flush=True))
-    res.montage(out / "specaa.png")
-    w, h = size
-    res.montage(out / "specaa_crop.png", crop=(slice(h // 3, h), slice(0, w // 2)))
-    t = se.timing(size=size)
-    vd = res.reference_vs_direct
-    md = (f"## against the supersampled reference ({w}x{h}, {spp} spp; temporal: "
-          f"{res.frames} frames, reference {spp} spp, box filter; the Gaussian columns: "
-          f"against the reference with Tokuyoshi's Gaussian pixel filter, variance 0.25)"
-          f"\n\n{res.markdown()}\n\n"
-          f"The reference against Mitsuba's own direct integrator ({4 * spp} spp): relative "
-          f"L1 {vd['rel_l1']:.3f}, ratio of the means {vd['mean_ratio']:.3f}.\n\n"
-          f"## shading time (frozen, {w}x{h})\n\n{se.timing_markdown(t)}")
-    return _finish_experiment(out, "specaa", md, "specaa.png",
-                              {**res.as_dict(), "timing": t})
-
-
-def _experiment_lobes(out, size, spp: int) -> int:
-    """Tokuyoshi 2015 figs. 4-6 analogues and the upsampling measurements (RESULTS.md)."""
-    from . import lobe_experiments as le
-    from . import upsampling_experiments as ue
-
-    if size[0] % 4 or size[1] % 4:
-        raise GlossrtError(f"--size must be a multiple of 4 in both axes for the 1/4 "
-                           f"upsampling, got {size[0]}x{size[1]}")
-    parts = []
-    for title, fn in (("fig. 4 analogue (roughness-map)", le.fig4),
-                      ("fig. 5 analogue (glossy-spheres)", le.fig5),
-                      ("fig. 6 analogue (glossy-spheres)", le.fig6)):
-        print(f"{title} ...", flush=True)
-        res = fn(size=size, ref_spp=spp)
-        parts.append(f"## {title}\n\n{res.markdown()}")
-        if fn is le.fig6:
-            res.plot(str(out / "fig6.png"))
-    print("upsampling ...", flush=True)
-    up = ue.upsampling(size=size, ref_spp=spp, low_spp=spp)
-    parts.append(f"## upsampling (roughness-map)\n\n{up.markdown()}")
-    print("spatio-temporal upsampling ...", flush=True)
-    st = ue.spatio_temporal(size=size, ref_spp=spp)
-    parts.append(f"## spatio-temporal upsampling (glossy-cornell)\n\n{st.markdown()}")
-    return _finish_experiment(out, "lobes", "\n\n".join(parts), "fig6.png")
+    run = {name: fn for name, _, fn in _experiments()}[args.which]
+    return run(out, size, args)
 
 
 def cmd_light(args) -> int:
@@ -604,8 +454,6 @@ def cmd_light(args) -> int:
 
     from . import render, scenes
     from .frame import Frame, frame_filename
-    from .lights import mc as lmc
-    from .lights.ltc import shade_frame
     from .lights.scene import polygon_lights
     from .lights.shading import check_isotropic, fresnel_image
     from .progress import Progress
@@ -656,37 +504,7 @@ def cmd_light(args) -> int:
                                    "rectangles or small planar meshes) in this scene")
             f0 = fresnel_image(setup, gb)
             t0 = time.perf_counter()
-            if args.method == "ltc":
-                img = shade_frame(gb, lights, f0=f0, textures=cache)
-                p.update(i + 1)
-            elif args.method == "bspvt":
-                from .lights.bspvt import shade_bspvt
-
-                # per vertex the frozen (fused) traversal is fastest; per pixel, on the CPU,
-                # the traced one-kernel traversal (docs/PERFORMANCE.md)
-                img = shade_bspvt(setup.scene, gb, trees, lights, args.mode, f0=f0,
-                                  textures=cache, frozen=args.mode == "vertex")
-                p.update(i + 1)
-            elif args.method == "highlight":
-                from .lights.highlights import HighlightRenderer
-
-                if "hl" not in hl_state:
-                    hl_state["hl"] = HighlightRenderer(args.samples, args.distribution,
-                                                       args.sampling, not args.no_cull)
-                hl = hl_state["hl"]
-                img = hl(gb, lights, hl.maps(setup, i, lights), f0, i)
-                p.update(i + 1)
-            elif args.method == "ratio":
-                from .lights.ratio import render_ratio
-
-                img = render_ratio(gb, lights, setup.scene, spp=args.spp, f0=f0,
-                                   seed=args.seed + 7919 * i).image
-                p.update(i + 1)
-            else:
-                img = lmc.render_mc(gb, lights, args.spp, f0=f0,
-                                    scene=None if args.no_shadows else setup.scene,
-                                    seed=args.seed + 7919 * i,
-                                    progress=lambda d, n, i=i: p.update(i * n + d))
+            img = _shade_light(args, setup, i, gb, lights, f0, trees, cache, hl_state, p)
             times.append(time.perf_counter() - t0)
             ch = {k: gb[k] for k in ("albedo_diffuse", "normal", "position", "depth",
                                      "roughness", "distribution", "mesh_id", "motion")
@@ -707,6 +525,48 @@ def cmd_light(args) -> int:
           f"{1000 * steady_median(times):.1f} ms per frame (median)")
     _warn_stale(out, [frame_filename(i) for i in range(args.frames)])
     return 0
+
+
+def _shade_light(args, setup, i: int, gb, lights, f0, trees, cache: dict, hl_state: dict, p):
+    """Frame ``i``'s direct light by ``args.method`` (``glossrt light``), advancing the
+    progress ``p``; ``cache``: prefiltered light textures, ``hl_state``: the highlight
+    renderer, both kept across frames."""
+    if args.method == "ltc":
+        from .lights.ltc import shade_frame
+
+        img = shade_frame(gb, lights, f0=f0, textures=cache)
+        p.update(i + 1)
+    elif args.method == "bspvt":
+        from .lights.bspvt import shade_bspvt
+
+        # per vertex the frozen (fused) traversal is fastest; per pixel, on the CPU,
+        # the traced one-kernel traversal (docs/PERFORMANCE.md)
+        img = shade_bspvt(setup.scene, gb, trees, lights, args.mode, f0=f0,
+                          textures=cache, frozen=args.mode == "vertex")
+        p.update(i + 1)
+    elif args.method == "highlight":
+        from .lights.highlights import HighlightRenderer
+
+        if "hl" not in hl_state:
+            hl_state["hl"] = HighlightRenderer(args.samples, args.distribution,
+                                               args.sampling, not args.no_cull)
+        hl = hl_state["hl"]
+        img = hl(gb, lights, hl.maps(setup, i, lights), f0, i)
+        p.update(i + 1)
+    elif args.method == "ratio":
+        from .lights.ratio import render_ratio
+
+        img = render_ratio(gb, lights, setup.scene, spp=args.spp, f0=f0,
+                           seed=args.seed + 7919 * i).image
+        p.update(i + 1)
+    else:
+        from .lights import mc as lmc
+
+        img = lmc.render_mc(gb, lights, args.spp, f0=f0,
+                            scene=None if args.no_shadows else setup.scene,
+                            seed=args.seed + 7919 * i,
+                            progress=lambda d, n, i=i: p.update(i * n + d))
+    return img
 
 
 def cmd_bspvt(args) -> int:
@@ -823,186 +683,229 @@ DEVICE_CHOICES = ["auto", "cpu", "gpu"]
 DEVICE_HELP = "backend (default: env GLOSSRT_DEVICE or auto)"
 
 
+def _experiments() -> list:
+    """``(name, help, fn)`` of every ``glossrt experiment --which`` run, each registered by its
+    paper's module in :mod:`glossrt.experiments`."""
+    from . import experiments
+    from .report.registry import registered_experiments
+
+    experiments.load_all()
+    return registered_experiments()
+
+
+def _arg(*flags: str, **kw) -> tuple[tuple[str, ...], dict]:
+    """One ``add_argument`` call of the :data:`COMMANDS` table."""
+    return flags, kw
+
+
+def _which_arg() -> tuple[tuple[str, ...], dict]:
+    """``experiment --which``: its choices and help from the experiments' registry."""
+    runs = _experiments()
+    return _arg("--which", choices=[name for name, _, _ in runs], default="denoisers",
+                help="; ".join(f"{name}: {help_}" for name, help_, _ in runs))
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: its name, handler ``fn(args) -> int``, one-line help, example, its
+    arguments (``_arg(...)`` specs, or a function returning one, called when the parser is
+    built) and an optional ``more_help()`` appended to its ``--help``."""
+
+    name: str
+    fn: Callable[[argparse.Namespace], int]
+    help: str
+    example: str
+    args: tuple = ()
+    more_help: Callable[[], str] | None = None
+
+
+_SEED = _arg("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
+
+#: every subcommand, in the order of ``glossrt --help``
+COMMANDS: tuple[Command, ...] = (
+    Command("info", cmd_info, "print variant, device, versions and the libLLVM in use",
+            "glossrt info"),
+    Command("render", cmd_render, "render 1 spp frames (or converged references) to EXR",
+            "glossrt render glossy-cornell --out out/cornell --frames 8 --size 320x240", (
+                _arg("scene", help="built-in scene name (listed below) or Mitsuba XML path"),
+                _arg("--out", required=True, help="output folder (one EXR per frame)"),
+                _arg("--frames", type=int, default=1),
+                _arg("--start", type=int, default=0, help="first frame index"),
+                _arg("--every", type=int, default=1, help="render every k-th frame only"),
+                _arg("--spp", type=int, default=1, help="samples per pixel (references)"),
+                _arg("--size", help="WxH (default: the scene's film size)"),
+                _arg("--orbit", type=float, default=None,
+                     help="orbit the camera by DEG degrees in total over the frames "
+                          "(scenes without their own animation)"),
+                _arg("--max-depth", type=int, default=None,
+                     help="Mitsuba max_depth, -1 = no limit (default: the scene file's "
+                          "integrator's, <include>d files too; -1, Mitsuba's default, for a "
+                          "file without one; 3 for the built-in scenes)"),
+                _SEED,
+                _arg("--reference", action="store_true",
+                     help="converged frames (pixel-centre primary hits), --spp defaults to 256"),
+                _arg("--specaa", default=None, metavar="METHOD",
+                     help="also write channel 'specaa': direct light from the scene's point, "
+                          "directional and polygon lights with specular antialiasing METHOD "
+                          "(none, halfvector, halfvector-bbox, avgnormal, avgnormal-max, "
+                          "avgnormal-eig, projected), optionally METHOD:kappa=K to clamp the "
+                          "added roughness (e.g. avgnormal-eig:kappa=0.18; "
+                          "projected:kappa=none)"),
+                _arg("--mitsuba", action="store_true",
+                     help="anti-aliased reference from Mitsuba's own path integrator "
+                          "(color only)"),
+            ), more_help=_builtin_scenes_help),
+    Command("light", cmd_light,
+            "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",
+            "glossrt light polygon-light --method ltc --frames 8 --size 320x240 --out out/ltc", (
+                _arg("scene", help="built-in scene name or Mitsuba XML path"),
+                _arg("--method", choices=["ltc", "mc", "bspvt", "ratio", "highlight"],
+                     default="ltc",
+                     help="ltc: unshadowed LTC; mc: Monte Carlo reference; bspvt: LTC with "
+                          "BSPVT shadows (needs --bspvt); ratio: LTC x denoised ratio of "
+                          "shadowed to unshadowed 1-spp-per-sample estimates (Heitz 2018); "
+                          "highlight: specular reflection of the lights' shapes through a light "
+                          "environment map (Kimura & Tokoi 2004)"),
+                _arg("--samples", type=int, default=4,
+                     help="highlight: microfacet normals per pixel (the paper: 4)"),
+                _arg("--distribution", choices=["ellipsoidal", "ggx"], default="ellipsoidal",
+                     help="highlight: the paper's ellipsoidal distribution or GGX visible "
+                          "normals with filtered importance sampling"),
+                _arg("--sampling", choices=["texture", "hash", "regular"], default="texture",
+                     help="highlight (ellipsoidal): normal texture with embedded random "
+                          "numbers, per-pixel hash, or the 13-point regular pattern"),
+                _arg("--no-cull", action="store_true",
+                     help="highlight: no bounding-sphere culling"),
+                _arg("--spp", type=int, default=None,
+                     help="mc: samples per pixel, default 64 (each one light + one BRDF sample "
+                          "per light); ratio: default 1"),
+                _arg("--bspvt",
+                     help="bspvt: trees built by `glossrt bspvt build` for this scene"),
+                _arg("--mode", choices=["vertex", "pixel"], default="vertex",
+                     help="bspvt: per-vertex shading (the paper's) or per-pixel"),
+                _arg("--no-shadows", action="store_true", help="mc: no visibility (as LTC)"),
+                _arg("--frames", type=int, default=1),
+                _arg("--size", help="WxH (default: the scene's film size)"),
+                _SEED,
+                _arg("--out", required=True, help="output folder (EXR + PNG per frame)"),
+            )),
+    Command("bspvt", cmd_bspvt,
+            "build BSPVT shadow trees for a scene (Okuno & Iwasaki; per-vertex cube maps)",
+            "glossrt bspvt build polygon-light --out teapot.bspvt.npz --resolution 32", (
+                _arg("action", choices=["build"]),
+                _arg("scene", help="built-in scene name or Mitsuba XML path"),
+                _arg("--out", required=True, help="output .npz"),
+                _arg("--resolution", type=int, default=64, help="cube-map face size (texels)"),
+                _arg("--epsilon", type=float, default=0.0,
+                     help="leaf threshold: misclassified texels per cluster"),
+                _arg("--method", choices=["batched", "nelder-mead"], default="batched",
+                     help="split-line search: glossrt's exact batched search or the paper's "
+                          "Nelder-Mead (slow)"),
+                _arg("--engine", choices=["numpy", "drjit"], default="numpy",
+                     help="array engine of the batched search: NumPy threads, or Dr.Jit (the "
+                          "device of --device; the same trees)"),
+            )),
+    Command("ltc-fit", cmd_ltc_fit,
+            "fit glossrt's LTC table of a microfacet distribution (minutes)",
+            "glossrt ltc-fit --distribution beckmann --out ltc_beckmann.npz", (
+                _arg("--out", required=True, help="output .npz"),
+                _arg("--size", type=int, default=None, help="table resolution (default 64)"),
+                _arg("--distribution", choices=("ggx", "beckmann"), default="ggx",
+                     help="the lobe's microfacet distribution (default ggx; Mitsuba's rough "
+                          "plugins default to beckmann)"),
+                _arg("--metric", choices=("l1", "l3"), default="l1",
+                     help="error the fit minimises (default l1; l3: Heitz et al.'s)"),
+            )),
+    Command("denoise", cmd_denoise,
+            "denoise an EXR sequence (writes frames with the denoised color)",
+            "glossrt denoise out/cornell --method svgf --out out/cornell-svgf", (
+                _arg("in_dir",
+                     help="folder of frame EXRs (glossrt's or any following FORMATS.md)"),
+                _arg("--method", default="svgf",
+                     choices=["svgf", "svgf-lobe", "svgf-spatial-variance", "atrous",
+                              "atrous-temporal", "oidn", "optix"]),
+                _arg("--out", required=True, help="output folder"),
+            )),
+    Command("experiment", cmd_experiment,
+            "the denoiser comparison behind docs/RESULTS.md (quality, time, temporal error)",
+            "glossrt experiment --out results --size 256x192 --frames 30 --spp 1024", (
+                _arg("--out", required=True),
+                _arg("--size", default="256x192"),
+                _arg("--frames", type=int, default=30),
+                _arg("--ref-every", type=int, default=10),
+                _arg("--spp", type=int, default=1024),
+                _arg("--static-frames", type=int, default=60),
+                _which_arg,
+                _arg("--resolution", type=int, default=64,
+                     help="bspvt: cube-map face size of the visibility maps"),
+                _arg("--polygons", type=int, default=2000,
+                     help="ltc: random polygons for the accuracy statistics (0: skip)"),
+                _arg("--published", default=None,
+                     help="ltc: path to ltc_code's fit/results/ltc.js (Heitz et al.'s table, "
+                          "not shipped) to score it the same way as glossrt's"),
+            )),
+    Command("compare", cmd_compare, "metrics of frames against references, per frame and mean",
+            "glossrt compare out/cornell out/cornell-ref --json metrics.json", (
+                _arg("out_dir"),
+                _arg("ref_dir"),
+                _arg("--channel", default="color",
+                     help="the channel to score (default color); depth: background (+inf) "
+                          "scores as equal where both frames have it, and each frame's "
+                          "background_mismatch counts the pixels where only one has it"),
+                _arg("--json", help="also write the results as JSON"),
+            )),
+    Command("demo", cmd_demo,
+            "render a built-in sequence + references and write an HTML report",
+            "glossrt demo --out demo-out", (
+                _arg("--out", required=True),
+                _arg("--scene", default="glossy-cornell"),
+                _arg("--size", default="160x120"),
+                _arg("--frames", type=int, default=8,
+                     help="1 spp frames (at least 2: the report shows the motion from one "
+                          "frame to the next)"),
+                _arg("--spp", type=int, default=256, help="reference samples per pixel"),
+            )),
+    Command("bench", cmd_bench, "registered benchmarks (median of repeats), JSON out",
+            "glossrt bench --json bench.json --size 640x360", (
+                _arg("--json"),
+                _arg("--size", default="640x360"),
+                _arg("--repeats", type=int, default=9,
+                     help="timed samples per case, >= 1 (side-by-side ratios take at least 3)"),
+                _arg("--warmup", type=int, default=3, help="untimed calls first, >= 0"),
+                _arg("--min-sample", type=float, default=MIN_SAMPLE, metavar="SECONDS",
+                     help="time calls shorter than this in back-to-back batches (0: one call "
+                          "per sample)"),
+                _arg("--only", nargs="*", help="benchmark names"),
+            )),
+)
+
+
+def _add_command(sub, cmd: Command) -> argparse.ArgumentParser:
+    """The subparser of ``cmd``, with its arguments and ``--device``."""
+    p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help,
+                       epilog=f"example:\n  {cmd.example}",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       more_help=cmd.more_help)
+    p.set_defaults(fn=cmd.fn)
+    # also after the command (`glossrt render X --device cpu`); SUPPRESS: an option not
+    # given here leaves the one given before the command
+    p.add_argument("--device", choices=DEVICE_CHOICES, default=argparse.SUPPRESS,
+                   help=DEVICE_HELP + "; also accepted before the command")
+    for spec in cmd.args:
+        flags, kw = spec() if callable(spec) else spec
+        p.add_argument(*flags, **kw)
+    return p
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """The ``glossrt`` parser, one subparser per entry of :data:`COMMANDS`."""
     ap = _Parser(
         prog="glossrt", description="Real-time rendering of glossy surfaces (Mitsuba 3 + Dr.Jit).",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", choices=DEVICE_CHOICES, default=None, help=DEVICE_HELP)
     sub = ap.add_subparsers(dest="command", required=True, parser_class=_Parser)
-
-    def add(name, fn, help_, example, more_help=None):
-        p = sub.add_parser(name, help=help_, description=help_, epilog=f"example:\n  {example}",
-                           formatter_class=argparse.RawDescriptionHelpFormatter,
-                           more_help=more_help)
-        p.set_defaults(fn=fn)
-        # also after the command (`glossrt render X --device cpu`); SUPPRESS: an option not
-        # given here leaves the one given before the command
-        p.add_argument("--device", choices=DEVICE_CHOICES, default=argparse.SUPPRESS,
-                       help=DEVICE_HELP + "; also accepted before the command")
-        return p
-
-    add("info", cmd_info, "print variant, device, versions and the libLLVM in use",
-        "glossrt info")
-
-    p = add("render", cmd_render, "render 1 spp frames (or converged references) to EXR",
-            "glossrt render glossy-cornell --out out/cornell --frames 8 --size 320x240",
-            more_help=_builtin_scenes_help)
-    p.add_argument("scene", help="built-in scene name (listed below) or Mitsuba XML path")
-    p.add_argument("--out", required=True, help="output folder (one EXR per frame)")
-    p.add_argument("--frames", type=int, default=1)
-    p.add_argument("--start", type=int, default=0, help="first frame index")
-    p.add_argument("--every", type=int, default=1, help="render every k-th frame only")
-    p.add_argument("--spp", type=int, default=1, help="samples per pixel (references)")
-    p.add_argument("--size", help="WxH (default: the scene's film size)")
-    p.add_argument("--orbit", type=float, default=None,
-                   help="orbit the camera by DEG degrees in total over the frames "
-                        "(scenes without their own animation)")
-    p.add_argument("--max-depth", type=int, default=None,
-                   help="Mitsuba max_depth, -1 = no limit (default: the scene file's "
-                        "integrator's, <include>d files too; -1, Mitsuba's default, for a "
-                        "file without one; 3 for the built-in scenes)")
-    p.add_argument("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
-    p.add_argument("--reference", action="store_true",
-                   help="converged frames (pixel-centre primary hits), --spp defaults to 256")
-    p.add_argument("--specaa", default=None, metavar="METHOD",
-                   help="also write channel 'specaa': direct light from the scene's point, "
-                        "directional and polygon lights with specular antialiasing METHOD "
-                        "(none, halfvector, halfvector-bbox, avgnormal, avgnormal-max, "
-                        "avgnormal-eig, projected), optionally METHOD:kappa=K to clamp the "
-                        "added roughness (e.g. avgnormal-eig:kappa=0.18; "
-                        "projected:kappa=none)")
-    p.add_argument("--mitsuba", action="store_true",
-                   help="anti-aliased reference from Mitsuba's own path integrator "
-                        "(color only)")
-
-    p = add("light", cmd_light,
-            "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",
-            "glossrt light polygon-light --method ltc --frames 8 --size 320x240 --out out/ltc")
-    p.add_argument("scene", help="built-in scene name or Mitsuba XML path")
-    p.add_argument("--method", choices=["ltc", "mc", "bspvt", "ratio", "highlight"],
-                   default="ltc",
-                   help="ltc: unshadowed LTC; mc: Monte Carlo reference; bspvt: LTC with "
-                        "BSPVT shadows (needs --bspvt); ratio: LTC x denoised ratio of "
-                        "shadowed to unshadowed 1-spp-per-sample estimates (Heitz 2018); "
-                        "highlight: specular reflection of the lights' shapes through a light "
-                        "environment map (Kimura & Tokoi 2004)")
-    p.add_argument("--samples", type=int, default=4,
-                   help="highlight: microfacet normals per pixel (the paper: 4)")
-    p.add_argument("--distribution", choices=["ellipsoidal", "ggx"], default="ellipsoidal",
-                   help="highlight: the paper's ellipsoidal distribution or GGX visible "
-                        "normals with filtered importance sampling")
-    p.add_argument("--sampling", choices=["texture", "hash", "regular"], default="texture",
-                   help="highlight (ellipsoidal): normal texture with embedded random "
-                        "numbers, per-pixel hash, or the 13-point regular pattern")
-    p.add_argument("--no-cull", action="store_true",
-                   help="highlight: no bounding-sphere culling")
-    p.add_argument("--spp", type=int, default=None,
-                   help="mc: samples per pixel, default 64 (each one light + one BRDF sample "
-                        "per light); ratio: default 1")
-    p.add_argument("--bspvt", help="bspvt: trees built by `glossrt bspvt build` for this scene")
-    p.add_argument("--mode", choices=["vertex", "pixel"], default="vertex",
-                   help="bspvt: per-vertex shading (the paper's) or per-pixel")
-    p.add_argument("--no-shadows", action="store_true", help="mc: no visibility (as LTC)")
-    p.add_argument("--frames", type=int, default=1)
-    p.add_argument("--size", help="WxH (default: the scene's film size)")
-    p.add_argument("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
-    p.add_argument("--out", required=True, help="output folder (EXR + PNG per frame)")
-
-    p = add("bspvt", cmd_bspvt,
-            "build BSPVT shadow trees for a scene (Okuno & Iwasaki; per-vertex cube maps)",
-            "glossrt bspvt build polygon-light --out teapot.bspvt.npz --resolution 32")
-    p.add_argument("action", choices=["build"])
-    p.add_argument("scene", help="built-in scene name or Mitsuba XML path")
-    p.add_argument("--out", required=True, help="output .npz")
-    p.add_argument("--resolution", type=int, default=64, help="cube-map face size (texels)")
-    p.add_argument("--epsilon", type=float, default=0.0,
-                   help="leaf threshold: misclassified texels per cluster")
-    p.add_argument("--method", choices=["batched", "nelder-mead"], default="batched",
-                   help="split-line search: glossrt's exact batched search or the paper's "
-                        "Nelder-Mead (slow)")
-    p.add_argument("--engine", choices=["numpy", "drjit"], default="numpy",
-                   help="array engine of the batched search: NumPy threads, or Dr.Jit (the "
-                        "device of --device; the same trees)")
-
-    p = add("ltc-fit", cmd_ltc_fit,
-            "fit glossrt's LTC table of a microfacet distribution (minutes)",
-            "glossrt ltc-fit --distribution beckmann --out ltc_beckmann.npz")
-    p.add_argument("--out", required=True, help="output .npz")
-    p.add_argument("--size", type=int, default=None, help="table resolution (default 64)")
-    p.add_argument("--distribution", choices=("ggx", "beckmann"), default="ggx",
-                   help="the lobe's microfacet distribution (default ggx; Mitsuba's rough "
-                        "plugins default to beckmann)")
-    p.add_argument("--metric", choices=("l1", "l3"), default="l1",
-                   help="error the fit minimises (default l1; l3: Heitz et al.'s)")
-
-    p = add("denoise", cmd_denoise,
-            "denoise an EXR sequence (writes frames with the denoised color)",
-            "glossrt denoise out/cornell --method svgf --out out/cornell-svgf")
-    p.add_argument("in_dir", help="folder of frame EXRs (glossrt's or any following FORMATS.md)")
-    p.add_argument("--method", default="svgf",
-                   choices=["svgf", "svgf-lobe", "svgf-spatial-variance", "atrous",
-                            "atrous-temporal", "oidn", "optix"])
-    p.add_argument("--out", required=True, help="output folder")
-
-    p = add("experiment", cmd_experiment,
-            "the denoiser comparison behind docs/RESULTS.md (quality, time, temporal error)",
-            "glossrt experiment --out results --size 256x192 --frames 30 --spp 1024")
-    p.add_argument("--out", required=True)
-    p.add_argument("--size", default="256x192")
-    p.add_argument("--frames", type=int, default=30)
-    p.add_argument("--ref-every", type=int, default=10)
-    p.add_argument("--spp", type=int, default=1024)
-    p.add_argument("--static-frames", type=int, default=60)
-    p.add_argument("--which", choices=["denoisers", "lobes", "ltc", "bspvt", "highlights",
-                                       "specaa"],
-                   default="denoisers",
-                   help="denoisers: Schied 2017 comparison; lobes: Tokuyoshi 2015 figs. 4-6 "
-                        "and upsampling (uses --size and --spp); ltc: Heitz et al. 2016 "
-                        "accuracy and images (uses --size, --spp, --polygons, --published); "
-                        "bspvt: Okuno & Iwasaki shadows and Table 1 (--size, --spp, "
-                        "--resolution); highlights: Kimura & Tokoi convergence and Table 1 "
-                        "(--size, --spp = reference samples); specaa: Kaplanyan et al. / "
-                        "Tokuyoshi specular antialiasing against the supersampled reference "
-                        "and shading times (--size, --spp, --frames: at most 16)")
-    p.add_argument("--resolution", type=int, default=64,
-                   help="bspvt: cube-map face size of the visibility maps")
-    p.add_argument("--polygons", type=int, default=2000,
-                   help="ltc: random polygons for the accuracy statistics (0: skip)")
-    p.add_argument("--published", default=None,
-                   help="ltc: path to ltc_code's fit/results/ltc.js (Heitz et al.'s table, "
-                        "not shipped) to score it the same way as glossrt's")
-
-    p = add("compare", cmd_compare, "metrics of frames against references, per frame and mean",
-            "glossrt compare out/cornell out/cornell-ref --json metrics.json")
-    p.add_argument("out_dir")
-    p.add_argument("ref_dir")
-    p.add_argument("--channel", default="color",
-                   help="the channel to score (default color); depth: background (+inf) "
-                        "scores as equal where both frames have it, and each frame's "
-                        "background_mismatch counts the pixels where only one has it")
-    p.add_argument("--json", help="also write the results as JSON")
-
-    p = add("demo", cmd_demo, "render a built-in sequence + references and write an HTML report",
-            "glossrt demo --out demo-out")
-    p.add_argument("--out", required=True)
-    p.add_argument("--scene", default="glossy-cornell")
-    p.add_argument("--size", default="160x120")
-    p.add_argument("--frames", type=int, default=8,
-                   help="1 spp frames (at least 2: the report shows the motion from one frame "
-                        "to the next)")
-    p.add_argument("--spp", type=int, default=256, help="reference samples per pixel")
-
-    p = add("bench", cmd_bench, "registered benchmarks (median of repeats), JSON out",
-            "glossrt bench --json bench.json --size 640x360")
-    p.add_argument("--json")
-    p.add_argument("--size", default="640x360")
-    p.add_argument("--repeats", type=int, default=9,
-                   help="timed samples per case, >= 1 (side-by-side ratios take at least 3)")
-    p.add_argument("--warmup", type=int, default=3, help="untimed calls first, >= 0")
-    p.add_argument("--min-sample", type=float, default=MIN_SAMPLE, metavar="SECONDS",
-                   help="time calls shorter than this in back-to-back batches (0: one call "
-                        "per sample)")
-    p.add_argument("--only", nargs="*", help="benchmark names")
+    for cmd in COMMANDS:
+        _add_command(sub, cmd)
     return ap
 
 

@@ -24,15 +24,13 @@ import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from .backend import mi  # chooses the backend on first use (frames load and save without one)
 from .errors import FrameError, GlossrtError
 from .fileio import FolderNotWritable, replacing
-
-if TYPE_CHECKING:  # pragma: no cover - typing only; mitsuba is imported after backend.ensure()
-    import mitsuba as mi
 
 __all__ = [
     "CHANNELS",
@@ -117,16 +115,6 @@ def component_names(name: str, count: int) -> tuple[str, ...]:
     if count <= 4:
         return ("R", "G", "B", "A")[:count]
     return tuple(str(i) for i in range(count))
-
-
-def _mi() -> Any:
-    """Import mitsuba after selecting glossrt's variant."""
-    from . import backend
-
-    backend.ensure()
-    import mitsuba
-
-    return mitsuba
 
 
 # --------------------------------------------------------------------------------------------
@@ -227,8 +215,7 @@ class Camera:
         """The camera of a loaded Mitsuba ``perspective`` sensor (``fov_axis`` is resolved by
         Mitsuba into ``x_fov``). Raises GlossrtError for principal-point offsets or film crops,
         which :meth:`project` does not model."""
-        mitsuba = _mi()
-        params = mitsuba.traverse(sensor)
+        params = mi.traverse(sensor)
         if "x_fov" not in params:
             raise GlossrtError(f"sensor {sensor.class_name()} is not a perspective camera")
         for k in ("principal_point_offset_x", "principal_point_offset_y"):
@@ -385,7 +372,7 @@ class Frame:
     def _tensor(self, name: str) -> mi.TensorXf:
         value = self._store[name]
         if isinstance(value, np.ndarray):
-            value = _mi().TensorXf(value)
+            value = mi.TensorXf(value)
             self._store[name] = value
         return value
 
@@ -421,8 +408,7 @@ class Frame:
         stored: Any
         dr = sys.modules.get("drjit")
         if dr is not None and isinstance(value, dr.ArrayBase):
-            mitsuba = _mi()
-            if isinstance(value, mitsuba.TensorXf) and len(value.shape) == 3:
+            if isinstance(value, mi.TensorXf) and len(value.shape) == 3:
                 stored = value
                 shape = tuple(int(s) for s in value.shape)
             else:

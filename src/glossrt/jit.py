@@ -9,6 +9,8 @@ from contextlib import contextmanager
 
 import drjit as dr
 
+from .backend import mi
+
 
 @contextmanager
 def no_gc() -> Iterator[None]:
@@ -31,8 +33,6 @@ def opaque(values) -> list:
     """Python numbers as opaque Dr.Jit scalars (``mi.Float``): values that change between
     calls (a camera or light position) must not be baked into kernels as literals, or every
     new value compiles new kernels."""
-    import mitsuba as mi
-
     return [dr.opaque(mi.Float, float(v)) for v in values]
 
 
@@ -88,8 +88,6 @@ def owned_float(values):
     alignment varies between calls, and then ``dr.freeze`` re-records now and then (seen as
     a nondeterministic second recording) and the LLVM backend misses its kernel cache:
     inputs of frozen functions and long-lived tables go through this."""
-    import mitsuba as mi
-
     return owned(mi.Float, values)
 
 
@@ -97,7 +95,6 @@ def owned(t, values):
     """:func:`owned_float` for a flat Dr.Jit type ``t`` (``mi.Float``, ``mi.Float64``,
     ``mi.Int32``, ``mi.UInt32``): the data converted to ``t``'s dtype, copied by a kernel
     into memory Dr.Jit allocated, evaluated (empty input: an empty array)."""
-    import mitsuba as mi
     import numpy as np
 
     dt = {mi.Float: np.float32, mi.Float64: np.float64, mi.Int32: np.int32,

@@ -7,6 +7,8 @@
 * :func:`timed_eval` / :func:`steady_median`: the time of one per-frame call with its result
   evaluated and the device synchronised, and the median per frame after the first (which
   compiles or records the kernels).
+* :func:`frozen_on_frames`: a pure function of Frames under ``dr.freeze``, as the real-time
+  path runs it (the benchmarks time it).
 
 Dr.Jit is imported where a device is synchronised, never at import: importing this module
 picks no backend.
@@ -84,3 +86,37 @@ def steady_median(seconds: Sequence[float]) -> float:
     """The median of per-frame ``seconds`` after the first frame (the first compiles or
     records the kernels); the only frame's time if there is one."""
     return float(statistics.median(list(seconds[1:]) or list(seconds)))
+
+
+class _Static:
+    """A plain holder: ``dr.freeze`` does not traverse it (frame cameras and metadata that
+    stay fixed while a frozen function replays)."""
+
+
+def frozen_on_frames(fn: Callable, *frames) -> Callable[[], object]:
+    """``fn(*frames)`` frozen (``dr.freeze``) with the frames' channels as its inputs, for
+    timing a pure function of Frames as the real-time path would run it: each call returns
+    the evaluated result, and Python tracing is gone after the first calls. The cameras and
+    metadata are baked in (the frames here are fixed between calls)."""
+    import drjit as dr
+
+    from .frame import Frame
+    from .jit import no_gc
+
+    static = _Static()
+    static.meta = [(f.camera, f.prev_camera, f.index, f.meta) for f in frames]
+
+    def run(chans):
+        return fn(*(Frame(c, camera=m[0], prev_camera=m[1], index=m[2], meta=m[3])
+                    for c, m in zip(chans, static.meta, strict=True)))
+
+    frozen = dr.freeze(run)
+    chans = [dict(f.channels) for f in frames]
+
+    def call():
+        with no_gc():
+            out = frozen(chans)
+            dr.eval(out)
+        return out
+
+    return call

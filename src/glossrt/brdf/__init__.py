@@ -1,7 +1,7 @@
 """BRDF helpers: the GGX specular lobe as Mitsuba 3 evaluates it, and its pre-integrated albedo.
 
-Submodules are imported lazily, because :mod:`glossrt.brdf.ggx` selects the Dr.Jit backend
-(:func:`glossrt.backend.ensure`) when imported.
+The names below are read from :mod:`glossrt.brdf.ggx`, imported on first use (importing it
+picks no Dr.Jit backend either: its first call does).
 """
 
 from __future__ import annotations

@@ -67,18 +67,13 @@ from __future__ import annotations
 
 from typing import Any, TypeVar
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ..errors import GlossrtError  # noqa: E402
-from . import ggx  # noqa: E402
-from .microfacet import by_distribution  # noqa: E402
+from ..backend import mi
+from ..errors import GlossrtError
+from . import ggx
+from .microfacet import by_distribution
 
 __all__ = [
     "D",

@@ -74,16 +74,11 @@ import functools
 import math
 from typing import Any
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ..errors import GlossrtError  # noqa: E402
+from ..backend import VariantStruct, mi
+from ..errors import GlossrtError
 
 __all__ = [
     "ALPHA_MAX",
@@ -534,7 +529,7 @@ class NormalTexture:
     The class is a Dr.Jit PyTree (``DRJIT_STRUCT``): instances can go into frozen functions.
     """
 
-    DRJIT_STRUCT = {"data": mi.Float, "width": int, "height": int}
+    DRJIT_STRUCT = VariantStruct(lambda: {"data": mi.Float, "width": int, "height": int})
 
     def __init__(
         self,

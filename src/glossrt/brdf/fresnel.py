@@ -24,13 +24,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .. import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
+from ..backend import mi
 
 __all__ = ["SCHLICK", "CONDUCTOR", "DIELECTRIC", "ROW", "Fresnel", "fresnel_exact",
            "effective_cos", "split_sum"]

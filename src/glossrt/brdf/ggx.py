@@ -67,15 +67,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, TypeVar
 
+import drjit as dr
 import numpy as np
 
-from glossrt import backend
-from glossrt.errors import GlossrtError
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
+from ..backend import VariantStruct, mi
+from ..errors import GlossrtError
 
 __all__ = [
     "ALPHA_MIN",
@@ -389,11 +385,12 @@ class SpecularAlbedoTable:
     is a Dr.Jit PyTree (``DRJIT_STRUCT``), so instances can be passed to
     ``dr.freeze``-decorated functions, loops and vcalls: ``data`` is traversed as a variable
     and the integer sizes are hashed (a table of another size re-traces).
-    ``DRJIT_STRUCT`` names the ``mi.Float`` of the variant active when this module was first
-    imported (glossrt selects one variant per process).
+    ``DRJIT_STRUCT`` names the ``mi.Float`` of the active variant
+    (:class:`glossrt.backend.VariantStruct`).
     """
 
-    DRJIT_STRUCT = {"data": mi.Float, "n_mu": int, "n_alpha": int, "n_d": int}
+    DRJIT_STRUCT = VariantStruct(lambda: {"data": mi.Float, "n_mu": int, "n_alpha": int,
+                                          "n_d": int})
 
     def __init__(self, data: mi.Float | None = None, n_mu: int = 0, n_alpha: int = 0,
                  n_d: int = 1) -> None:

@@ -28,11 +28,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from .. import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
+import drjit as dr
 
 __all__ = ["GGX", "BECKMANN", "NAMES", "code", "by_distribution", "D", "G1", "specular_cos",
            "sample_h", "pdf_h", "aniso_specular_cos", "sample_h_aniso", "pdf_h_aniso"]

@@ -28,15 +28,11 @@ from __future__ import annotations
 
 import math
 
-from glossrt import backend
+import drjit as dr
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402, F401  (variant set up by backend.ensure)
-
-from ..jit import pow_int  # noqa: E402
-from .microfacet import by_distribution  # noqa: E402
+from ..backend import mi  # noqa: F401  (read as sg.mi by glossrt.report.figures)
+from ..jit import pow_int
+from .microfacet import by_distribution
 
 __all__ = [
     "ALPHA_MIN",

@@ -6,14 +6,10 @@ Every method is available as a per-sequence callable through :func:`make`:
 
 from __future__ import annotations
 
-from .. import backend
-
-backend.ensure()
-
-from ..errors import GlossrtError  # noqa: E402
-from .bilateral import bilateral  # noqa: E402  (the function; the module stays importable)
-from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa  # noqa: E402
-from .upsampling import (  # noqa: E402  (module glossrt.denoise.upsampling)
+from ..errors import GlossrtError
+from .bilateral import bilateral  # the function; the module stays importable
+from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa
+from .upsampling import (  # module glossrt.denoise.upsampling
     SpatioTemporalUpsampler,
     adaptive_resample,
     jitter_sequence,

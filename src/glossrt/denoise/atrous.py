@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 
 import drjit as dr
-import mitsuba as mi
 
+from ..backend import mi
 from ..jit import exp_weight, pow_int
 from .common import H5, GBuffer, Grid, Img, Packed, luminance
 

@@ -73,9 +73,12 @@ value recompiles). Results agree with the Python-float call to float32 rounding.
 
 from __future__ import annotations
 
-import drjit as dr
-import mitsuba as mi
+from dataclasses import dataclass
+from typing import Any
 
+import drjit as dr
+
+from ..backend import mi
 from ..brdf.sg import lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
@@ -157,16 +160,7 @@ def bilateral(frame, weight: str = "normal",
     SG sharpness times ``alpha^2`` used to build the lobes of ``"lobe"`` and ``"screen"``
     (default: each pixel's distribution's own, :func:`glossrt.brdf.sg.lobe_to_sg`: 4 for GGX,
     Wang et al.'s 2 for Beckmann)."""
-    if weight not in WEIGHTS:
-        raise GlossrtError(f"bilateral: unknown weight {weight!r}; choose one of "
-                           f"{', '.join(WEIGHTS)}")
-    radius = int(radius)
-    if radius < 0 or not sigma_s > 0 or not sigma_n2 > 0:
-        raise GlossrtError("bilateral: need radius >= 0, sigma_s > 0 and sigma_n2 > 0")
-    if weight == "screen" and not (k_s > 0 and 0 < sigma_min <= sigma_s):
-        raise GlossrtError("bilateral: weight='screen' needs k_s > 0 and "
-                           f"0 < sigma_min <= sigma_s (got k_s={k_s}, sigma_min={sigma_min}, "
-                           f"sigma_s={sigma_s})")
+    radius = _check_args(weight, radius, sigma_s, sigma_n2, k_s, sigma_min)
     channels = tuple(dict.fromkeys(channels))
     albedo_of = {c: albedo_channel(c, "bilateral") for c in channels}
     any_specular = any(c.endswith("specular") for c in channels)
@@ -181,25 +175,85 @@ def bilateral(frame, weight: str = "normal",
 
     # background (and pixels with non-finite guides) returned unfiltered, never a tap
     g = pixel_guides(frame, use_lobe or use_screen)
-    hit, zkey, normal = g.hit, g.z, g.normal  # z = -1 marks background
-    n_p = mi.Vector3f(*normal)
+    c = _Centre(hit=g.hit, z=g.z, n=mi.Vector3f(*g.normal))  # z = -1 marks background
     if use_lobe or use_screen:
-        wo = pixel_view_directions(frame, grid, "weight='lobe' or 'screen'")
-        # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
-        xi_p, lam_p = lobe_to_sg(n_p, wo, g.roughness, g.beckmann, ndf_sharpness)
-        xi_p = dr.select(hit, xi_p, mi.Vector3f(0.0, 0.0, 1.0))
-        lam_p = dr.select(hit, lam_p, 1.0)
+        _add_lobes(c, frame, grid, g, use_lobe, use_screen, beta=beta, kappa=kappa,
+                   approx=approx, ndf_sharpness=ndf_sharpness, k_s=k_s, sigma_min=sigma_min,
+                   sigma_s=sigma_s)
+
+    signals, albedos, specular = _demodulated(frame, channels, albedo_of)
+    # the normal weight is needed unless the lobe weight serves every channel
+    need_normal = not (use_lobe and all(specular))
+    # everything a tap reads, interleaved: one packet gather per 8 channels
+    packed, i_lobe, i_z = tap_channels(
+        g.normal if need_normal else None,
+        [c.xi[0], c.xi[1], c.xi[2], c.lb] if use_lobe else None, c.z, signals)
+    # the centre pixel's guides once (one kernel), not re-derived in every window-row kernel
+    # (and the demodulated signals, the centre tap's values)
+    dr.eval(packed.arrays, c.hit, c.z, c.n, signals, *((c.xi, c.lb) if use_lobe else ()))
+
+    taps = _Taps(packed, i_lobe, i_z, need_normal, use_lobe, use_screen)
+    sums, accs = _window_sums(c, taps, grid, radius, signals, specular, sigma_s=sigma_s,
+                              sigma_z2=sigma_z2, sigma_n2=sigma_n2, beta=beta, approx=approx)
+    return _remodulated(frame, channels, c.hit, signals, albedos, sums, accs)
+
+
+def _check_args(weight: str, radius, sigma_s, sigma_n2, k_s, sigma_min) -> int:
+    """Refuse an unknown weight and parameters the filter cannot use; the radius as an int."""
+    if weight not in WEIGHTS:
+        raise GlossrtError(f"bilateral: unknown weight {weight!r}; choose one of "
+                           f"{', '.join(WEIGHTS)}")
+    radius = int(radius)
+    if radius < 0 or not sigma_s > 0 or not sigma_n2 > 0:
+        raise GlossrtError("bilateral: need radius >= 0, sigma_s > 0 and sigma_n2 > 0")
+    if weight == "screen" and not (k_s > 0 and 0 < sigma_min <= sigma_s):
+        raise GlossrtError("bilateral: weight='screen' needs k_s > 0 and "
+                           f"0 < sigma_min <= sigma_s (got k_s={k_s}, sigma_min={sigma_min}, "
+                           f"sigma_s={sigma_s})")
+    return radius
+
+
+@dataclass
+class _Centre:
+    """The filtered pixel's guides, computed once and read by every tap of its window."""
+
+    hit: Any
+    #: depth, -1 on background
+    z: Any
+    #: the shading normal (mi.Vector3f)
+    n: Any
+    #: weight="lobe" / "screen": the lobe's SG axis
+    xi: Any = None
+    #: weight="lobe": the tap sharpness of the smoothed lobe sharpness
+    lb: Any = None
+    #: weight="screen": 1 / (2 sigma_s,i^2) of the pixel's adapted screen sigma
+    inv_2si2: Any = None
+
+
+def _add_lobes(c: _Centre, frame, grid, g, use_lobe: bool, use_screen: bool, *, beta, kappa,
+               approx: bool, ndf_sharpness, k_s, sigma_min, sigma_s) -> None:
+    """The centre pixel's specular lobe (Tokuyoshi 2015, sec. 4.2) for weight="lobe" or
+    "screen": its SG axis and, per weight, its tap sharpness or its adapted screen sigma."""
+    wo = pixel_view_directions(frame, grid, "weight='lobe' or 'screen'")
+    # Tokuyoshi 2015, sec. 4.2: a_i(w) ~ G(w, xi_i, lambda_i) (Wang et al.'s SG of the lobe)
+    xi_p, lam_p = lobe_to_sg(c.n, wo, g.roughness, g.beckmann, ndf_sharpness)
+    c.xi = dr.select(c.hit, xi_p, mi.Vector3f(0.0, 0.0, 1.0))
+    lam_p = dr.select(c.hit, lam_p, 1.0)
     if use_lobe:
         # sec. 4.2: the smoothed sharpness lambda_bar = lambda kappa / (lambda + kappa), once
         # per pixel (not per tap), read by the taps beside the lobe axis
-        lb_p = tap_sharpness(smoothed_sharpness(lam_p, kappa), beta, approx)
+        c.lb = tap_sharpness(smoothed_sharpness(lam_p, kappa), beta, approx)
     if use_screen:
         # glossrt's fig. 4(c) baseline: per-pixel sigma_s,i from the lobe sharpness
         sig_i = screen_sigma(lam_p, pixel_angle(frame), k_s, sigma_min, sigma_s)
-        inv_2si2 = 1.0 / (2.0 * dr.square(sig_i))
-        dr.eval(inv_2si2)
+        c.inv_2si2 = 1.0 / (2.0 * dr.square(sig_i))
+        dr.eval(c.inv_2si2)
 
-    # demodulate (sec. 4: filtering works on the indirect illumination without albedo)
+
+def _demodulated(frame, channels, albedo_of) -> tuple[list, list, list[bool]]:
+    """Each channel's illumination (radiance / albedo; sec. 4: filtering works on the
+    indirect illumination without albedo, NaN / Inf as 0), its albedo, and whether it is
+    specular."""
     signals, albedos, specular = [], [], []
     for c in channels:
         alb = split(frame[albedo_of[c]])
@@ -208,58 +262,70 @@ def bilateral(frame, weight: str = "normal",
         signals.append(illum)
         albedos.append(alb)
         specular.append(c.endswith("specular"))
-    # the normal weight is needed unless the lobe weight serves every channel
-    need_normal = not (use_lobe and all(specular))
-    # everything a tap reads, interleaved: one packet gather per 8 channels
-    packed, i_lobe, i_z = tap_channels(
-        normal if need_normal else None,
-        [xi_p[0], xi_p[1], xi_p[2], lb_p] if use_lobe else None, zkey, signals)
-    # the centre pixel's guides once (one kernel), not re-derived in every window-row kernel
-    # (and the demodulated signals, the centre tap's values)
-    dr.eval(packed.arrays, hit, zkey, n_p, signals, *((xi_p, lb_p) if use_lobe else ()))
+    return signals, albedos, specular
 
+
+@dataclass(frozen=True)
+class _Taps:
+    """What a tap gathers (:func:`glossrt.denoise.common.tap_channels`) and which weights the
+    window computes."""
+
+    packed: Any
+    i_lobe: int
+    i_z: int
+    need_normal: bool
+    use_lobe: bool
+    use_screen: bool
+
+
+def _window_sums(c: _Centre, t: _Taps, grid, radius: int, signals, specular, *, sigma_s,
+                 sigma_z2, sigma_n2, beta, approx: bool) -> tuple[list, list]:
+    """Eq. 1's denominator and numerator per signal over the ``(2r+1)^2`` window (sec. 2.2's
+    weights, sec. 4.2's lobe weight for the specular signals of weight="lobe"), one kernel
+    per window row."""
     # centre tap: W(i, i) = 1 (f = w_z = w_n = w_lobe = 1)
     sums = [mi.Float(1.0) for _ in signals]
     accs = [[mi.Float(ch) for ch in s] for s in signals]
     inv_2s2 = 1.0 / (2.0 * sigma_s * sigma_s)
+    i_z = t.i_z
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
             if dx == 0 and dy == 0:
                 continue
             qx, qy = grid.x + dx, grid.y + dy
             q = grid.index(qx, qy)  # clamped, hence a valid gather
-            vals = packed.fetch(q)
+            vals = t.packed.fetch(q)
             z_q = vals[i_z]
-            valid = hit & grid.inside(qx, qy) & (z_q > 0)  # never a background tap
+            valid = c.hit & grid.inside(qx, qy) & (z_q > 0)  # never a background tap
             # sec. 2.2: f(s_i, s_j) = exp(-|s_i - s_j|^2 / (2 sigma_s^2))
             log_w = -float(dx * dx + dy * dy) * inv_2s2
-            if use_screen:
+            if t.use_screen:
                 # fig. 4(c) baseline: f with the pixel's adapted sigma_s,i
-                log_ws = -float(dx * dx + dy * dy) * inv_2si2
+                log_ws = -float(dx * dx + dy * dy) * c.inv_2si2
             if sigma_z2 is not None:
                 # sec. 2.2: w_z = g(|z_i - z_j|, sigma_z^2), on the depth relative to z_i
-                rel = (zkey - z_q) / zkey  # zkey = z wherever valid
+                rel = (c.z - z_q) / c.z  # z = the depth wherever valid
                 log_z = dr.square(rel) / (2.0 * sigma_z2)
                 log_w = log_w - log_z
-                if use_screen:
+                if t.use_screen:
                     log_ws = log_ws - log_z
             # sec. 2.2: w_n = g(|n_i - n_j|, sigma_n^2) = exp(-|n_i - n_j|^2 / (2 sigma_n^2)),
             # folded into one exponential with f and w_z
-            if need_normal:
-                dn2 = dr.squared_norm(n_p - mi.Vector3f(vals[0], vals[1], vals[2]))
+            if t.need_normal:
+                dn2 = dr.squared_norm(c.n - mi.Vector3f(vals[0], vals[1], vals[2]))
                 log_n = dn2 / (2.0 * sigma_n2)
                 w_nrm = dr.select(valid, exp_weight(log_w - log_n), 0.0)
-                if use_screen:
+                if t.use_screen:
                     w_scr = dr.select(valid, exp_weight(log_ws - log_n), 0.0)
-            if use_lobe:
+            if t.use_lobe:
                 # sec. 4.2: w = (2 sqrt(lb_i lb_j) / (lb_i + lb_j))^beta
                 #               G(xi_i, xi_j, beta lb_i lb_j / (lb_i + lb_j)), times f w_z
                 w_lobe = dr.select(valid, lobe_tap_weight(
-                    xi_p, lb_p, vals[i_lobe:i_lobe + 4], log_w, beta, approx), 0.0)
+                    c.xi, c.lb, vals[t.i_lobe:t.i_lobe + 4], log_w, beta, approx), 0.0)
             for k in range(len(signals)):
-                if specular[k] and use_lobe:
+                if specular[k] and t.use_lobe:
                     wk = w_lobe
-                elif specular[k] and use_screen:
+                elif specular[k] and t.use_screen:
                     wk = w_scr
                 else:
                     wk = w_nrm
@@ -268,8 +334,13 @@ def bilateral(frame, weight: str = "normal",
                 sums[k] += wk
                 accs[k] = [a + wk * v[j] for j, a in enumerate(accs[k])]
         dr.eval(sums, accs)  # one kernel per window row keeps the traced kernels small
+    return sums, accs
 
-    # eq. 1, then remodulate and add the unfiltered components (sec. 4)
+
+def _remodulated(frame, channels, hit, signals, albedos, sums, accs) -> mi.TensorXf:
+    """Eq. 1, then remodulate and add the unfiltered components (sec. 4); background pixels
+    keep their radiance."""
+    h, w = frame.height, frame.width
     out = [dr.zeros(mi.Float, w * h) for _ in range(3)]
     for c in RADIANCE:
         if c in channels:

@@ -11,9 +11,9 @@ import sys
 from dataclasses import dataclass
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
+from ..backend import mi
 from ..brdf.sg import lobe_tap_log_scale, lobe_tap_sharpness, lobe_tap_terms, lobe_weight
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE, Frame

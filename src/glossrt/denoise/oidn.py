@@ -43,11 +43,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..backend import mi
 from ..errors import GlossrtError
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
-    import mitsuba as mi
-
     from ..frame import Frame
 
 __all__ = ["QUALITIES", "oidn_available", "oidn_denoise"]
@@ -224,8 +223,6 @@ def oidn_denoise(
         _finite(normal, "normal", where)
         np.clip(normal, -1.0, 1.0, out=normal)
 
-    import mitsuba
-
     with _lock:
         slot = _slot(w, h, QUALITIES[quality], use_aux)
         slot.color[...] = color
@@ -242,4 +239,4 @@ def oidn_denoise(
         out = slot.output.copy()
     if emission is not None:
         out += emission
-    return mitsuba.TensorXf(out)
+    return mi.TensorXf(out)

@@ -23,9 +23,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
+from ..backend import mi
 from ..errors import GlossrtError
 from ..frame import Frame
 from ..jit import exp_weight, no_gc

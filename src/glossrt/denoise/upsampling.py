@@ -59,9 +59,9 @@ import math
 from dataclasses import dataclass
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
+from ..backend import mi
 from ..brdf.sg import lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE

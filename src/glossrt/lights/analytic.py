@@ -24,19 +24,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
+from ..backend import mi
 from ..errors import GlossrtError
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ..jit import opaque  # noqa: E402
-from ..scenes import stable_emitters, to_matrix  # noqa: E402
-from .shading import ShadingPoints, brdf_cos  # noqa: E402
+from ..jit import opaque
+from ..scenes import stable_emitters, to_matrix
+from .shading import ShadingPoints, brdf_cos
 
 #: Mitsuba class names of the plugins this module reads
 POINT_CLASS = "PointLight"

@@ -24,19 +24,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .. import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..brdf import microfacet as mf  # noqa: E402
-from ..denoise.common import LUM  # noqa: E402
-from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque  # noqa: E402
-from .shading import ShadingPoints, brdf_cos, light_vertices  # noqa: E402
+from ..backend import mi
+from ..brdf import microfacet as mf
+from ..denoise.common import LUM
+from ..errors import GlossrtError
+from ..jit import opaque
+from .shading import ShadingPoints, brdf_cos, light_vertices
 
 #: lanes (pixels x samples) per launch
 MAX_LANES = 1 << 21

@@ -118,16 +118,11 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import drjit as dr
 import numpy as np
 
-from glossrt import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ..errors import GlossrtError  # noqa: E402
+from ..backend import mi
+from ..errors import GlossrtError
 
 __all__ = [
     "K_MAX",

@@ -76,19 +76,15 @@ import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from .. import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..errors import GlossrtError  # noqa: E402
-from ..frame import RADIANCE, Frame  # noqa: E402
-from .ltc import shade_frame  # noqa: E402
-from .mc import _Light, _spec_weight, _visible, sample_batches, strategies  # noqa: E402
-from .shading import MATERIAL_ROW, ShadingPoints  # noqa: E402
+from ..backend import mi
+from ..errors import GlossrtError
+from ..frame import RADIANCE, Frame
+from .ltc import shade_frame
+from .mc import _Light, _spec_weight, _visible, sample_batches, strategies
+from .shading import MATERIAL_ROW, ShadingPoints
 
 __all__ = ["COMPONENTS", "RatioImages", "estimate_pair", "filtered_ratio", "render_ratio",
            "stochastic_pair"]

@@ -30,17 +30,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
+from ..backend import mi
 from ..errors import GlossrtError
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ..scenes import _registry_id, stable_emitters, stable_shapes, to_matrix  # noqa: E402
+from ..scenes import _registry_id, stable_emitters, stable_shapes, to_matrix
 
 #: most corners a polygon light may have (what the LTC / MC shaders take)
 MAX_VERTICES = 8

@@ -26,20 +26,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .. import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..brdf import microfacet as mf  # noqa: E402
-from ..brdf.fresnel import ROW, fresnel_exact, split_sum  # noqa: E402
-from ..brdf.ggx import ALPHA_MIN, fresnel_schlick  # noqa: E402
-from ..denoise.common import check_frame, split, view_directions  # noqa: E402
-from ..errors import FrameError, GlossrtError  # noqa: E402
-from ..jit import owned_float  # noqa: E402
+from ..backend import mi
+from ..brdf import microfacet as mf
+from ..brdf.fresnel import ROW, fresnel_exact, split_sum
+from ..brdf.ggx import ALPHA_MIN, fresnel_schlick
+from ..denoise.common import check_frame, split, view_directions
+from ..errors import FrameError, GlossrtError
+from ..jit import owned_float
 
 NEEDS = ("position", "normal", "roughness", "albedo_diffuse", "mesh_id")
 

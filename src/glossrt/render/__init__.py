@@ -19,19 +19,15 @@ from collections.abc import Callable
 import drjit as dr
 import numpy as np
 
-from .. import backend
-
-backend.ensure()
-import mitsuba as mi  # noqa: E402
-
-from ..brdf.ggx import SpecularAlbedoTable  # noqa: E402
-from ..errors import GlossrtError  # noqa: E402
-from ..frame import Frame  # noqa: E402
-from ..jit import no_gc  # noqa: E402
-from ..scenes import SceneSetup  # noqa: E402
-from . import integrator as _integrator  # noqa: E402,F401  (registers "glossrt")
-from .motion import MotionInputs  # noqa: E402
-from .pathtracer import (  # noqa: E402
+from ..backend import mi
+from ..brdf.ggx import SpecularAlbedoTable
+from ..errors import GlossrtError
+from ..frame import Frame
+from ..jit import no_gc
+from ..scenes import SceneSetup
+from . import integrator as _integrator  # noqa: F401  (registers "glossrt" per variant)
+from .motion import MotionInputs
+from .pathtracer import (
     RADIANCE_OUT,
     RR_DEPTH,
     UNBOUNDED_DEPTH,

@@ -11,9 +11,9 @@ import warnings
 from dataclasses import dataclass, field
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
+from ..backend import mi
 from ..brdf.fresnel import CONDUCTOR, DIELECTRIC, SCHLICK, Fresnel
 from ..errors import GlossrtError
 

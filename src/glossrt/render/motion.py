@@ -10,15 +10,16 @@ convention (docs/FORMATS.md): the pixel centre (x+0.5, y+0.5) was at
 from __future__ import annotations
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
+
+from ..backend import VariantStruct, mi
 
 
 class MotionInputs:
     """Per-frame inputs of :func:`motion`: relative object transforms (16 floats per mesh
     index, row-major) and the previous camera (world->camera matrix, focal scale, centre)."""
 
-    DRJIT_STRUCT = {"rel": mi.Float, "prev": mi.Float}
+    DRJIT_STRUCT = VariantStruct(lambda: {"rel": mi.Float, "prev": mi.Float})
 
     def __init__(self, prev_camera, objs: dict[int, np.ndarray], objs_prev: dict[int, np.ndarray],
                  n_meshes: int):

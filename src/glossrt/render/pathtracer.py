@@ -28,21 +28,19 @@ load of a scene.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
+from ..backend import VariantStruct, mi
 from ..brdf.fresnel import ROW, split_sum
 from ..brdf.microfacet import BECKMANN, GGX
 from ..errors import GlossrtError
 from ..scenes import stable_emitters, stable_shapes
 from .materials import NORMAL_MAP_TWOSIDED
 
-#: Lobe masks: diffuse, and everything that is not diffuse (glossy + delta).
-DIFFUSE_MASK = int(mi.BSDFFlags.Diffuse)
-SPECULAR_MASK = int(mi.BSDFFlags.All) & ~DIFFUSE_MASK
 RR_DEPTH = 5
 #: what Mitsuba's max_depth = -1 ("no limit") becomes: Russian roulette ends the paths
 UNBOUNDED_DEPTH = 1 << 30
@@ -58,13 +56,29 @@ RADIANCE_OUT = ("emission", "direct_diffuse", "direct_specular", "indirect_diffu
                 "indirect_specular")
 
 
+@functools.cache
+def lobe_masks() -> tuple[int, int]:
+    """Lobe masks (``BSDFContext.type_mask``): diffuse, and everything that is not diffuse
+    (glossy + delta). Also readable as ``DIFFUSE_MASK`` and ``SPECULAR_MASK``."""
+    diffuse = int(mi.BSDFFlags.Diffuse)
+    return diffuse, int(mi.BSDFFlags.All) & ~diffuse
+
+
+def __getattr__(name: str):
+    if name == "DIFFUSE_MASK":
+        return lobe_masks()[0]
+    if name == "SPECULAR_MASK":
+        return lobe_masks()[1]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 class PixelSampler:
     """Independent uniform numbers from a PCG32 stream per (pixel, seed).
 
     Same ``next_1d``/``next_2d`` interface as ``mi.Sampler`` so the shading code can use
     either."""
 
-    DRJIT_STRUCT = {"rng": mi.PCG32}
+    DRJIT_STRUCT = VariantStruct(lambda: {"rng": mi.PCG32})
 
     def __init__(self, pixel: mi.UInt32 | None = None, seed: mi.UInt32 | None = None):
         if pixel is None:
@@ -102,7 +116,8 @@ class EmitterTable:
     the scene has none); ``last``: index of the last emitter with a nonzero pmf (the CDF is
     exactly 1 from there on), the end of the binary search."""
 
-    DRJIT_STRUCT = {"emitter": mi.EmitterPtr, "pmf": mi.Float, "cdf": mi.Float, "last": mi.UInt32}
+    DRJIT_STRUCT = VariantStruct(lambda: {"emitter": mi.EmitterPtr, "pmf": mi.Float,
+                                          "cdf": mi.Float, "last": mi.UInt32})
 
     def __init__(self, scene: mi.Scene | None = None):
         if scene is None:
@@ -201,7 +216,8 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
     if emitters is None:
         emitters = EmitterTable(scene)
     ctx_all = mi.BSDFContext()
-    ctx_d, ctx_s = _context(DIFFUSE_MASK), _context(SPECULAR_MASK)
+    diffuse_mask, specular_mask = lobe_masks()
+    ctx_d, ctx_s = _context(diffuse_mask), _context(specular_mask)
     zero = dr.zeros(mi.Color3f)
 
     # --- primary hit (path vertex 0) --------------------------------------------------
@@ -308,7 +324,7 @@ class ShapeTable:
     (:data:`glossrt.render.materials.NORMAL_MAP` and friends; 0: no); ``beckmann``: whether
     its rough lobe has Beckmann's microfacet distribution (Mitsuba's default)."""
 
-    DRJIT_STRUCT = {
+    DRJIT_STRUCT = VariantStruct(lambda: {
         "index": mi.UInt32,
         "has_diffuse": mi.Bool,
         "has_specular": mi.Bool,
@@ -322,7 +338,7 @@ class ShapeTable:
         "eta": mi.Color3f,
         "k": mi.Color3f,
         "spec_scale": mi.Color3f,
-    }
+    })
 
     def __init__(self, scene: mi.Scene):
         from .materials import describe_bsdf

@@ -1,29 +1,48 @@
-"""Registered report sections for the demo, and :func:`build_report` which runs them.
+"""What each experiment registers, and the top floor (``demo``, ``bench``, ``cli``) runs.
 
-A section is a function ``fn(ctx: DemoContext, report: Report) -> None`` registered with
-:func:`register_section`; it adds one or more sections to the report. :func:`build_report`
-runs all registered sections by ascending ``order`` (ties: registration order). A section
-that raises is shown as an error box in the page and the others still run; after writing
-the page, :func:`build_report` raises :class:`GlossrtError` naming the failed sections, so a
-demo built on it exits non-zero.
+* Report sections: a function ``fn(ctx: DemoContext, report: Report) -> None`` registered
+  with :func:`register_section`; it adds one or more sections to the report.
+  :func:`build_report` runs all registered sections by ascending ``order`` (ties:
+  registration order). A section that raises is shown as an error box in the page and the
+  others still run; after writing the page, :func:`build_report` raises
+  :class:`GlossrtError` naming the failed sections, so a demo built on it exits non-zero.
+  :func:`section_size` and :func:`markdown_table` are the sections' shared helpers.
+* Benchmark cases (``glossrt bench``): ``fn(ctx: BenchContext) -> dict`` registered with
+  :func:`benchmark` into :data:`BENCHMARKS`, run by :func:`registered_benchmarks` order.
+* Experiments (``glossrt experiment --which NAME``): ``fn(out, size, args) -> int``
+  registered with :func:`register_experiment`; :func:`finish_experiment` writes their
+  Markdown (and JSON) results.
+
+This module is a library below the experiments: it imports none of them.
 """
 
 from __future__ import annotations
 
+import json
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import GlossrtError
+from ..timing import MIN_SAMPLE
 from .page import Report
 
 __all__ = [
+    "BENCHMARKS",
+    "BenchContext",
     "DemoContext",
     "SectionFn",
+    "benchmark",
     "build_report",
+    "finish_experiment",
+    "markdown_table",
+    "register_experiment",
     "register_section",
+    "registered_benchmarks",
+    "registered_experiments",
     "registered_sections",
+    "section_size",
     "unregister_section",
 ]
 
@@ -119,3 +138,106 @@ def build_report(ctx: DemoContext, title: str, out_dir: str | Path | None = None
             + "; ".join(failures)
         )
     return path
+
+
+def section_size(ctx: DemoContext, base: tuple[int, int], step: int,
+                 floor: tuple[int, int]) -> tuple[float, tuple[int, int]]:
+    """A paper section's image size: ``base`` scaled like the demo against its default 160
+    pixels of width (smaller in the tests' small demos), rounded down to multiples of
+    ``step``, at least ``floor``. Returns ``(scale, (w, h))``."""
+    scale = min(1.0, ctx.frames[0].width / 160)
+    return scale, tuple(max(lo, int(b * scale) // step * step)
+                        for b, lo in zip(base, floor, strict=True))
+
+
+def markdown_table(section, md: str, caption: str = "") -> None:
+    """Show a Markdown table (as the experiments write them for docs/RESULTS.md)."""
+    lines = [ln for ln in md.strip().splitlines() if ln.startswith("|")]
+    cells = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines]
+    section.table(cells[0], cells[2:], caption=caption)
+
+
+# -- benchmark cases (glossrt bench) ------------------------------------------------------------
+
+@dataclass
+class BenchContext:
+    size: tuple[int, int] = (640, 360)
+    warmup: int = 3
+    repeats: int = 9
+    #: shortest time of one sample (s): faster calls are repeated within it
+    #: (see :func:`glossrt.timing.round_robin`)
+    min_sample: float = MIN_SAMPLE
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def turns(self) -> int:
+        """Repeats of a :func:`glossrt.timing.round_robin` (at least 3, so a median of ratios
+        means something)."""
+        return max(3, self.repeats)
+
+
+#: benchmark name -> ``fn(ctx: BenchContext) -> dict``
+BENCHMARKS: dict[str, Callable[[BenchContext], dict]] = {}
+_BENCH_ORDER: dict[str, int] = {}
+
+
+def benchmark(name: str, order: int = 100):
+    """Register ``fn(ctx) -> dict`` as benchmark ``name``; lower ``order`` runs first (ties:
+    registration order)."""
+
+    def deco(fn):
+        BENCHMARKS[name] = fn
+        _BENCH_ORDER[name] = int(order)
+        return fn
+
+    return deco
+
+
+def registered_benchmarks() -> list[str]:
+    """The names in :data:`BENCHMARKS`, in the order ``glossrt bench`` runs them."""
+    return sorted(BENCHMARKS, key=lambda n: _BENCH_ORDER.get(n, 100))
+
+
+# -- experiments (glossrt experiment --which NAME) ----------------------------------------------
+
+#: ``fn(out: Path, size: (W, H), args: argparse.Namespace) -> int``: one experiment's run
+ExperimentFn = Callable[..., int]
+
+
+@dataclass(frozen=True)
+class _Experiment:
+    name: str
+    help: str
+    order: int
+    fn: ExperimentFn
+
+
+_EXPERIMENTS: dict[str, _Experiment] = {}
+
+
+def register_experiment(name: str, help: str, order: int = 100):
+    """Decorator: register ``fn(out, size, args) -> int`` as ``glossrt experiment --which
+    name`` (``help``: what it measures and which options it reads); lower ``order`` is listed
+    first."""
+
+    def deco(fn: ExperimentFn) -> ExperimentFn:
+        _EXPERIMENTS[name] = _Experiment(name, help, int(order), fn)
+        return fn
+
+    return deco
+
+
+def registered_experiments() -> list[tuple[str, str, ExperimentFn]]:
+    """``(name, help, fn)`` of every registered experiment, in the order they are listed."""
+    return [(e.name, e.help, e.fn) for e in sorted(_EXPERIMENTS.values(), key=lambda e: e.order)]
+
+
+def finish_experiment(out: Path, stem: str, md: str, figure: str,
+                      data: dict | None = None) -> int:
+    """Write an experiment's ``STEM.md`` (and ``STEM.json`` with ``data``), print it."""
+    (out / f"{stem}.md").write_text(md + "\n")
+    if data is not None:
+        (out / f"{stem}.json").write_text(json.dumps(data, indent=2, default=float))
+    print(md)
+    print(f"wrote {out / (stem + '.md')} and {out / figure}")
+    return 0

@@ -14,6 +14,7 @@ Adding a built-in scene is one decorated function in :mod:`glossrt.scenes.librar
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import os
@@ -23,14 +24,11 @@ import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
+from ..backend import mi
 from ..errors import SceneError
-
-backend.ensure()
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
 
 Matrix = np.ndarray
 #: Mitsuba plugins glossrt's renderer supports (BSDF and emitter types).
@@ -356,22 +354,29 @@ def _unsupported(kind: str, obj, supported) -> str:
             f"does not support (supported plugins: {', '.join(sorted(supported))})")
 
 
-class _Children(mi.TraversalCallback):
-    """Collects the BSDFs nested in a BSDF (``Object.traverse``: twosided's sides, a
-    normalmap's nested BSDF)."""
+@functools.cache
+def _children_class(variant: str) -> type:
+    """The :class:`_Children` callback of ``variant`` (the active one; Mitsuba's base classes
+    are per variant)."""
 
-    def __init__(self):
-        super().__init__()
-        self.bsdfs = []
+    class _Children(mi.TraversalCallback):
+        """Collects the BSDFs nested in a BSDF (``Object.traverse``: twosided's sides, a
+        normalmap's nested BSDF)."""
 
-    def put(self, name, value, *flags):
-        if isinstance(value, mi.BSDF):
-            self.bsdfs.append(value)
+        def __init__(self):
+            super().__init__()
+            self.bsdfs = []
+
+        def put(self, name, value, *flags):
+            if isinstance(value, mi.BSDF):
+                self.bsdfs.append(value)
+
+    return _Children
 
 
 def _nested_bsdfs(bsdf) -> list:
     """``bsdf`` and every BSDF nested in it, depth first."""
-    cb = _Children()
+    cb = _children_class(mi.variant())()
     bsdf.traverse(cb)
     out = [bsdf]
     for child in cb.bsdfs:

@@ -7,18 +7,21 @@ import math
 
 import numpy as np
 
+from ..backend import mi
 from ..errors import GlossrtError
 from . import (
     SceneSpec,
     builtin,
     look_at,
-    mi,  # the variant is already selected by the package
     rotation_about,
     translation,
     wobble,
 )
 
-T = mi.ScalarTransform4f
+
+def T(*args) -> mi.ScalarTransform4f:
+    """``mi.ScalarTransform4f(*args)`` (the backend is chosen when a scene is built)."""
+    return mi.ScalarTransform4f(*args)
 
 
 def _diffuse(rgb) -> dict:

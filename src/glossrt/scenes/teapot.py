@@ -366,7 +366,7 @@ def mesh_shape(name: str, v: np.ndarray, f: np.ndarray, nrm: np.ndarray | None =
     to put as a value in a scene dict for ``mi.load_dict`` (the dict key becomes its id).
     ``bsdf``: a BSDF dict (or object); Mitsuba's default diffuse when None. ``emitter``: an
     emitter dict (or object), e.g. ``{"type": "area", ...}``, for a mesh light."""
-    from . import mi
+    from ..backend import mi
 
     m = _as_matrix(to_world)
     v = np.asarray(v, np.float64) @ m[:3, :3].T + m[:3, 3]

@@ -10,20 +10,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ..denoise.common import check_frame, merge, split  # noqa: E402
-from ..errors import GlossrtError  # noqa: E402
-from ..jit import opaque  # noqa: E402
-from ..lights import analytic  # noqa: E402
-from ..lights.shading import NEEDS, ShadingPoints  # noqa: E402
+from ..backend import mi
+from ..denoise.common import check_frame, merge, split
+from ..errors import GlossrtError
+from ..jit import opaque
+from ..lights import analytic
+from ..lights.shading import NEEDS, ShadingPoints
 
 #: the methods glossrt evaluates (any ``halfvector|avgnormal`` + ``-cov|-bbox|-max|-eig`` works)
 METHODS = ("none", "halfvector", "halfvector-bbox", "avgnormal", "avgnormal-max",

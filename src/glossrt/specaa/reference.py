@@ -8,17 +8,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-
-from ..errors import GlossrtError  # noqa: E402
-from .filters import SIGMA2  # noqa: E402
-from .shade import shade_tensor  # noqa: E402
+from ..errors import GlossrtError
+from .filters import SIGMA2
+from .shade import shade_tensor
 
 #: pixel filters of the supersampled reference (:func:`reference`): ``"box"`` (the pixel's
 #: square) or ``"gaussian"`` (variance :data:`SIGMA2` per axis, Tokuyoshi's eq. 1)

@@ -9,29 +9,24 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import replace
 
+import drjit as dr
 import numpy as np
 
-from .. import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ..brdf import covariance_ggx as cggx  # noqa: E402
-from ..brdf import microfacet as mf  # noqa: E402
-from ..denoise.common import check_frame, merge  # noqa: E402
-from ..errors import FrameError  # noqa: E402
-from ..jit import no_gc, opaque  # noqa: E402
-from ..lights import analytic  # noqa: E402
-from ..lights.ltc import shade as _ltc  # noqa: E402
-from ..lights.shading import (  # noqa: E402
+from ..backend import mi
+from ..brdf import covariance_ggx as cggx
+from ..brdf import microfacet as mf
+from ..denoise.common import check_frame, merge
+from ..errors import FrameError
+from ..jit import no_gc, opaque
+from ..lights import analytic
+from ..lights.ltc import shade as _ltc
+from ..lights.shading import (
     NEEDS,
     ShadingPoints,
     f0_tensor,
     shading_channels,
 )
-from .filters import (  # noqa: E402
+from .filters import (
     Method,
     _Quad,
     _quad,

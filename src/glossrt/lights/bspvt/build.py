@@ -104,19 +104,14 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import drjit as dr
 import numpy as np
 
-from ... import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ...errors import GlossrtError  # noqa: E402
-from ...fileio import replacing  # noqa: E402
-from ...jit import owned  # noqa: E402
-from ...progress import Progress  # noqa: E402
+from ...backend import mi
+from ...errors import GlossrtError
+from ...fileio import replacing
+from ...jit import owned
+from ...progress import Progress
 
 __all__ = [
     "BSPVT",

@@ -19,18 +19,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ... import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ...denoise.common import check_frame, merge, split  # noqa: E402
-from ...errors import FrameError, GlossrtError  # noqa: E402
-from ...jit import opaque, owned  # noqa: E402
-from ..shading import (  # noqa: E402
+from ...backend import mi
+from ...denoise.common import check_frame, merge, split
+from ...errors import FrameError, GlossrtError
+from ...jit import opaque, owned
+from ..shading import (
     MATERIAL_ROW,
     NEEDS,
     ShadingPoints,
@@ -40,7 +36,7 @@ from ..shading import (  # noqa: E402
     points_with_materials,
     refuse_anisotropic,
 )
-from . import build, shade  # noqa: E402
+from . import build, shade
 
 MODES = ("vertex", "pixel")
 

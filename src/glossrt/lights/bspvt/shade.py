@@ -73,17 +73,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from ... import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ...errors import GlossrtError  # noqa: E402
-from ...jit import no_gc, opaque, owned  # noqa: E402
-from ..ltc.shade import (  # noqa: E402
+from ...backend import mi
+from ...errors import GlossrtError
+from ...jit import no_gc, opaque, owned
+from ..ltc.shade import (
     PrefilteredTexture,
     _apply_minv,
     _device_lights,
@@ -97,8 +93,8 @@ from ..ltc.shade import (  # noqa: E402
     ltc_frame,
     prefiltered,
 )
-from ..polygon import _edge_sum, cosine_integral  # noqa: E402
-from ..shading import ShadingPoints, light_vertices  # noqa: E402
+from ..polygon import _edge_sum, cosine_integral
+from ..shading import ShadingPoints, light_vertices
 
 __all__ = ["KMAX", "TRAVERSALS", "DeviceTrees", "shade_pixels", "shade_points", "shade_vertices",
            "visible_integrals"]

@@ -60,19 +60,14 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 
+import drjit as dr
 import numpy as np
 
-from ... import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ...errors import GlossrtError  # noqa: E402
-from ...jit import opaque, owned, owned_float  # noqa: E402
-from ..bspvt.build import cube_coords  # noqa: E402
-from ..shading import light_vertices  # noqa: E402
+from ...backend import mi
+from ...errors import GlossrtError
+from ...jit import opaque, owned, owned_float
+from ..bspvt.build import cube_coords
+from ..shading import light_vertices
 
 __all__ = [
     "CubeMapSet",

@@ -37,20 +37,16 @@ from __future__ import annotations
 
 import math
 
-from ... import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ...brdf import microfacet as mf  # noqa: E402
-from ...brdf.ggx import ALPHA_MIN  # noqa: E402
-from ...denoise.common import check_frame, merge, split  # noqa: E402
-from ...errors import GlossrtError  # noqa: E402
-from ...jit import opaque  # noqa: E402
-from ..shading import (  # noqa: E402
+from ...backend import mi
+from ...brdf import microfacet as mf
+from ...brdf.ggx import ALPHA_MIN
+from ...denoise.common import check_frame, merge, split
+from ...errors import GlossrtError
+from ...jit import opaque
+from ..shading import (
     NEEDS,
     ShadingPoints,
     f0_tensor,

@@ -183,22 +183,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import drjit as dr
 import numpy as np
+from scipy.optimize import minimize
 
-from ... import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-from scipy.optimize import minimize  # noqa: E402
-
-from ...brdf import microfacet as mf  # noqa: E402
-from ...brdf.ggx import ALPHA_MIN  # noqa: E402
-from ...errors import GlossrtError  # noqa: E402
-from ...jit import no_gc  # noqa: E402
-from ...progress import Progress  # noqa: E402
-from .table import (  # noqa: E402
+from ...backend import mi
+from ...brdf import microfacet as mf
+from ...brdf.ggx import ALPHA_MIN
+from ...errors import GlossrtError
+from ...jit import no_gc
+from ...progress import Progress
+from .table import (
     COS_O_MIN,
     DEFAULT_SIZE,
     TABLE_FORMAT,

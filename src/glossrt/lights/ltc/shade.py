@@ -22,7 +22,7 @@ level of detail set by the distance ``d`` of that plane along ``F`` relative to 
 size in the transformed space: ``sigma_uv = c d / sqrt(A)`` (glossrt's form of the idea: the
 paper does not give its constants; ``c`` = :data:`FOOTPRINT_SCALE`, fitted against Monte
 Carlo on several textures and roughnesses by
-:func:`glossrt.ltc_experiments.texture_footprint`, docs/RESULTS.md).
+:func:`glossrt.experiments.ltc.texture_footprint`, docs/RESULTS.md).
 :class:`PrefilteredTexture` stores Gaussian-filtered levels (normalised convolution over a
 padded domain, so the average only counts texels inside the light and lookups slightly
 outside the polygon see its edge colours; each level centred on the texels its bilinear
@@ -34,19 +34,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from ... import backend
+import drjit as dr
+import numpy as np
 
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ...denoise.common import check_frame, merge  # noqa: E402
-from ...errors import FrameError, GlossrtError  # noqa: E402
-from ...jit import no_gc, opaque  # noqa: E402
-from ..polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector  # noqa: E402
-from ..shading import (  # noqa: E402
+from ...backend import mi
+from ...denoise.common import check_frame, merge
+from ...errors import FrameError, GlossrtError
+from ...jit import no_gc, opaque
+from ..polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector
+from ..shading import (
     NEEDS,
     ShadingPoints,
     f0_tensor,
@@ -54,7 +50,7 @@ from ..shading import (  # noqa: E402
     refuse_anisotropic,
     shading_channels,
 )
-from .table import LTCTable  # noqa: E402
+from .table import LTCTable
 
 __all__ = ["PrefilteredTexture", "ltc_frame", "polygon_integral", "shade_frame", "shade_tensor"]
 
@@ -236,7 +232,7 @@ def strided_gaussian(n: int, sigma: float, step: int, truncate: float = 4.0,
 
 #: the scale ``c`` of the prefiltered lookup's filter width ``sigma_uv = c d / sqrt(A)``
 #: (module docstring), fitted against Monte Carlo by
-#: :func:`glossrt.ltc_experiments.texture_footprint` (docs/RESULTS.md)
+#: :func:`glossrt.experiments.ltc.texture_footprint` (docs/RESULTS.md)
 FOOTPRINT_SCALE = 0.63
 
 

@@ -23,18 +23,13 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import drjit as dr
 import numpy as np
 
-from ... import backend
-
-backend.ensure()
-
-import drjit as dr  # noqa: E402
-import mitsuba as mi  # noqa: E402
-
-from ...brdf import microfacet as mf  # noqa: E402
-from ...brdf.ggx import ALPHA_MIN  # noqa: E402
-from ...errors import GlossrtError  # noqa: E402
+from ...backend import VariantStruct, mi
+from ...brdf import microfacet as mf
+from ...brdf.ggx import ALPHA_MIN
+from ...errors import GlossrtError
 
 __all__ = [
     "COS_O_MIN",
@@ -147,8 +142,8 @@ class LTCTable:
     :meth:`lookup_np`.
     """
 
-    DRJIT_STRUCT = {"minv": mi.Float, "nf": mi.Float, "n_r": int, "n_u": int, "r0": float,
-                    "n_d": int}
+    DRJIT_STRUCT = VariantStruct(lambda: {"minv": mi.Float, "nf": mi.Float, "n_r": int,
+                                          "n_u": int, "r0": float, "n_d": int})
 
     def __init__(self, minv: mi.Float | None = None, nf: mi.Float | None = None, n_r: int = 0,
                  n_u: int = 0, r0: float = 0.0, host: dict[str, np.ndarray] | None = None,

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import drjit as dr
 import numpy as np
 
-from .errors import GlossrtError
-from .frame import RADIANCE
+from ..errors import GlossrtError
+from ..frame import RADIANCE
 
 INDIRECT = ("indirect_diffuse", "indirect_specular")
 
@@ -64,8 +64,8 @@ def upsampling(size: tuple[int, int] = (192, 144), ref_spp: int = 256, low_spp: 
     """Error (MSE of the indirect light against a ``ref_spp`` reference) and wall time of
     joint bilateral upsampling from each factor, normal vs lobe weights, and adaptive
     re-sampling (``resample_spp`` samples per re-rendered pixel, default ``low_spp``)."""
-    from . import render, scenes
-    from .denoise.upsampling import adaptive_resample, upsample
+    from .. import render, scenes
+    from ..denoise.upsampling import adaptive_resample, upsample
 
     w, h = size
     for f in factors:
@@ -145,8 +145,8 @@ def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames:
     """Spatial-only vs spatio-temporal upsampling of 1 spp, jittered low-resolution indirect
     light over an animated sequence (camera and object motion), MSE of the indirect light
     against references at ``ref_frames``."""
-    from . import render, scenes
-    from .denoise.upsampling import SpatioTemporalUpsampler, jitter_sequence, upsample
+    from .. import render, scenes
+    from ..denoise.upsampling import SpatioTemporalUpsampler, jitter_sequence, upsample
 
     w, h = size
     say = progress or (lambda _m: None)

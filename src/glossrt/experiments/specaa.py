@@ -17,6 +17,9 @@ For each method of :data:`glossrt.specaa.METHODS` (and the rows of :data:`EXTRA`
   view does; and the *flicker*, the part of a method's frame-to-frame change the reference
   does not have: ``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (luminance ``L``
   of the method, ``R`` of the reference).
+
+The report section (``specaa``), benchmark case (``specaa``) and ``glossrt experiment --which
+specaa`` are registered here.
 """
 
 from __future__ import annotations
@@ -28,7 +31,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import GlossrtError
+from ..errors import GlossrtError
+from ..report import DemoContext, Report, register_section
+from ..report.registry import (
+    BenchContext,
+    benchmark,
+    finish_experiment,
+    markdown_table,
+    register_experiment,
+    section_size,
+)
 
 SCENE = "normal-mapped"
 FLAT_SHAPE = "floor_flat"
@@ -86,8 +98,8 @@ class SpecAAResults:
     def montage(self, path: str | Path, crop: tuple[slice, slice] | None = None) -> Path:
         """The paper's figs. 1-3 side by side: every method and the reference (tone-mapped),
         with ``|image - reference|`` under each; ``crop`` (rows, cols) zooms in."""
-        from .report.figures import Panel, montage
-        from .report.page import tonemap
+        from ..report.figures import Panel, montage
+        from ..report.page import tonemap
 
         keys = list(self.images)
         ref = self.images[keys[-1]]
@@ -123,7 +135,7 @@ def _flat_mask(setup, frame) -> np.ndarray:
 
 def flicker(frames, refs) -> float:
     """``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (module docstring)."""
-    from .metrics import luminance
+    from ..metrics import luminance
 
     if len(frames) != len(refs) or len(frames) < 2:
         raise GlossrtError("flicker needs two or more frames and one reference per frame")
@@ -136,10 +148,10 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
              methods=None, scene: str = SCENE,
              progress: Callable[[str], None] | None = None) -> SpecAAResults:
     """Every method against the supersampled reference (module docstring)."""
-    from . import metrics, render, scenes, specaa
-    from .lights.analytic import analytic_lights
-    from .lights.scene import polygon_lights
-    from .lights.shading import fresnel_image
+    from .. import metrics, render, scenes, specaa
+    from ..lights.analytic import analytic_lights
+    from ..lights.scene import polygon_lights
+    from ..lights.shading import fresnel_image
 
     say = progress or (lambda _m: None)
     methods = tuple(methods or (specaa.METHODS + EXTRA))
@@ -224,11 +236,11 @@ def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE,
     :func:`glossrt.timing.round_robin`)."""
     import statistics
 
-    from . import render, scenes, specaa
-    from .lights.analytic import analytic_lights
-    from .lights.scene import polygon_lights
-    from .lights.shading import f0_image
-    from .timing import MIN_SAMPLE, paired_ratio, round_robin
+    from .. import render, scenes, specaa
+    from ..lights.analytic import analytic_lights
+    from ..lights.scene import polygon_lights
+    from ..lights.shading import f0_image
+    from ..timing import MIN_SAMPLE, paired_ratio, round_robin
 
     methods = tuple(methods or specaa.METHODS)
     setup = scenes.load(scene, size=size)
@@ -242,3 +254,65 @@ def timing(size=(640, 360), repeats: int = 7, methods=None, scene: str = SCENE,
     med = {k: statistics.median(v) for k, v in times.items()}
     return {"size": list(size), "seconds": med,
             "ratio_to_none": {k: paired_ratio(v, times["none"]) for k, v in times.items()}}
+
+
+@register_section("specaa", order=80)
+def section_specaa(ctx: DemoContext, report: Report) -> None:
+    t0 = time.perf_counter()
+    scale, size = section_size(ctx, (160, 90), 2, (32, 18))
+    spp = 256 if scale >= 1 else 16
+    frames = 6 if scale >= 1 else 2
+    res = evaluate(size=size, spp=spp, frames=frames, temporal_spp=min(spp, 64))
+    s = report.section(
+        "Specular antialiasing",
+        "NDF filtering (Kaplanyan et al. 2016, as evaluated by Tokuyoshi) on normal-mapped: "
+        "the half-vector filter and its bounding box, the deferred average-normal filter and "
+        "its isotropic reductions, and projected-space filtering (Tokuyoshi & Kaplanyan 2021), "
+        f"against the unfiltered shading averaged over {spp} sub-pixel positions; temporal "
+        f"error over {frames} frames of the slow camera motion (the reference's own change "
+        "is the floor). See docs/RESULTS.md.")
+    markdown_table(s, res.markdown(), "error against the supersampled reference")
+    keys = list(res.images)
+    for i in range(0, len(keys), 4):
+        s.images_row([(k, res.images[k]) for k in keys[i:i + 4]], name=f"specaa_{i}")
+    ref = res.images[keys[-1]]
+    for k in ("none", "avgnormal-eig"):
+        if k in res.images:
+            s.error_map(f"specaa_err_{k}", res.images[k], ref,
+                        caption=f"relative error of {k} against the supersampled reference")
+    ctx.timings["specaa section"] = time.perf_counter() - t0
+
+
+@benchmark("specaa", order=50)
+def bench_specaa(ctx: BenchContext) -> dict:
+    """Deferred direct shading of ``normal-mapped``'s G-buffer (its point, directional and
+    polygon lights; frozen kernels) with each specular antialiasing method, interleaved in
+    one run; ratios to unfiltered shading. Target (issue 8): filtering adds at most 10%."""
+    t = timing(size=ctx.size, repeats=ctx.turns, min_sample=ctx.min_sample)
+    return {"scene": SCENE, **t, "target_ratio": 1.10}
+
+
+@register_experiment("specaa", "Kaplanyan et al. / Tokuyoshi specular antialiasing against "
+                     "the supersampled reference and shading times (--size, --spp, --frames: "
+                     "at most 16)", order=60)
+def run_experiment(out, size, args) -> int:
+    """Tokuyoshi / Kaplanyan et al. measurements (RESULTS.md): every specular antialiasing
+    method against the supersampled reference on normal-mapped (RMSE, FLIP, flat-region bias,
+    temporal error under the slow camera motion) and the shading-time ratios."""
+    spp, frames = args.spp, args.frames
+    # one converged reference per frame: flicker is measured against them
+    res = evaluate(size=size, spp=spp, frames=min(frames, 16), temporal_spp=spp,
+                   progress=lambda m: print(m, flush=True))
+    res.montage(out / "specaa.png")
+    w, h = size
+    res.montage(out / "specaa_crop.png", crop=(slice(h // 3, h), slice(0, w // 2)))
+    t = timing(size=size)
+    vd = res.reference_vs_direct
+    md = (f"## against the supersampled reference ({w}x{h}, {spp} spp; temporal: "
+          f"{res.frames} frames, reference {spp} spp, box filter; the Gaussian columns: "
+          f"against the reference with Tokuyoshi's Gaussian pixel filter, variance 0.25)"
+          f"\n\n{res.markdown()}\n\n"
+          f"The reference against Mitsuba's own direct integrator ({4 * spp} spp): relative "
+          f"L1 {vd['rel_l1']:.3f}, ratio of the means {vd['mean_ratio']:.3f}.\n\n"
+          f"## shading time (frozen, {w}x{h})\n\n{timing_markdown(t)}")
+    return finish_experiment(out, "specaa", md, "specaa.png", {**res.as_dict(), "timing": t})

@@ -6,17 +6,32 @@
 * :func:`images`: LTC shading of ``polygon-light`` (per GGX alpha) against an unshadowed Monte
   Carlo reference of the same BRDF (:mod:`glossrt.lights.mc`): error, time per frame, and the
   Monte Carlo sample count that reaches LTC's error, with its time (side by side, one run).
+
+The paper's report section (``ltc``), benchmark case (``ltc``) and ``glossrt experiment
+--which ltc`` are registered here.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from ..report import DemoContext, Report, register_section
+from ..report.registry import (
+    BenchContext,
+    benchmark,
+    finish_experiment,
+    register_experiment,
+    section_size,
+)
+from ..timing import paired_ratio, round_robin
 
 ALPHAS = (0.1, 0.25, 0.5, 1.0)
 
@@ -68,9 +83,9 @@ def accuracy(n: int = 2000, seed: int = 5, m: int = 400, table=None,
     max over all cases (bounded by half the fit's L1 error). Returns {"all": stats,
     0.1: stats, ..., "share": {label: stats}, "view": {label: stats}}. ``table``: the LTC
     table to score (default glossrt's, see :func:`load_published_table`)."""
-    from .lights.ltc import polygon_integral
-    from .lights.ltc.fit import brdf_moments
-    from .lights.quadrature import polygon_quadrature
+    from ..lights.ltc import polygon_integral
+    from ..lights.ltc.fit import brdf_moments
+    from ..lights.quadrature import polygon_quadrature
 
     cases = random_polygons(np.random.default_rng(seed), n)
     want = np.array([polygon_quadrature(v, wo, nn, a, m=m, distribution=distribution)
@@ -146,8 +161,8 @@ def load_published_table(path: str | Path):
     glossrt's table."""
     import re
 
-    from .errors import GlossrtError
-    from .lights.ltc.table import LTCTable
+    from ..errors import GlossrtError
+    from ..lights.ltc.table import LTCTable
 
     text = Path(path).read_text()
     num = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
@@ -176,8 +191,8 @@ def load_published_table(path: str | Path):
 def _cell_l1(table, norm: np.ndarray, cells: list[tuple[int, int]]) -> np.ndarray:
     """The fit error L1 (:func:`glossrt.lights.ltc.fit.lobe_errors`) of ``table``'s matrices
     at glossrt's nodes ``cells`` (lobe norms from glossrt's table, the same for both)."""
-    from .lights.ltc.fit import _Objective
-    from .lights.ltc.table import grid_axes, minv_matrix, node_config
+    from ..lights.ltc.fit import _Objective
+    from ..lights.ltc.table import grid_axes, minv_matrix, node_config
 
     alpha, cos_o = node_config(*grid_axes(table.n_r))
     coeffs = table.host["minv"].astype(np.float64)
@@ -200,13 +215,13 @@ def compare_with_published(path: str | Path, polygons: int = 2000, cell_step: in
     :func:`accuracy` on ``polygons`` random polygons against the float64 quadrature.
     Returns {"cells", "l1": {"glossrt": stats, "published": stats, "glossrt_better": n},
     "polygons": {"glossrt": accuracy, "published": accuracy}, "norm_max_diff"}."""
-    from .lights.ltc.table import LTCTable
+    from ..lights.ltc.table import LTCTable
 
     say = progress or (lambda _m: None)
     ours = LTCTable.load()
     theirs = load_published_table(path)
     if (theirs.n_r, theirs.n_u) != (ours.n_r, ours.n_u):
-        from .errors import GlossrtError
+        from ..errors import GlossrtError
 
         raise GlossrtError(f"{path}: published table is {theirs.n_r}x{theirs.n_u}, glossrt's "
                            f"{ours.n_r}x{ours.n_u}: not comparable cell by cell")
@@ -266,8 +281,8 @@ class LTCImageResults:
     def montage(self, path: str | Path, eps: float = 1e-2) -> Path:
         """One PNG: a row per run (LTC | Monte Carlo reference | relative error
         ``|LTC - MC| / (MC + eps)`` on a 0-50% colour scale), paper fig. 8, lower row."""
-        from .report.figures import Panel, montage
-        from .report.page import tonemap
+        from ..report.figures import Panel, montage
+        from ..report.page import tonemap
 
         n = len(self.labels)
         h, w = self.size[1], self.size[0]
@@ -308,11 +323,11 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
            progress: Callable[[str], None] | None = None) -> LTCImageResults:
     """LTC vs unshadowed Monte Carlo on ``polygon-light-a<alpha>`` (module docstring), and on
     ``polygon-light-textured`` (alpha 0.25, row label ``"textured 0.25"``) if ``textured``."""
-    from . import render, scenes
-    from .lights.ltc import shade_frame
-    from .lights.mc import render_mc
-    from .lights.scene import polygon_lights
-    from .lights.shading import fresnel_image
+    from .. import render, scenes
+    from ..lights.ltc import shade_frame
+    from ..lights.mc import render_mc
+    from ..lights.scene import polygon_lights
+    from ..lights.shading import fresnel_image
 
     say = progress or (lambda _m: None)
     res = LTCImageResults(tuple(size), ref_spp)
@@ -403,7 +418,7 @@ def footprint_frame(w: int, h: int, alpha: float, albedo: float):
     """The G-buffer of :func:`texture_footprint`: a floor (z = 0, x in [-1, 1], y in
     [-0.6, 1.2]) seen from (0, -2, 1.2), every pixel a floor point (position grid, normal +z,
     GGX ``alpha``, diffuse ``albedo``)."""
-    from .frame import RADIANCE, Camera, Frame
+    from ..frame import RADIANCE, Camera, Frame
 
     px, py = np.meshgrid(np.linspace(-1.0, 1.0, w), np.linspace(-0.6, 1.2, h))
     ch = {c: np.zeros((h, w, 3)) for c in RADIANCE}
@@ -449,8 +464,8 @@ def texture_footprint(size: tuple[int, int] = (32, 24), ref_spp: int = 4096,
     (texture, material, scale)}, "total": {blend: the same for sum |LTC_tex - MC_tex| / sum
     MC_tex}, "scales", "textures", "materials", "best": {blend: scale of the least mean
     error}, "noise": the reference's own relative L1 noise (two halves of its samples)}``."""
-    from .lights.ltc import PrefilteredTexture, shade_frame
-    from .lights.mc import render_mc
+    from ..lights.ltc import PrefilteredTexture, shade_frame
+    from ..lights.mc import render_mc
 
     textures = footprint_textures() if textures is None else textures
     w, h = size
@@ -503,3 +518,98 @@ def footprint_markdown(res: dict, at: tuple[tuple[str, float], ...]) -> str:
     means = " | ".join(f"**{res['errors'][b][..., k].mean():.4f}**" for b, k in idx)
     lines.append(f"| mean | | {means} | {res['noise'].mean():.4f} |")
     return "\n".join(lines)
+
+
+@register_section("ltc", order=60)
+def section_ltc(ctx: DemoContext, report: Report) -> None:
+    t0 = time.perf_counter()
+    _, size = section_size(ctx, (96, 72), 4, (16, 12))
+    spp = min(512, int(ctx.references[0].meta.get("spp", 256)) * 2) if ctx.references else 512
+    res = images(alphas=ALPHAS, size=size, ref_spp=spp, max_spp=64, textured=True)
+    s = report.section(
+        "Polygon lights: LTC",
+        "Heitz et al. 2016 with glossrt's own GGX LTC fit: direct light of polygon-light "
+        f"(teapot, sphere, glossy floor, one quad light) at {size[0]}x{size[1]}, LTC against an "
+        f"unshadowed Monte Carlo reference of the same BRDF ({spp} spp), per GGX alpha and with "
+        "the textured light (prefiltered texture); the Monte Carlo column gives the samples per "
+        "pixel that reach LTC's RMSE (up to 64) and their time, measured in the same run. See "
+        "docs/RESULTS.md for a larger run.")
+    s.table(LTCImageResults.COLUMNS, res.table())
+    for k, label in enumerate(res.labels):
+        ltc = res.images[f"{label}: LTC"]
+        ref = res.images[f"{label}: Monte Carlo {spp} spp"]
+        s.images_row([(f"{label}: LTC", ltc), (f"{label}: Monte Carlo", ref)], name=f"ltc_{k}")
+        s.error_map(f"ltc_error_{k}", ltc, ref, caption=f"{label}: relative error of "
+                    "LTC against Monte Carlo (fig. 8 lower row analogue)")
+    ctx.timings["LTC section"] = time.perf_counter() - t0
+
+
+@benchmark("ltc", order=40)
+def bench_ltc(ctx: BenchContext) -> dict:
+    """Deferred LTC shading of ``polygon-light``'s G-buffer by its quad light (Heitz et al.
+    2016) at the bench size, the light moving between calls: traced anew and frozen
+    (``dr.freeze``, the real-time path), with unshadowed Monte Carlo of the same BRDF at 1 spp
+    for scale, interleaved in one run; the result stays on the device (no NumPy copy).
+    GPU target (issue 5): frozen, 1920x1080, at most 0.5 ms."""
+    import drjit as dr
+
+    from .. import render, scenes
+    from ..lights.ltc import shade_tensor
+    from ..lights.mc import render_mc
+    from ..lights.scene import polygon_lights
+    from ..lights.shading import fresnel_image
+
+    w, h = ctx.size
+    setup = scenes.load("polygon-light", size=(w, h), frames=4)
+    r = render.Renderer(setup)
+    inputs = []
+    for i in range(4):
+        gb = r.render(i)
+        inputs.append((gb, polygon_lights(setup, i), fresnel_image(setup, gb)))
+    state = {"k": 0}
+
+    def step(frozen):
+        gb, lights, f0 = inputs[state["k"] % 4]
+        state["k"] += 1
+        dr.eval(shade_tensor(gb, lights, f0=f0, frozen=frozen))
+
+    gb0, lights0, f00 = inputs[0]
+    cases = {"ltc-traced": lambda: step(False), "ltc-frozen": lambda: step(True),
+             "mc-1spp": lambda: render_mc(gb0, lights0, 1, f0=f00)}
+    times = round_robin(cases, 1, ctx.turns, ctx.min_sample)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    return {"scene": "polygon-light", "size": [w, h], "lights": 1, "seconds": med,
+            "frozen_vs_traced": paired_ratio(times["ltc-frozen"], times["ltc-traced"]),
+            "gpu_target_s_at_1920x1080": 0.5e-3}
+
+
+@register_experiment("ltc", "Heitz et al. 2016 accuracy and images (uses --size, --spp, "
+                     "--polygons, --published)", order=30)
+def run_experiment(out, size, args) -> int:
+    """Heitz et al. 2016 measurements (RESULTS.md): polygon_integral against the quadrature,
+    LTC images against Monte Carlo per alpha and textured (montage with error maps), and the
+    published table when its ltc.js is given (--published; --polygons random polygons)."""
+    spp, polygons, published = args.spp, args.polygons, args.published
+    parts = []
+    cmp = None
+    if published:
+        print(f"published table {published}: fit error per cell and {polygons} random "
+              "polygons, both tables ...", flush=True)
+        cmp = compare_with_published(published, polygons=polygons, progress=print)
+        (out / "ltc_published.json").write_text(json.dumps(cmp, indent=2, default=str))
+        parts.append("## glossrt's fit vs the published table\n\n" + published_markdown(cmp))
+    if polygons > 0:
+        for dist in ("beckmann", "ggx"):
+            print(f"accuracy ({dist}): {polygons} random polygons against the quadrature ...",
+                  flush=True)
+            acc = (cmp["polygons"]["glossrt"] if cmp and dist == "ggx"
+                   else accuracy(polygons, distribution=dist))
+            (out / f"ltc_accuracy_{dist}.json").write_text(json.dumps(acc, indent=2,
+                                                                      default=str))
+            parts.insert(0, f"## polygon_integral vs quadrature, {dist}\n\n"
+                         + accuracy_markdown(acc))
+    print(f"images at {size[0]}x{size[1]}, references {spp} spp ...", flush=True)
+    res = images(size=size, ref_spp=spp, textured=True, progress=print)
+    res.montage(out / "ltc_images.png")
+    parts.append(f"## LTC vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp)\n\n{res.markdown()}")
+    return finish_experiment(out, "ltc", "\n\n".join(parts), "ltc_images.png")

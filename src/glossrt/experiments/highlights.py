@@ -12,6 +12,9 @@
 * :func:`timing`: the paper's Table 1 as ratios measured side by side in one run: plain
   shading (point lights, no shape), regular sampling, random sampling (4), each with and
   without bounding-sphere culling.
+
+The paper's report section (``highlights``), benchmark case (``highlights``) and ``glossrt
+experiment --which highlights`` are registered here.
 """
 
 from __future__ import annotations
@@ -24,13 +27,24 @@ from pathlib import Path
 
 import numpy as np
 
+from ..report import DemoContext, Report, register_section
+from ..report.registry import (
+    BenchContext,
+    benchmark,
+    finish_experiment,
+    markdown_table,
+    register_experiment,
+    section_size,
+)
+from ..timing import paired_ratio, round_robin
+
 SAMPLE_COUNTS = (1, 4, 16, 64)
 
 
 def _frame(size, frame_index: int = 0):
-    from . import render, scenes
-    from .lights.scene import polygon_lights
-    from .lights.shading import fresnel_image
+    from .. import render, scenes
+    from ..lights.scene import polygon_lights
+    from ..lights.shading import fresnel_image
 
     setup = scenes.load("light-shapes", size=size)
     gb = render.Renderer(setup).render(frame_index)
@@ -66,8 +80,8 @@ class Convergence:
 
     def montage(self, path: str | Path) -> Path:
         """Every image tone-mapped, one per row, titled with its key."""
-        from .report.figures import Panel, montage
-        from .report.page import tonemap
+        from ..report.figures import Panel, montage
+        from ..report.page import tonemap
 
         keys = list(self.images)
         w, h = self.size
@@ -78,7 +92,7 @@ class Convergence:
 def convergence(size=(320, 180), ref_samples: int = 2048, counts=SAMPLE_COUNTS,
                 progress: Callable[[str], None] | None = None) -> Convergence:
     """RMSE per roughness and overall (module docstring)."""
-    from .lights.highlights import HighlightRenderer, reference, shade_plain
+    from ..lights.highlights import HighlightRenderer, reference, shade_plain
 
     say = progress or (lambda _m: None)
     setup, gb, lights, f0 = _frame(size)
@@ -86,7 +100,7 @@ def convergence(size=(320, 180), ref_samples: int = 2048, counts=SAMPLE_COUNTS,
     maps = hr.maps(setup, 0, lights)
     rough = gb.numpy("roughness")[..., 0]
     hit = gb.numpy("mesh_id")[..., 0] > 0
-    from .scenes.library import LIGHT_SHAPES_ALPHAS
+    from ..scenes.library import LIGHT_SHAPES_ALPHAS
 
     alphas = list(LIGHT_SHAPES_ALPHAS)
     masks = [hit & np.isclose(rough, a, rtol=1e-4) for a in alphas]
@@ -135,9 +149,9 @@ def _specular_direct(size, spp: int) -> np.ndarray:
     """Mitsuba's ``direct`` integrator on ``light-shapes`` with the spheres' diffuse
     reflectance 0: the spheres show their specular reflection of the lights alone (what the
     highlight methods compute), frame 0."""
-    from . import render
-    from .scenes import from_spec
-    from .scenes.library import light_shapes
+    from .. import render
+    from ..scenes import from_spec
+    from ..scenes.library import light_shapes
 
     spec = light_shapes()
     for key, shape in spec.scene_dict.items():
@@ -152,8 +166,7 @@ def timing(size=(640, 360), repeats: int = 5) -> dict:
     rendered once (their cost, per frame for moving lights, is reported apart)."""
     import drjit as dr
 
-    from .lights.highlights import HighlightRenderer, shade_plain
-    from .timing import paired_ratio, round_robin
+    from ..lights.highlights import HighlightRenderer, shade_plain
 
     setup, gb, lights, f0 = _frame(size)
     hr = HighlightRenderer()
@@ -183,3 +196,80 @@ def timing_markdown(t: dict) -> str:
     lines.append(f"\n(light cube maps, 6 x 128^2 per object, rendered once: "
                  f"{1000 * t['maps_seconds']:.0f} ms)")
     return "\n".join(lines)
+
+
+@register_section("highlights", order=75)
+def section_highlights(ctx: DemoContext, report: Report) -> None:
+    t0 = time.perf_counter()
+    scale, size = section_size(ctx, (160, 90), 2, (32, 18))
+    ref = 256 if scale >= 1 else 32
+    conv = convergence(size=size, ref_samples=ref, counts=(4, 16) if scale >= 1 else (4,))
+    s = report.section(
+        "Light-shape highlights",
+        "Kimura & Tokoi 2004 on light-shapes: the lights rendered into a cube map per object, "
+        "sampled with microfacet normals (the paper's ellipsoidal distribution: normal texture "
+        "with embedded random numbers, per-pixel hash, 13-point regular pattern; and GGX "
+        "visible normals with filtered importance sampling), against the converged reference "
+        f"of the same model ({ref} samples), RMSE per sphere roughness. See docs/RESULTS.md.")
+    markdown_table(s, conv.markdown(), "RMSE against the same model's reference")
+    keys = list(conv.images)
+    for i in range(0, len(keys), 3):
+        s.images_row([(k, conv.images[k]) for k in keys[i:i + 3]], name=f"highlights_{i}")
+    ref_e = conv.images[f"ellipsoidal reference ({ref})"]
+    ref_g = conv.images[f"GGX reference ({ref})"]
+    s.error_map("highlights_err_paper", conv.images[
+        "ellipsoidal, normal texture, 4 samples (the paper)"], ref_e,
+        caption="relative error of the paper's method (4 samples) against its reference")
+    s.error_map("highlights_err_ggx", conv.images["GGX visible normals + FIS, 4 samples"],
+                ref_g, caption="relative error of GGX + FIS (4 samples) against GGX's reference")
+    ctx.timings["highlights section"] = time.perf_counter() - t0
+
+
+@benchmark("highlights", order=60)
+def bench_highlights(ctx: BenchContext) -> dict:
+    """Kimura & Tokoi's light-shape highlights on ``light-shapes`` at the bench size, the
+    light cube maps rendered once: the paper's ellipsoidal sampling and GGX visible normals
+    with filtered importance sampling, 4 samples, traced (hash samples, no culling) and
+    frozen (the real-time path, result left on the device), beside plain point-light
+    shading, called in turn. GPU target (issue 7): 1920x1080, 4 samples, at most 1 ms."""
+    import drjit as dr
+
+    from ..lights.highlights import HighlightRenderer, shade_plain
+
+    setup, gb, lights, f0 = _frame(ctx.size)
+    maps = HighlightRenderer().maps(setup, 0, lights)
+    cases = {"plain": lambda: shade_plain(gb, lights, f0)}
+    state = {"k": 0}
+    for dist in ("ellipsoidal", "ggx"):
+        traced = HighlightRenderer(samples=4, distribution=dist, sampling="hash", cull=False)
+        frozen = HighlightRenderer(samples=4, distribution=dist, sampling="hash", cull=False,
+                                   frozen=True)
+        cases[f"{dist}-4-traced"] = lambda r=traced: r(gb, lights, maps, f0)
+
+        def replay(r=frozen):
+            state["k"] += 1  # a new frame index: new random numbers, same kernels
+            dr.eval(r.shade_tensor(gb, maps, f0, state["k"]))
+
+        cases[f"{dist}-4-frozen"] = replay
+    times = round_robin(cases, 2, ctx.turns, ctx.min_sample)
+    return {"scene": "light-shapes", "size": list(ctx.size),
+            "seconds": {k: statistics.median(v) for k, v in times.items()},
+            "ratio_to_plain": {k: paired_ratio(v, times["plain"]) for k, v in times.items()},
+            "gpu_target_s_at_1920x1080": 1e-3}
+
+
+@register_experiment("highlights", "Kimura & Tokoi convergence and Table 1 (--size, --spp = "
+                     "reference samples)", order=50)
+def run_experiment(out, size, args) -> int:
+    """Kimura & Tokoi measurements (RESULTS.md): RMSE vs samples per roughness, Table 1."""
+    spp = args.spp
+    conv = convergence(size=size, ref_samples=spp, progress=print)
+    conv.montage(out / "highlights.png")
+    t = timing(size=size)
+    md = (f"## RMSE against the same model's reference ({size[0]}x{size[1]}, {spp} samples)"
+          f"\n\n{conv.markdown()}\n\n## against Mitsuba's direct integrator ({spp} spp, "
+          f"the spheres' specular reflection alone; mean absolute error over the mean)\n\n"
+          f"{conv.direct_markdown()}\n\n## Table 1 (ratios to plain shading)\n\n"
+          f"{timing_markdown(t)}")
+    return finish_experiment(out, "highlights", md, "highlights.png",
+                             {"rows": conv.rows, "direct": conv.direct_rows, "timing": t})

@@ -11,16 +11,32 @@
   pixel with a box, so the Monte Carlo column is the comparison's floor);
 * :func:`table1`: the paper's Table 1 for a few mesh densities: vertices, precomputation
   time (visibility rays + trees), data size, leaves per vertex.
+
+The paper's report section (``bspvt``), benchmark case (``bspvt``) and ``glossrt experiment
+--which bspvt`` are registered here.
 """
 
 from __future__ import annotations
 
+import functools
+import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from ..report import DemoContext, Report, register_section
+from ..report.registry import (
+    BenchContext,
+    benchmark,
+    finish_experiment,
+    markdown_table,
+    register_experiment,
+    section_size,
+)
+from ..timing import round_robin
 
 ALPHAS = (0.1, 0.25, 0.5, 1.0)
 #: (teapot quads per patch side, floor grid, sphere rings) of the Table-1 densities
@@ -29,8 +45,8 @@ METHODS = ("bspvt-vertex", "bspvt-pixel", "ratio", "ltc (no shadows)")
 
 
 def _setup(alpha: float, size, density=DENSITIES["default"]):
-    from . import scenes
-    from .scenes.library import polygon_light_scene
+    from .. import scenes
+    from ..scenes.library import polygon_light_scene
 
     spec = polygon_light_scene(alpha, teapot_n=density[0], floor_n=density[1],
                                sphere_n=density[2])
@@ -76,8 +92,8 @@ class ShadowResults:
     def montage(self, path: str | Path, eps: float = 1e-2) -> Path:
         """Per run: reference, BSPVT per pixel, its absolute error, unshadowed LTC's absolute
         error (paper fig. 8: upper row, and the lower row's error)."""
-        from .report.figures import Panel, montage
-        from .report.page import tonemap
+        from ..report.figures import Panel, montage
+        from ..report.page import tonemap
 
         keys = list(self.images)
         w, h = self.size
@@ -105,13 +121,13 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
     """BSPVT, ratio estimator and unshadowed LTC against shadowed Monte Carlo (module
     docstring), ``frames`` of the moving light; trees built once per alpha (visibility does
     not depend on the material: built once, shared)."""
-    from . import render
-    from .lights.bspvt import build_scene_trees, shade_bspvt
-    from .lights.ltc import shade_frame
-    from .lights.mc import render_mc
-    from .lights.ratio import render_ratio
-    from .lights.scene import polygon_lights
-    from .lights.shading import fresnel_image
+    from .. import render
+    from ..lights.bspvt import build_scene_trees, shade_bspvt
+    from ..lights.ltc import shade_frame
+    from ..lights.mc import render_mc
+    from ..lights.ratio import render_ratio
+    from ..lights.scene import polygon_lights
+    from ..lights.shading import fresnel_image
 
     say = progress or (lambda _m: None)
     res = ShadowResults(tuple(size), ref_spp, resolution)
@@ -161,7 +177,7 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
 def table1(densities: dict | None = None, resolution: int = 64, epsilon: float = 0.0,
            progress: Callable[[str], None] | None = None) -> list[dict]:
     """The paper's Table 1 for ``polygon-light`` at each density (module docstring)."""
-    from .lights.bspvt import build_scene_trees
+    from ..lights.bspvt import build_scene_trees
 
     say = progress or (lambda _m: None)
     rows = []
@@ -185,3 +201,126 @@ def table1_markdown(rows: list[dict], resolution: int) -> str:
             f"| {r['ms_per_vertex']:.2f} | {r['data_mb']:.1f} | {r['leaves_per_vertex']:.1f} |"
             for r in rows]
     return "\n".join(out) + f"\n\n(cube maps {resolution} x {resolution} per face)"
+
+
+@register_section("bspvt", order=70)
+def section_bspvt(ctx: DemoContext, report: Report) -> None:
+    t0 = time.perf_counter()
+    scale, size = section_size(ctx, (96, 72), 4, (16, 12))
+    spp = min(512, int(ctx.references[0].meta.get("spp", 256)) * 2) if ctx.references else 512
+    res = max(8, int(16 * scale))
+    small = scale < 1.0  # (tests run the demo tiny)
+    out = images(alphas=(0.1,) if small else (0.1, 1.0), frames=(0,) if small else (0, 24),
+                 size=size, resolution=res, ref_spp=spp)
+    s = report.section(
+        "Polygon-light shadows: BSPVT",
+        "Okuno & Iwasaki's binary space partitioning visibility trees on polygon-light "
+        f"({size[0]}x{size[1]}, {res}x{res} cube maps per vertex, the moving light at frames "
+        f"{', '.join(str(r['frame']) for r in out.rows[:2])}): mean absolute error against a "
+        f"shadowed Monte Carlo reference ({spp} spp) of "
+        "BSPVT per vertex (the paper's mode) and per pixel, the ratio estimator (Heitz, Hill & "
+        "McGuire 2018, 4 spp, cross-bilateral denoised) and LTC without shadows, with the time "
+        "per frame; the error split as in the paper's fig. 8 into LTC's (unshadowed LTC vs "
+        "unshadowed Monte Carlo) and the visibility's. See docs/RESULTS.md for 64x64 maps.")
+    markdown_table(s, out.markdown(), "mean absolute error (ms per frame)")
+    markdown_table(s, out.direct_markdown(),
+                   "against Mitsuba's own direct integrator (mean absolute error)")
+    for k, im in out.images.items():
+        s.images_row([(f"{k}: Monte Carlo", im["reference"]),
+                      ("BSPVT per pixel", im["bspvt-pixel"]),
+                      ("ratio estimator", im["ratio"]),
+                      ("LTC, no shadows", im["ltc (no shadows)"])],
+                     name=f"bspvt_{k.replace(' ', '_').replace(',', '')}")
+        s.error_map(f"bspvt_err_{k.replace(' ', '_').replace(',', '')}", im["bspvt-pixel"],
+                    im["reference"], caption=f"{k}: relative error of BSPVT per pixel")
+    ctx.timings["BSPVT section"] = time.perf_counter() - t0
+
+
+@benchmark("bspvt", order=70)
+def bench_bspvt(ctx: BenchContext) -> dict:
+    """Okuno & Iwasaki's BSPVT shadows on ``polygon-light`` (4965 vertices): precomputation
+    (visibility rays and trees, 32x32 cube maps, 8x8 below 320 pixels wide: the 64x64
+    default is in ``glossrt experiment --which bspvt``) per vertex, and shadowed shading of a
+    frame at the bench size per vertex (the paper's mode) and per pixel, each with the
+    one-kernel traversal (default), the per-level wavefront and frozen (the fused traversal
+    replayed), with unshadowed LTC and the ratio estimator at 1 spp beside them, interleaved
+    in one run; and the tree build alone with each array engine (NumPy, Dr.Jit) at 64x64 on
+    512 vertices (``tree_engines``). GPU targets (issue 6): build 50x faster than the
+    paper's 2.7 min for 17K vertices; per-vertex shading of 512x512 at 200 fps or more."""
+    from .. import render, scenes
+    from ..lights.bspvt import build_scene_trees, shade_bspvt
+    from ..lights.ltc import shade_frame
+    from ..lights.ratio import render_ratio
+    from ..lights.scene import polygon_lights
+    from ..lights.shading import fresnel_image
+
+    w, h = ctx.size
+    setup = scenes.load("polygon-light", size=(w, h))
+    res = 32 if w >= 320 else 8  # tiny bench sizes (tests) build tiny maps
+    t0 = time.perf_counter()
+    trees = build_scene_trees(setup.scene, res, progress=False)
+    build_s = time.perf_counter() - t0
+    engines = _bench_engines(setup.scene, 64 if w >= 320 else 8, 512 if w >= 320 else 16)
+    gb = render.Renderer(setup).render(0)
+    lights = polygon_lights(setup, 0)
+    f0 = fresnel_image(setup, gb)
+    cases = {}
+    for mode in ("vertex", "pixel"):
+        for kind, kw in (("", {}), ("-wavefront", {"traversal": "wavefront"}),
+                         ("-frozen", {"frozen": True})):
+            cases[f"bspvt-{mode}{kind}"] = functools.partial(
+                shade_bspvt, setup.scene, gb, trees, lights, mode,
+                f0=f0 if mode == "pixel" else None, **kw)
+    cases |= {"ltc": lambda: shade_frame(gb, lights, f0=f0),
+              "ratio-1spp": lambda: render_ratio(gb, lights, setup.scene, spp=1, f0=f0)}
+    times = round_robin(cases, 1, ctx.turns, ctx.min_sample)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    st = trees.stats()
+    return {"scene": "polygon-light", "size": [w, h], "vertices": st["vertices"],
+            "resolution": res, "build_s": build_s,
+            "build_ms_per_vertex": 1000 * build_s / st["vertices"],
+            "visibility_s": trees.info["visibility_seconds"],
+            "leaves_per_vertex": st["leaves_per_vertex"], "data_mb": st["data_mb"],
+            "tree_engines": engines, "seconds": med}
+
+
+def _bench_engines(scene, res: int, count: int) -> dict:
+    """The tree build alone (visibility computed once) with each array engine on ``count``
+    vertices spread over the scene at ``res`` x ``res`` maps: ms per vertex, the time
+    extrapolated to the paper's 17K-vertex model (issue 6's GPU target: 2.7 min / 50 =
+    3.24 s), and whether the engines' trees are identical."""
+    from ..lights.bspvt import build as bspvt
+
+    pos, nrm, _ = bspvt.scene_vertices(scene)
+    sel = np.linspace(0, len(pos) - 1, min(count, len(pos))).astype(int)
+    vis = bspvt.visibility_cubemaps(bspvt.occluders(scene), pos[sel], nrm[sel], res,
+                                    progress=False)
+    out, built = {"resolution": res, "vertices": len(sel), "target_s_17k": 2.7 * 60 / 50}, {}
+    for engine in bspvt.ENGINES:
+        bspvt.build_trees(vis[:2], progress=False, engine=engine)  # compile / warm up
+        t0 = time.perf_counter()
+        built[engine] = bspvt.build_trees(vis, progress=False, engine=engine)
+        dt = time.perf_counter() - t0
+        out[engine] = {"seconds": dt, "ms_per_vertex": 1000 * dt / len(sel),
+                       "extrapolated_17k_s": dt / len(sel) * 17000}
+    a, b = built["numpy"], built["drjit"]
+    out["identical"] = all(np.array_equal(getattr(a, k), getattr(b, k))
+                           for k in ("lines", "children", "leaf_value", "roots"))
+    return out
+
+
+@register_experiment("bspvt", "Okuno & Iwasaki shadows and Table 1 (--size, --spp, "
+                     "--resolution)", order=40)
+def run_experiment(out, size, args) -> int:
+    """Okuno & Iwasaki measurements (RESULTS.md): shadow error per alpha and light position
+    for BSPVT per vertex / per pixel, the ratio estimator and unshadowed LTC, and Table 1."""
+    spp, resolution = args.spp, args.resolution
+    res = images(size=size, ref_spp=spp, resolution=resolution, progress=print)
+    res.montage(out / "bspvt_images.png")
+    rows = table1(resolution=resolution, progress=print)
+    md = (f"## shadows vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp, R = {resolution})\n\n"
+          f"mean absolute error (time per frame)\n\n{res.markdown()}\n\n"
+          f"## against Mitsuba's direct integrator ({spp} spp)\n\n{res.direct_markdown()}\n\n"
+          f"## Table 1\n\n{table1_markdown(rows, resolution)}")
+    return finish_experiment(out, "bspvt", md, "bspvt_images.png",
+                             {"rows": res.rows, "table1": rows})
