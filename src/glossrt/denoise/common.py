@@ -16,66 +16,24 @@ import numpy as np
 from ..backend import mi
 from ..brdf.sg import lobe_tap_log_scale, lobe_tap_sharpness, lobe_tap_terms, lobe_weight
 from ..errors import FrameError, GlossrtError
-from ..frame import RADIANCE, Frame
+from ..frame import RADIANCE
+from ..images import (  # noqa: F401 - the shared image helpers, under their old home too
+    LUM,
+    Grid,
+    Img,
+    check_frame,
+    fetch,
+    interleave,
+    luminance,
+    merge,
+    split,
+    view_directions,
+)
 from ..jit import exp_weight, opaque
 
-#: Rec. 709 luminance weights (linear RGB)
-LUM = (0.2126, 0.7152, 0.0722)
 #: albedo below this is treated as "no albedo": the radiance is filtered as it is
 ALBEDO_EPS = 1e-3
 
-Img = list  # list[mi.Float], one flat array per channel
-
-
-@dataclass
-class Grid:
-    """Pixel coordinates of a W x H image, one lane per pixel (row-major, row 0 on top)."""
-
-    w: int
-    h: int
-
-    def __post_init__(self):
-        self.idx = dr.arange(mi.UInt32, self.w * self.h)
-        self.x = mi.Int32(self.idx % self.w)
-        self.y = mi.Int32(self.idx // self.w)
-
-    def index(self, x: mi.Int32, y: mi.Int32) -> mi.UInt32:
-        """Flat index of (x, y) clamped to the image."""
-        xc = dr.clip(x, 0, self.w - 1)
-        yc = dr.clip(y, 0, self.h - 1)
-        return mi.UInt32(yc * self.w + xc)
-
-    def inside(self, x: mi.Int32, y: mi.Int32) -> mi.Bool:
-        return (x >= 0) & (x < self.w) & (y >= 0) & (y < self.h)
-
-
-def split(t: mi.TensorXf, index: mi.UInt32 | None = None) -> Img:
-    """(H, W, C) tensor -> C flat channels: every pixel's, or those of the flat pixel
-    indices ``index``."""
-    h, w, c = t.shape
-    idx = (dr.arange(mi.UInt32, h * w) if index is None else index) * c
-    return [dr.gather(mi.Float, t.array, idx + k) for k in range(c)]
-
-
-def interleave(chs: Img):
-    """C flat channels -> one flat array ``[c0[0], c1[0], .., c0[1], ..]``, in one kernel.
-    (One ``dr.scatter`` per channel would launch a kernel per channel, each evaluating the
-    channels' whole unevaluated expression again.)"""
-    t = type(chs[0])
-    return dr.ravel(sys.modules[t.__module__].ArrayXf([t(ch) for ch in chs]))
-
-
-def merge(chs: Img, h: int, w: int) -> mi.TensorXf:
-    """C flat channels -> (H, W, C) tensor (:func:`interleave`)."""
-    return mi.TensorXf(interleave(chs), (h, w, len(chs)))
-
-
-def fetch(chs: Img, index: mi.UInt32, active=True) -> Img:
-    return [dr.gather(mi.Float, ch, index, active) for ch in chs]
-
-
-def luminance(rgb: Img) -> mi.Float:
-    return LUM[0] * rgb[0] + LUM[1] * rgb[1] + LUM[2] * rgb[2]
 
 
 def finite(chs: Img) -> tuple[Img, mi.UInt32]:
@@ -272,30 +230,6 @@ def pixel_view_directions(frame, grid: Grid, purpose: str = "this filter") -> mi
     x, y = mi.Float(grid.x), mi.Float(grid.y)
     d = mi.Vector3f(*(dr.fma(x, a[k], dr.fma(y, b[k], c[k])) for k in range(3)))
     return -dr.normalize(d)
-
-
-def view_directions(frame, position, purpose: str = "this filter") -> mi.Vector3f:
-    """Per-pixel ``wo = normalize(camera position - position)`` (world space), the camera
-    position opaque (a moving camera does not recompile kernels)."""
-    if frame.camera is None:
-        raise FrameError(f"{frame.where}: {purpose} needs the camera (view directions)")
-    c = opaque(frame.camera.position)
-    return dr.normalize(mi.Vector3f(c[0] - position[0], c[1] - position[1], c[2] - position[2]))
-
-
-def check_frame(frame, names) -> None:
-    """Raise FrameError unless all ``names`` exist (naming file and channel)."""
-    if not isinstance(frame, Frame):
-        raise GlossrtError(
-            f"a glossrt.Frame (from Renderer.render or Frame.load) is needed, "
-            f"not {type(frame).__name__}"
-        )
-    frame.require(*names)
-    h, w = frame.height, frame.width
-    for n in names:
-        if tuple(frame[n].shape[:2]) != (h, w):
-            raise FrameError(f"{frame.where}: channel {n!r} has size {frame[n].shape[:2]}, "
-                             f"expected {(h, w)}")
 
 
 # the 5-tap B3 spline kernel of the a-trous transform (Schied 2017, eq. 1)

@@ -29,8 +29,8 @@ import numpy as np
 
 from ..backend import mi
 from ..brdf import microfacet as mf
-from ..denoise.common import LUM
 from ..errors import GlossrtError
+from ..images import LUM
 from ..jit import opaque
 from .shading import ShadingPoints, brdf_cos, light_vertices
 

@@ -33,8 +33,8 @@ from ..backend import mi
 from ..brdf import microfacet as mf
 from ..brdf.fresnel import ROW, fresnel_exact, split_sum
 from ..brdf.ggx import ALPHA_MIN, fresnel_schlick
-from ..denoise.common import check_frame, split, view_directions
 from ..errors import FrameError, GlossrtError
+from ..images import check_frame, split, view_directions
 from ..jit import owned_float
 
 NEEDS = ("position", "normal", "roughness", "albedo_diffuse", "mesh_id")

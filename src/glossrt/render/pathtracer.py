@@ -207,6 +207,23 @@ class ShadeResult:
     bsdf: mi.BSDFPtr
 
 
+def _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, active) -> mi.Color3f:
+    """The diffuse lobe's share of what a BSDF sample carries: ``f_d / p_mix`` of the sampled
+    direction over the sample's weight ``f / p_mix``, i.e. ``f_d / f`` (the lobes' f sum to
+    f), so ``indirect_diffuse`` estimates the integral of ``f_d L`` and ``indirect_specular``
+    that of ``f_s L`` whatever lobe the sample came from (a mixture's sample weight holds
+    every lobe: roughplastic's ``f / p_mix`` is diffuse and glossy). A delta sample is all
+    specular (its direction has measure zero for the other lobes, which eval() reports as 0);
+    where both lobes evaluate to 0 the sampled lobe takes it all."""
+    delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    sampled_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
+    f_d = mi.Color3f(bsdf.eval(ctx_d, si, bs.wo, active & ~delta))
+    f_s = mi.Color3f(bsdf.eval(ctx_s, si, bs.wo, active & ~delta))
+    f = f_d + f_s
+    share = dr.select(f > 0, f_d / dr.select(f > 0, f, 1.0), dr.select(sampled_diffuse, 1.0, 0.0))
+    return dr.select(delta, 0.0, share)
+
+
 @dr.syntax
 def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
           emitters: EmitterTable | None = None) -> ShadeResult:
@@ -240,20 +257,7 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
 
     # BSDF sampling at the primary hit decides the lobe of everything further along
     bs, bsdf_w = bsdf0.sample(ctx_all, si0, sampler.next_1d(), sampler.next_2d(), act0)
-    # Each lobe's share of what this sample carries: f_lobe / p_mix of the sampled direction,
-    # i.e. the fraction f_lobe / f of the sample's weight f / p_mix (the lobes' f sum to f),
-    # so indirect_diffuse estimates the integral of f_diffuse L and indirect_specular that of
-    # f_specular L whatever lobe the sample came from (a mixture's sample weight holds every
-    # lobe: roughplastic's f / p_mix is diffuse and glossy). A delta sample is all specular
-    # (its direction has measure zero for the other lobes, which eval() reports as 0).
-    delta0 = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-    sampled_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
-    f_d0 = mi.Color3f(bsdf0.eval(ctx_d, si0, bs.wo, act0 & ~delta0))
-    f_s0 = mi.Color3f(bsdf0.eval(ctx_s, si0, bs.wo, act0 & ~delta0))
-    f_sum = f_d0 + f_s0
-    share_d = dr.select(f_sum > 0, f_d0 / dr.select(f_sum > 0, f_sum, 1.0),
-                        dr.select(sampled_diffuse, 1.0, 0.0))
-    share_d = dr.select(delta0, 0.0, share_d)
+    share_d = _diffuse_share(bsdf0, ctx_d, ctx_s, si0, bs, act0)
     share_s = 1.0 - share_d
     beta = mi.Spectrum(bsdf_w)
     prev_si = dr.detach(si0)

@@ -14,8 +14,8 @@ import drjit as dr
 import numpy as np
 
 from ..backend import mi
-from ..denoise.common import check_frame, merge, split
 from ..errors import GlossrtError
+from ..images import check_frame, merge, split
 from ..jit import opaque
 from ..lights import analytic
 from ..lights.shading import NEEDS, ShadingPoints

@@ -15,8 +15,8 @@ import numpy as np
 from ..backend import mi
 from ..brdf import covariance_ggx as cggx
 from ..brdf import microfacet as mf
-from ..denoise.common import check_frame, merge
 from ..errors import FrameError
+from ..images import check_frame, merge
 from ..jit import no_gc, opaque
 from ..lights import analytic
 from ..lights.ltc import shade as _ltc

@@ -23,8 +23,8 @@ import drjit as dr
 import numpy as np
 
 from ...backend import mi
-from ...denoise.common import check_frame, merge, split
 from ...errors import FrameError, GlossrtError
+from ...images import check_frame, merge, split
 from ...jit import opaque, owned
 from ..shading import (
     MATERIAL_ROW,

@@ -23,7 +23,7 @@ roughness on the surface using GPU" (in Japanese):
   filtered importance sampling (Colbert & Krivanek 2007, GPU Gems 3 ch. 20) reads for a
   sample of density ``pdf``.
 
-**Cube conventions** are glossrt's (:mod:`glossrt.lights.bspvt`): faces ``f = 0..5`` = +X,
+**Cube conventions** are glossrt's (:mod:`glossrt.lights.cubemap`): faces ``f = 0..5`` = +X,
 -X, +Y, -Y, +Z, -Z, axis ``k = f // 2``, sign ``sg = +1`` for even ``f``, in-face axes
 ``u = (k + 1) % 3``, ``v = (k + 2) % 3``; gnomonic ``s = d[u] / (sg d[k])``, ``t = d[v] /
 (sg d[k])``; ties between faces go to the lowest face index; texel ``(i, j)`` (``i`` along
@@ -66,7 +66,7 @@ import numpy as np
 from ...backend import mi
 from ...errors import GlossrtError
 from ...jit import opaque, owned, owned_float
-from ..bspvt.build import cube_coords
+from ..cubemap import cube_coords
 from ..shading import light_vertices
 
 __all__ = [
@@ -185,7 +185,7 @@ def mip_chain(base, levels: int | None = None) -> list[np.ndarray]:
 # -- light cube map ----------------------------------------------------------------------------
 
 def _dir_dr(face: mi.UInt32, s: mi.Float, t: mi.Float) -> mi.Vector3f:
-    """``dir(f, s, t) = sg e_k + s e_u + t e_v`` per lane (bspvt's :func:`cube_dir`)."""
+    """``dir(f, s, t) = sg e_k + s e_u + t e_v`` per lane (cubemap.cube_dir)."""
     k = face // 2
     sg = dr.select((face & 1) == 0, 1.0, -1.0)
     comp = []
@@ -195,7 +195,7 @@ def _dir_dr(face: mi.UInt32, s: mi.Float, t: mi.Float) -> mi.Vector3f:
 
 
 def _face_coords_dr(d: mi.Vector3f):
-    """``(face, s, t, valid)`` of directions (bspvt's :func:`cube_coords`, ties to the lowest
+    """``(face, s, t, valid)`` of directions (cubemap.cube_coords, ties to the lowest
     face); ``valid`` is False for zero, NaN or Inf directions."""
     ax, ay, az = dr.abs(d.x), dr.abs(d.y), dr.abs(d.z)
     kx = (ax >= ay) & (ax >= az)

@@ -43,8 +43,8 @@ import numpy as np
 from ...backend import mi
 from ...brdf import microfacet as mf
 from ...brdf.ggx import ALPHA_MIN
-from ...denoise.common import check_frame, merge, split
 from ...errors import GlossrtError
+from ...images import check_frame, merge, split
 from ...jit import opaque
 from ..shading import (
     NEEDS,

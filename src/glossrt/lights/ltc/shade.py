@@ -38,8 +38,8 @@ import drjit as dr
 import numpy as np
 
 from ...backend import mi
-from ...denoise.common import check_frame, merge
 from ...errors import FrameError, GlossrtError
+from ...images import check_frame, merge
 from ...jit import no_gc, opaque
 from ..polygon import K_MAX, K_MIN, cosine_integral, form_factor_vector
 from ..shading import (
