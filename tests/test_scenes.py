@@ -661,3 +661,119 @@ def test_negative_roughness_is_refused_by_the_renderer_too():
     setup = scenes.SceneSetup("neg", scene)
     with pytest.raises(GlossrtError, match="neg.*roughness"):
         Renderer(setup)
+
+
+# -- scenes from anywhere: built-in name, XML path, scene dict, mi.Scene -----------------------
+
+
+def _forms_dict() -> dict:
+    """A small scene as a Mitsuba dict; :data:`FORMS_XML` is the same scene as XML."""
+    T = mi.ScalarTransform4f
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3},
+        "sensor": {"type": "perspective", "fov": 45.0,
+                   "to_world": T().look_at(origin=[0, 1, 4], target=[0, 0.3, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 40, "height": 30}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3.0),
+                  "bsdf": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2,
+                           "diffuse_reflectance": {"type": "rgb", "value": [0.5, 0.4, 0.3]}}},
+        "ball": {"type": "sphere", "center": [0, 0.5, 0], "radius": 0.5,
+                 "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.1}},
+        "lamp": {"type": "rectangle",
+                 "to_world": T().translate([0, 2.5, 0]).rotate([1, 0, 0], 90).scale(0.5),
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [10, 10, 10]}}},
+    }
+
+
+FORMS_XML = """<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="3"/></integrator>""" + \
+    SENSOR.format(fov=45.0, extra="") + """
+  <shape type="rectangle" id="floor">
+    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="3"/></transform>
+    <bsdf type="roughplastic"><string name="distribution" value="ggx"/>
+      <float name="alpha" value="0.2"/>
+      <rgb name="diffuse_reflectance" value="0.5, 0.4, 0.3"/></bsdf>
+  </shape>
+  <shape type="sphere" id="ball">
+    <point name="center" x="0" y="0.5" z="0"/><float name="radius" value="0.5"/>
+    <bsdf type="roughconductor"><string name="distribution" value="ggx"/>
+      <float name="alpha" value="0.1"/></bsdf>
+  </shape>
+  <shape type="rectangle" id="lamp">
+    <transform name="to_world">
+      <scale value="0.5"/><rotate x="1" angle="90"/><translate y="2.5"/>
+    </transform>
+    <emitter type="area"><rgb name="radiance" value="10, 10, 10"/></emitter>
+  </shape>
+</scene>
+"""
+
+
+def _render_all(setup, **kw) -> dict:
+    f = Renderer(setup, frozen=False, **kw).render(0)
+    return {name: f.numpy(name) for name in f.names if name != "motion"}
+
+
+def test_scene_forms_render_alike(tmp_path):
+    """A scene dict, the same scene loaded by Mitsuba (mi.Scene), and the same scene written
+    as XML (a str path and a PathLike) give the same frame, the same name rules and the
+    integrator's max_depth."""
+    path = tmp_path / "forms.xml"
+    path.write_text(FORMS_XML)
+    d = _forms_dict()
+    setups = {"dict": scenes.load(d, size=SIZE),
+              "scene": scenes.load(mi.load_dict(d), size=SIZE),
+              "xml": scenes.load(str(path), size=SIZE),
+              "pathlike": scenes.load(path, size=SIZE)}
+    assert [s.name for s in setups.values()] == ["dict", "scene", "forms", "forms"]
+    assert {s.max_depth for s in setups.values()} == {3}
+    assert setups["dict"].max_depth_from == "scene dict"
+    assert setups["scene"].max_depth_from == "scene object"
+    assert not any(s.animated for s in setups.values())
+    ref = _render_all(setups["xml"])
+    assert ref["color"].max() > 0 and len(np.unique(ref["mesh_id"])) == 3  # floor, ball, sky
+    for name, setup in setups.items():
+        got = _render_all(setup)
+        for ch, v in ref.items():
+            np.testing.assert_allclose(got[ch], v, rtol=1e-5, atol=1e-6, err_msg=f"{name} {ch}")
+    # the dict is not consumed or changed: it loads again
+    assert scenes.load(d, size=SIZE).name == "dict"
+
+
+def test_builtin_dict_renders_like_the_builtin():
+    """A built-in's own scene dict (no animation) renders frame 0 like the built-in, at the
+    same path depth; mi.cornell_box() loads with its integrator's max_depth."""
+    from glossrt.scenes import library  # noqa: F401
+
+    spec = scenes.BUILTIN["glossy-cornell"][0]()
+    a = _render_all(scenes.load("glossy-cornell", size=SIZE), max_depth=3)
+    b = _render_all(scenes.load(spec.scene_dict, size=SIZE), max_depth=3)
+    for ch, v in a.items():  # (frame 0 poses the built-in's moving sphere: float rounding)
+        np.testing.assert_allclose(b[ch], v, rtol=1e-4, atol=1e-5, err_msg=ch)
+    box = scenes.load(mi.cornell_box(), size=(8, 8))
+    assert (box.name, box.max_depth, box.animated) == ("dict", 8, False)
+
+
+@pytest.mark.parametrize("bad", [3, None, 2.5, b"scene.xml", ["glossy-cornell"],
+                                 {"type": "shape"}, {"type": "scene", "x": {"type": "nope"}},
+                                 {"type": "scene", "ball": {"type": "sphere"}}])
+def test_bad_scene_forms_are_refused(bad):
+    """Anything else: one SceneError (a GlossrtError) saying what a scene can be, a dict
+    that is not a scene or that Mitsuba cannot load, a scene without a sensor."""
+    with pytest.raises(SceneError) as e:
+        scenes.load(bad, size=SIZE)
+    assert len(str(e.value).splitlines()) == 1
+
+
+def test_scene_forms_get_the_same_checks():
+    """A dict or mi.Scene with an unsupported plugin is refused like an XML file."""
+    d = _forms_dict()
+    d["ball"]["bsdf"] = {"type": "dielectric"}
+    for scene in (d, mi.load_dict(d)):
+        with pytest.raises(SceneError, match="dielectric|SmoothDielectric"):
+            scenes.load(scene)
+    d = _forms_dict()
+    d["ball"]["bsdf"]["alpha"] = -0.5
+    with pytest.raises(SceneError, match="roughness"):
+        scenes.load(d)

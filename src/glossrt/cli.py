@@ -282,6 +282,8 @@ def cmd_render(args) -> int:
     if size is not None:
         _check_memory(size)
     reference = args.reference or args.mitsuba or args.spp > 1
+    if args.pipeline is not None:
+        return _render_pipeline(args, size)
     if args.specaa is not None:
         from .specaa import parse_method
 
@@ -328,6 +330,41 @@ def cmd_render(args) -> int:
     if bad:
         print(f"warning: {bad} non-finite radiance value(s) were replaced by 0 "
               "(counts per frame in the EXR header, meta.nonfinite_samples)", file=sys.stderr)
+    return 0
+
+
+def _render_pipeline(args, size) -> int:
+    """``render --pipeline PRESET|FILE``: composed frames (glossrt.pipeline), every stage's
+    layer as channels and the per-stage timings in the header (docs/FORMATS.md)."""
+    from . import pipeline, scenes
+    from .frame import frame_filename
+    from .progress import Progress
+
+    for flag, bad in (("--reference", args.reference), ("--mitsuba", args.mitsuba),
+                      ("--specaa", args.specaa is not None), ("--spp", args.spp > 1)):
+        if bad:
+            raise GlossrtError(f"--pipeline composes 1 spp frames: {flag} does not apply "
+                               "(the reference preset accumulates converged frames)")
+    preset, choices = pipeline.parse(args.pipeline)  # a bad name or file fails here
+    choices.setdefault("seed", args.seed)
+    if args.max_depth is not None:
+        choices.setdefault("max_depth", args.max_depth)
+    pipeline.resolve(preset, **choices)
+    todo = list(range(args.start, args.start + args.frames, args.every))
+    _refuse_overwrite([Path(args.out) / frame_filename(i) for i in todo],
+                      _scene_files(args.scene), "render --out")
+    setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
+    if size is None:
+        _check_memory(setup.size, "the scene's film size")
+    pipe = pipeline.Pipeline(setup, preset=preset, **choices)  # every refusal before work
+    out = _writable_dir(args.out)
+    desc = f"pipeline {preset} {setup.name} {setup.size[0]}x{setup.size[1]}"
+    with Progress(len(todo), desc) as p:
+        for k, i in enumerate(todo):
+            pipe.render(i).save(out / frame_filename(i))
+            p.update(k + 1)
+    print(f"wrote {len(todo)} frame(s) to {out}")
+    _warn_stale(out, [frame_filename(i) for i in todo])
     return 0
 
 
@@ -754,6 +791,11 @@ COMMANDS: tuple[Command, ...] = (
                 _arg("--mitsuba", action="store_true",
                      help="anti-aliased reference from Mitsuba's own path integrator "
                           "(color only)"),
+                _arg("--pipeline", default=None, metavar="PRESET|FILE",
+                     help="composed real-time frames (glossrt.pipeline): a preset "
+                          "(schied2017, okuno-iwasaki, kimura-tokoi, tokuyoshi2015, full, "
+                          "reference) or a TOML file; writes color plus every stage's layer "
+                          "and the per-stage timings (docs/FORMATS.md)"),
             ), more_help=_builtin_scenes_help),
     Command("light", cmd_light,
             "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",

@@ -14,7 +14,7 @@ and reported by the CLI, never written silently.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
 import drjit as dr
 import numpy as np
@@ -24,7 +24,7 @@ from ..brdf.ggx import SpecularAlbedoTable
 from ..errors import GlossrtError
 from ..frame import Frame
 from ..jit import no_gc
-from ..scenes import SceneSetup
+from ..scenes import SceneSetup, emitter_kind, stable_emitters, stable_shapes
 from . import integrator as _integrator  # noqa: F401  (registers "glossrt" per variant)
 from .motion import MotionInputs
 from .pathtracer import (
@@ -68,11 +68,13 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
 
 
 def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
-           max_depth, jitter, normal_maps):
+           max_depth, jitter, normal_maps, primary):
     # ``normal_maps`` (= shapes.any_normal_map, which gbuffer() reads) is only a key of the
-    # frozen function: a Python attribute of the ShapeTable is not part of dr.freeze's key
+    # frozen function: a Python attribute of the ShapeTable is not part of dr.freeze's key.
+    # ``primary``: None (one recording) or the primary-hit EmitterTable (another one; a new
+    # exclusion set of the same scene replays it with the new table's values)
     out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
-                       height, max_depth, jitter)
+                       height, max_depth, jitter, primary)
     return {k: _flat(v) for k, v in out.items()}
 
 
@@ -97,6 +99,45 @@ def _warm_emitters(scene: mi.Scene) -> None:
         dr.eval(ds, w)
 
 
+def emitter_index(setup: SceneSetup) -> list[tuple[int, str, str, int | None]]:
+    """The emitters of ``setup`` as the renderer numbers them (``Renderer(primary_exclude=)``
+    takes these indices): ``(index, emitter id, kind, shape index)`` per emitter, in
+    :func:`glossrt.scenes.stable_emitters` order; ``kind`` its plugin (``"area"``,
+    ``"point"``, ``"directional"``, ``"envmap"``, ``"constant"``); ``shape index`` the
+    1-based index of an area light's shape in :func:`glossrt.scenes.stable_shapes` (what the
+    ``mesh_id`` channel and :attr:`glossrt.lights.scene.PolygonLight.mesh_id` hold), None for
+    other emitters."""
+    scene = setup.scene
+
+    def rid(ptr_type, obj) -> int:
+        return int(dr.reinterpret_array(mi.UInt32, ptr_type(obj))[0])
+
+    rank = {rid(mi.ShapePtr, s): i + 1 for i, s in enumerate(stable_shapes(scene))}
+    out = []
+    for k, e in enumerate(stable_emitters(scene)):
+        shape = e.get_shape()
+        out.append((k, e.id(), emitter_kind(e),
+                    rank.get(rid(mi.ShapePtr, shape)) if shape is not None else None))
+    return out
+
+
+def _check_exclude(exclude, n: int) -> tuple[int, ...]:
+    """``primary_exclude`` as sorted unique emitter indices, or one clear error."""
+    if isinstance(exclude, (str, bytes)) or not isinstance(exclude, Collection):
+        raise GlossrtError("primary_exclude must be a collection of emitter indices "
+                           f"(see render.emitter_index), got {exclude!r}")
+    out = set()
+    for i in exclude:
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
+            raise GlossrtError(f"primary_exclude: emitter indices must be integers, got {i!r}")
+        if not 0 <= int(i) < n:
+            raise GlossrtError(f"primary_exclude: emitter index {int(i)} is out of range: the "
+                               f"scene has {n} emitter(s) (indices 0..{n - 1}, see "
+                               "render.emitter_index)")
+        out.add(int(i))
+    return tuple(sorted(out))
+
+
 def _check_jitter(jitter, limit: float = 0.5) -> tuple[float, float]:
     try:
         jx, jy = (float(v) for v in jitter)
@@ -117,10 +158,22 @@ class Renderer:
     it in ``meta["max_depth"]`` (Mitsuba's convention), where it came from in
     ``meta["max_depth_from"]`` and the Russian-roulette depth in ``meta["rr_depth"]``.
     ``frozen=True`` records the per-frame kernels with ``dr.freeze`` and replays them on
-    later frames of the same size (Python tracing otherwise costs ~0.35 s per frame)."""
+    later frames of the same size (Python tracing otherwise costs ~0.35 s per frame).
+
+    ``primary_exclude``: indices of emitters (:func:`emitter_index`) whose light an analytic
+    stage computes instead: at the primary hit (path vertex 0) only, next-event estimation
+    samples the other emitters (Mitsuba's selection probabilities renormalised over them,
+    and the MIS pdf of BSDF-sampled hits uses the same ones) and a BSDF-sampled ray from
+    there that hits an excluded emitter brings nothing, so ``direct_*`` lacks their light.
+    Their emission seen by the camera (``emission``) and their light at every deeper vertex
+    (``indirect_*``) stay; with the same seed ``indirect_*`` is the unexcluded render's.
+    Frames record the indices in ``meta["primary_exclude"]`` and the emitters' ids in
+    ``meta["primary_exclude_ids"]`` (only when some are excluded). Settable between frames
+    (:attr:`primary_exclude`): a set not used before records the frozen trace once more
+    (at most), a set used before replays its recording."""
 
     def __init__(self, setup: SceneSetup, max_depth: int | None = None, seed: int = 0,
-                 frozen: bool = True):
+                 frozen: bool = True, primary_exclude: Collection[int] = ()):
         self.setup = setup
         if max_depth is not None:
             md, self.max_depth_from = max_depth, "argument"
@@ -138,10 +191,30 @@ class Renderer:
         self.shapes = ShapeTable(setup.scene)
         #: emitters in a load-independent order for next-event estimation (reproducible noise)
         self.emitters = EmitterTable(setup.scene)
+        self._primary: EmitterTable | None = None
+        self._primary_tables: dict[tuple[int, ...], EmitterTable] = {}
+        self._exclude: tuple[int, ...] = ()
+        self.primary_exclude = primary_exclude
         _warm_emitters(setup.scene)
         self.table = SpecularAlbedoTable.load()
         self.width, self.height = setup.size
         self.n_meshes = len(setup.shapes)
+
+    @property
+    def primary_exclude(self) -> tuple[int, ...]:
+        """Emitter indices left out of ``direct_*`` at the primary hit (see the class)."""
+        return self._exclude
+
+    @primary_exclude.setter
+    def primary_exclude(self, exclude: Collection[int]) -> None:
+        n = len(stable_emitters(self.setup.scene))
+        exclude = _check_exclude(exclude, n)
+        if exclude and exclude not in self._primary_tables:
+            self._primary_tables[exclude] = EmitterTable(self.setup.scene, exclude)
+        # a table kept per set: going back to an earlier set replays its recording (a new
+        # table of equal values was measured to record once more, dr.freeze in drjit 1.5)
+        self._primary = self._primary_tables[exclude] if exclude else None
+        self._exclude = exclude
 
     # -- low level ---------------------------------------------------------------------
     @property
@@ -171,7 +244,7 @@ class Renderer:
         with no_gc():
             out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
                      self._motion_inputs(frame), pixel, seed, self.width, self.height,
-                     self.max_depth, offset, self.shapes.any_normal_map)
+                     self.max_depth, offset, self.shapes.any_normal_map, self._primary)
             dr.eval(out)
         return out
 
@@ -303,4 +376,8 @@ class Renderer:
         }
         if self.shapes.any_anisotropic:
             meta["anisotropic"] = True
+        if self._exclude:
+            ordered = stable_emitters(self.setup.scene)
+            meta["primary_exclude"] = list(self._exclude)
+            meta["primary_exclude_ids"] = [ordered[i].id() for i in self._exclude]
         return Frame(channels=channels, camera=cam, prev_camera=prev, index=frame, meta=meta)

@@ -17,6 +17,11 @@ power-heuristic MIS, Russian roulette from depth 5) with the contributions split
   mixture), so each channel estimates its lobe's integral ``∫ f_lobe L cos``; the
   BSDF-sampled part of ``direct_*`` is split the same way.
 
+Emitters that an analytic shading stage lights instead can be left out of ``direct_*``
+(``Renderer(primary_exclude=...)``, :func:`shade`'s ``primary`` table): no next-event
+estimation towards them at the primary hit, and nothing when the primary hit's BSDF sample
+reaches them; they still light every deeper vertex, so ``indirect_*`` is unchanged.
+
 Primary rays go through pixel centres, so the G-buffer is noise-free and deterministic;
 random numbers come from a PCG32 stream keyed by (pixel index, seed), so rendering a subset
 of pixels gives exactly the values a full render gives for those pixels. Next-event estimation
@@ -114,41 +119,75 @@ class EmitterTable:
 
     ``emitter``, ``pmf``, ``cdf``: one entry per emitter (a single null entry with pmf 0 when
     the scene has none); ``last``: index of the last emitter with a nonzero pmf (the CDF is
-    exactly 1 from there on), the end of the binary search."""
+    exactly 1 from there on), the end of the binary search.
+
+    ``exclude``: indices (into this order) of emitters this table never picks: their pmf is 0
+    and the others' are Mitsuba's renormalised to sum to 1 (all excluded: every pmf 0, and
+    :func:`sample_emitter_direction` returns weight 0). :func:`shade` uses such a table for
+    next-event estimation at the primary hit only (``Renderer(primary_exclude=)``). The
+    per-emitter ``mis_scale`` (this table's pmf over Mitsuba's, 0 where Mitsuba's is 0) turns
+    ``scene.pdf_emitter_direction`` into this table's pdf for MIS; ``excluded`` flags the
+    excluded entries; ``slot`` maps an emitter's Dr.Jit registry id (what an ``EmitterPtr``
+    holds) to its index + 1 here (0: not an emitter of the scene)."""
 
     DRJIT_STRUCT = VariantStruct(lambda: {"emitter": mi.EmitterPtr, "pmf": mi.Float,
-                                          "cdf": mi.Float, "last": mi.UInt32})
+                                          "cdf": mi.Float, "last": mi.UInt32,
+                                          "mis_scale": mi.Float, "excluded": mi.Bool,
+                                          "slot": mi.UInt32})
 
-    def __init__(self, scene: mi.Scene | None = None):
+    def __init__(self, scene: mi.Scene | None = None, exclude=()):
         if scene is None:
             self.emitter, self.pmf, self.cdf, self.last = (
                 mi.EmitterPtr(), mi.Float(), mi.Float(), mi.UInt32())
+            self.mis_scale, self.excluded, self.slot = mi.Float(), mi.Bool(), mi.UInt32()
             return
         ordered = stable_emitters(scene)
         n = len(ordered)
+        exclude = sorted({int(i) for i in exclude})
+        if exclude and not 0 <= exclude[0] <= exclude[-1] < n:
+            raise GlossrtError(f"emitter indices must lie in [0, {n}): the scene has {n} "
+                               f"emitter(s); got {exclude}")
+
+        def rid(e) -> int:  # Dr.Jit registry id: what an EmitterPtr holds
+            return int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0])
+
         if n == 0:
             ids, pmf = np.zeros(1, np.uint32), np.zeros(1, np.float32)
         else:
-            def rid(e) -> int:  # Dr.Jit registry id: what an EmitterPtr holds
-                return int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0])
-
             position = {rid(e): i for i, e in enumerate(scene.emitters())}
             # Mitsuba's pmf by its own emitter index (uniform: one value for all of them)
             mitsuba_pmf = np.broadcast_to(
                 np.array(scene.pdf_emitter(dr.arange(mi.UInt32, n)), np.float32).ravel(), (n,))
             ids = np.array([rid(e) for e in ordered], np.uint32)
             pmf = np.array([mitsuba_pmf[position[rid(e)]] for e in ordered], np.float32)
+        full = pmf
+        excluded = np.zeros(len(pmf), bool)
+        excluded[exclude] = True
+        if exclude:
+            kept = np.where(excluded, 0.0, full.astype(np.float64))
+            total = kept.sum()
+            pmf = (kept / total if total > 0 else kept).astype(np.float32)
+        scale = np.where(full > 0, pmf.astype(np.float64) / np.where(full > 0, full, 1.0), 0.0)
         cdf = np.cumsum(pmf, dtype=np.float64)
         positive = np.flatnonzero(pmf > 0)
         last = int(positive[-1]) if positive.size else 0
         if positive.size:
             cdf /= cdf[last]
         cdf[last:] = 1.0
+        slot = np.zeros(int(ids.max()) + 1, np.uint32)
+        if n:
+            slot[ids] = np.arange(1, n + 1, dtype=np.uint32)
         self.emitter = dr.reinterpret_array(mi.EmitterPtr, mi.UInt32(ids))
         self.pmf = mi.Float(pmf)
         self.cdf = mi.Float(cdf.astype(np.float32))
         self.last = dr.opaque(mi.UInt32, last)
-        dr.make_opaque(self.emitter, self.pmf, self.cdf)
+        self.mis_scale = mi.Float(scale.astype(np.float32))
+        self.excluded = mi.Bool(excluded)
+        self.slot = mi.UInt32(slot)
+        #: the excluded indices (a Python tuple, not part of the Dr.Jit struct)
+        self.exclude = tuple(exclude)
+        dr.make_opaque(self.emitter, self.pmf, self.cdf, self.mis_scale, self.excluded,
+                       self.slot)
 
     def __len__(self) -> int:
         """Number of emitters (the null entry of an emitter-less scene does not count)."""
@@ -224,14 +263,47 @@ def _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, active) -> mi.Color3f:
     return dr.select(delta, 0.0, share)
 
 
+def _primary_hit_weight(primary: EmitterTable | None, dsk: mi.DirectionSample3f,
+                        em_pdf: mi.Float, first: mi.Bool,
+                        active: mi.Bool) -> tuple[mi.Float, mi.Bool]:
+    """For a BSDF-sampled ray that hit an emitter: the MIS pdf of the emitter-sampling
+    technique that could have drawn the same direction, and whether the hit counts.
+
+    Without a primary table (``primary`` None) that is Mitsuba's ``em_pdf`` and every hit
+    counts. With one, at the primary hit (``first``: the ray left path vertex 0) the
+    next-event estimation there picked emitters from ``primary``, so the pdf is
+    ``em_pdf * mis_scale`` (its selection probability instead of Mitsuba's; Veach 1997,
+    eq. 9.13 needs the pdf of the technique actually used), and hits of excluded emitters do
+    not count; from deeper vertices both stay as they are."""
+    if primary is None:
+        return em_pdf, active
+    rid = dr.reinterpret_array(mi.UInt32, dsk.emitter)
+    on = active & first & (rid != 0)
+    k = dr.gather(mi.UInt32, primary.slot, rid, on)
+    on &= k != 0
+    scale = dr.gather(mi.Float, primary.mis_scale, k - 1, on)
+    excluded = dr.gather(mi.Bool, primary.excluded, k - 1, on)
+    return dr.select(on, em_pdf * scale, em_pdf), active & ~(on & excluded)
+
+
 @dr.syntax
 def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
-          emitters: EmitterTable | None = None) -> ShadeResult:
+          emitters: EmitterTable | None = None,
+          primary: EmitterTable | None = None) -> ShadeResult:
     """Trace one path per lane from ``ray`` and return its separated contributions.
     ``emitters``: the scene's :class:`EmitterTable` (built here when not given; pass it in
-    from outside when tracing inside ``dr.freeze``)."""
+    from outside when tracing inside ``dr.freeze``).
+
+    ``primary``: an :class:`EmitterTable` with excluded emitters (``EmitterTable(scene,
+    exclude=...)``), for path vertex 0 only: next-event estimation there samples the other
+    emitters from it (renormalised probabilities, so no sample is wasted), and a
+    BSDF-sampled ray from vertex 0 that hits an excluded emitter brings nothing, one that
+    hits another emitter is MIS-weighted with that table's pdf (:func:`_primary_hit_weight`).
+    So ``direct_*`` lacks the excluded emitters' light; ``emission`` (seen by the camera)
+    and every deeper vertex (``indirect_*``) are unchanged, with the same random numbers."""
     if emitters is None:
         emitters = EmitterTable(scene)
+    nee0 = emitters if primary is None else primary
     ctx_all = mi.BSDFContext()
     diffuse_mask, specular_mask = lobe_masks()
     ctx_d, ctx_s = _context(diffuse_mask), _context(specular_mask)
@@ -246,7 +318,7 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
     act0 = valid0 & (max_depth > 1)
 
     # next-event estimation, split by lobe; MIS against the full BSDF's pdf
-    ds, em_w = sample_emitter_direction(scene, emitters, si0, sampler.next_2d(), act0)
+    ds, em_w = sample_emitter_direction(scene, nee0, si0, sampler.next_2d(), act0)
     wo = si0.to_local(ds.d)
     f_d = bsdf0.eval(ctx_d, si0, wo, act0)
     f_s = bsdf0.eval(ctx_s, si0, wo, act0)
@@ -275,9 +347,10 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
         # emitter hit by BSDF sampling, MIS-weighted against emitter sampling
         dsk = mi.DirectionSample3f(scene, si=si, ref=prev_si)
         em_pdf = scene.pdf_emitter_direction(prev_si, dsk, ~prev_delta)
-        w_b = dr.select(prev_delta, 1.0, _mis(prev_pdf, em_pdf))
-        contrib = beta * w_b * si.emitter(scene).eval(si, active)
         first = depth == 1
+        em_pdf, counts = _primary_hit_weight(primary, dsk, em_pdf, first, active)
+        w_b = dr.select(prev_delta, 1.0, _mis(prev_pdf, em_pdf))
+        contrib = beta * w_b * si.emitter(scene).eval(si, counts)
         L_dir += dr.select(active & first, contrib, 0.0)
         L_ind += dr.select(active & ~first, contrib, 0.0)
 
@@ -502,14 +575,16 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
 def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  emitters: EmitterTable, table, motion_inputs, pixel: mi.UInt32,
                  seed: mi.UInt32, width: int, height: int, max_depth: int,
-                 jitter: mi.Point2f | None = None) -> dict:
+                 jitter: mi.Point2f | None = None,
+                 primary: EmitterTable | None = None) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
     ``jitter`` (pixels, in [-0.5, 0.5), or wider by ``Renderer.render``'s ``jitter_limit``)
     moves every primary ray off the pixel centre; the ``motion`` channel stays that of the
     pixel centre (docs/FORMATS.md: where the surface point seen through the pixel centre was
     in the previous frame, what the reprojecting consumers fetch at ``centre + motion``),
-    from a primary ray of its own through the centre."""
+    from a primary ray of its own through the centre. ``primary``: the table of
+    :func:`shade`'s next-event estimation at the primary hit (None: ``emitters``)."""
     from .motion import motion
 
     xc = mi.Float(pixel % width) + 0.5
@@ -520,7 +595,7 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     pos = mi.Point2f(x / width, y / height)
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)
-    r = shade(scene, sampler, ray, max_depth, emitters)
+    r = shade(scene, sampler, ray, max_depth, emitters, primary)
     out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
     bad = mi.UInt32(0)  # per lane: radiance values that were not finite
     color = dr.zeros(mi.Color3f)

@@ -21,7 +21,7 @@ import os
 import re
 import warnings
 import xml.etree.ElementTree as ET
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -343,6 +343,15 @@ _BSDF_CLASSES = {"SmoothDiffuse": "diffuse", "SmoothConductor": "conductor",
 _EMITTER_CLASSES = {"AreaLight": "area", "PointLight": "point",
                     "ConstantBackgroundEmitter": "constant", "EnvironmentMapEmitter": "envmap",
                     "DirectionalEmitter": "directional"}
+
+
+def emitter_kind(emitter) -> str:
+    """The plugin name of a Mitsuba emitter (``"area"``, ``"point"``, ``"directional"``,
+    ``"envmap"``, ``"constant"``; another class's name in lower case)."""
+    cls = emitter.class_name()
+    return _EMITTER_CLASSES.get(cls, cls.lower())
+
+
 #: what a scene file without an integrator gets: Mitsuba's ``path`` default, max_depth -1
 #: (unbounded; Russian roulette ends the paths from depth 5)
 MITSUBA_DEFAULT_MAX_DEPTH = -1
@@ -503,14 +512,32 @@ def check_size(size) -> tuple[int, int] | None:
     return w, h
 
 
+#: what :func:`load` takes (besides a built-in name): described in its errors
+SCENE_FORMS = ("a built-in scene name", "a Mitsuba XML file path", "a Mitsuba scene dict",
+               "a loaded mi.Scene")
+
+
 def load(
-    name_or_path: str,
+    scene,
     *,
     size: tuple[int, int] | None = None,
     orbit: float | None = None,
     frames: int = 1,
 ) -> SceneSetup:
-    """Load a built-in scene by name or a Mitsuba 3 XML file by path.
+    """Load a scene from any of:
+
+    * a built-in scene's name (``glossrt render --help`` lists them), with its animation;
+      the setup's ``name`` is that name;
+    * a Mitsuba 3 XML file's path (``str`` or ``os.PathLike``); ``name``: the file name
+      without ``.xml``;
+    * a Mitsuba scene dict as ``mi.load_dict`` takes it (``{"type": "scene", ...}``, e.g.
+      ``mi.cornell_box()``); ``name``: ``"dict"``;
+    * an already loaded ``mi.Scene`` (of the active variant; glossrt renders it as it is,
+      with a sensor of its own); ``name``: ``"scene"``.
+
+    Every form gets the same checks on what Mitsuba loaded (supported plugins, roughness,
+    finite geometry, the integrator's ``max_depth``). A dict or ``mi.Scene`` has no animation:
+    the camera is the scene's first sensor, static (a :class:`SceneError` when it has none).
 
     ``size`` (W, H) overrides the scene's film size; ``orbit`` (degrees over all
     ``frames``) adds a camera orbit to a scene without its own animation."""
@@ -519,43 +546,21 @@ def load(
         raise SceneError(f"orbit must be a finite number of degrees, got {orbit}")
     from . import library  # noqa: F401  (registers the built-in scenes)
 
-    if name_or_path in BUILTIN:
-        setup = from_spec(name_or_path, BUILTIN[name_or_path][0](), size=size)
+    if isinstance(scene, Mapping):
+        setup = _from_dict(scene, size)
+    elif isinstance(scene, (str, os.PathLike)):
+        name_or_path = os.fspath(scene)
+        if not isinstance(name_or_path, str):  # a bytes path
+            raise SceneError(f"scene path must be text, got {name_or_path!r}")
+        if name_or_path in BUILTIN:
+            setup = from_spec(name_or_path, BUILTIN[name_or_path][0](), size=size)
+        else:
+            setup = _from_file(name_or_path, size)
+    elif isinstance(scene, mi.Scene):
+        setup = _from_scene(scene, "scene", size, "scene object")
     else:
-        path = name_or_path
-        if not path.endswith(".xml") and not os.path.exists(path):
-            raise SceneError(
-                f"unknown scene {path!r}: not a built-in scene ({', '.join(sorted(BUILTIN))}) "
-                "and no such file"
-            )
-        if os.path.isdir(path):
-            raise SceneError(f"{path} is a folder, not a scene file")
-        if not os.path.isfile(path):
-            raise SceneError(f"scene file not found: {path}")
-        try:
-            ET.parse(path)
-        except ET.ParseError as e:
-            raise SceneError(f"{path}: not a valid XML scene ({e})") from None
-        try:
-            scene = mi.load_file(path)
-        except Exception as e:
-            why = _explain_load_error(path)
-            if why is not None:
-                raise SceneError(f"{path}: {why}") from None
-            msg = str(e).strip().splitlines()[-1] if str(e).strip() else repr(e)
-            raise SceneError(f"{path}: Mitsuba could not load the scene: {msg}") from None
-        # what Mitsuba loaded (``<include>``d files too), not the XML text
-        check_plugins(scene, path)
-        max_depth = integrator_max_depth(scene, path)
-        setup = SceneSetup(
-            os.path.splitext(os.path.basename(path))[0],
-            scene,
-            size=size,
-            max_depth=max_depth,
-            max_depth_from=("scene file" if scene.integrator() is not None
-                            else "Mitsuba's default (the scene file sets no integrator)"),
-            source=path,
-        )
+        raise SceneError(f"a scene must be {', '.join(SCENE_FORMS[:-1])} or {SCENE_FORMS[-1]}"
+                         f" (of variant {mi.variant()}), got {type(scene).__name__}")
     if orbit:
         if setup.camera_path is not None:
             warnings.warn(f"scene {setup.name!r} animates its own camera: orbit {orbit} "
@@ -564,11 +569,65 @@ def load(
     return setup
 
 
-def load_static(name_or_path: str, *, size: tuple[int, int] | None = None) -> SceneSetup:
-    """:func:`load` with the animation removed: the camera and every object stay at their rest
-    pose in all frames, so consecutive frames differ only in their noise (temporal-error and
-    steady-state timing sequences)."""
-    setup = load(name_or_path, size=size)
+def _from_scene(scene: mi.Scene, name: str, size, what: str, source: str | None = None,
+                label: str | None = None) -> SceneSetup:
+    """A static :class:`SceneSetup` named ``name`` of a loaded scene, checked like any scene
+    (errors say ``label``, default ``name``); ``what`` ("scene file", ...) is where its
+    integrator comes from, for ``meta["max_depth_from"]``."""
+    label = name if label is None else label
+    check_plugins(scene, label)  # what Mitsuba loaded (``<include>``d files too)
+    max_depth = integrator_max_depth(scene, label)
+    return SceneSetup(
+        name, scene, size=size, max_depth=max_depth,
+        max_depth_from=(what if scene.integrator() is not None
+                        else f"Mitsuba's default (the {what} sets no integrator)"),
+        source=source,
+    )
+
+
+def _from_dict(d: Mapping, size) -> SceneSetup:
+    if d.get("type") != "scene":
+        raise SceneError("a Mitsuba scene dict needs \"type\": \"scene\", got \"type\": "
+                         f"{d.get('type')!r}")
+    try:
+        scene = mi.load_dict(dict(d))
+    except Exception as e:
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else repr(e)
+        raise SceneError(f"dict: Mitsuba could not load the scene dict: {msg}") from None
+    return _from_scene(scene, "dict", size, "scene dict")
+
+
+def _from_file(path: str, size) -> SceneSetup:
+    if not path.endswith(".xml") and not os.path.exists(path):
+        raise SceneError(
+            f"unknown scene {path!r}: not a built-in scene ({', '.join(sorted(BUILTIN))}) "
+            "and no such file"
+        )
+    if os.path.isdir(path):
+        raise SceneError(f"{path} is a folder, not a scene file")
+    if not os.path.isfile(path):
+        raise SceneError(f"scene file not found: {path}")
+    try:
+        ET.parse(path)
+    except ET.ParseError as e:
+        raise SceneError(f"{path}: not a valid XML scene ({e})") from None
+    try:
+        scene = mi.load_file(path)
+    except Exception as e:
+        why = _explain_load_error(path)
+        if why is not None:
+            raise SceneError(f"{path}: {why}") from None
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else repr(e)
+        raise SceneError(f"{path}: Mitsuba could not load the scene: {msg}") from None
+    return _from_scene(scene, os.path.splitext(os.path.basename(path))[0], size, "scene file",
+                       source=path, label=path)
+
+
+def load_static(scene, *, size: tuple[int, int] | None = None) -> SceneSetup:
+    """:func:`load` (any of its scene forms) with the animation removed: the camera and every
+    object stay at their rest pose in all frames, so consecutive frames differ only in their
+    noise (temporal-error and steady-state timing sequences)."""
+    setup = load(scene, size=size)
     setup.camera_path = None
     setup.object_paths = {}
     return setup

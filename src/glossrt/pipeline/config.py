@@ -1,0 +1,182 @@
+"""The pipeline's choices: the stages' options, the presets and TOML descriptions (issue 25).
+
+A pipeline is described by a preset (:data:`PRESETS`) plus stage choices that override it:
+``{"direct": "ltc+ratio", "indirect": "svgf-lobe", "taa": True, ...}``. Every name and value
+is checked here, before a scene is touched: an unknown option or value is one
+:class:`~glossrt.errors.GlossrtError` line listing the choices.
+
+A TOML file describes a pipeline the same way::
+
+    preset = "okuno-iwasaki"      # optional (default schied2017)
+    direct = "ltc+ratio"          # any option of OPTIONS, at the top level
+    [indirect]                    # or per stage, as a table: method = ... plus its options
+    method = "svgf-lobe"
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Mapping
+from typing import Any
+
+from ..errors import GlossrtError
+
+DIRECT = ("pathtraced", "ltc", "ltc+bspvt", "ltc+ratio", "highlights")
+INDIRECT = ("svgf", "svgf-lobe", "atrous", "oidn", "none")
+TONEMAPS = ("srgb", "filmic")
+BSPVT_MODES = ("vertex", "pixel")
+
+#: option -> (allowed values, or a type) ; "auto" of ``direct`` is resolved per scene
+OPTIONS: dict[str, Any] = {
+    "direct": DIRECT + ("auto",),
+    "indirect": INDIRECT,
+    "taa": bool,
+    "taa_alpha": float,
+    "exposure": float,
+    "tonemap": TONEMAPS,
+    "bspvt_mode": BSPVT_MODES,
+    "bspvt_resolution": int,
+    "ratio_spp": int,
+    "highlight_samples": int,
+    "accumulate": bool,
+    "spp": int,
+    "seed": int,
+    "max_depth": int,
+}
+
+DEFAULTS: dict[str, Any] = {
+    "direct": "pathtraced",
+    "indirect": "svgf",
+    "taa": False,
+    "taa_alpha": 0.1,
+    "exposure": 0.0,
+    "tonemap": "filmic",
+    "bspvt_mode": "vertex",
+    "bspvt_resolution": 32,
+    "ratio_spp": 1,
+    "highlight_samples": 4,
+    "accumulate": False,
+    "spp": 1,
+    "seed": 0,
+    "max_depth": None,
+}
+
+#: the presets, named after what they reproduce (issue 25)
+PRESETS: dict[str, dict[str, Any]] = {
+    # Schied et al. 2017: 1 spp path-traced direct and indirect light, SVGF, TAA
+    "schied2017": {"direct": "pathtraced", "indirect": "svgf", "taa": True},
+    # Okuno & Iwasaki: LTC with BSPVT shadows for the polygon lights
+    "okuno-iwasaki": {"direct": "ltc+bspvt", "indirect": "svgf", "taa": True},
+    # Kimura & Tokoi: light shapes in the highlights (specular), LTC diffuse
+    "kimura-tokoi": {"direct": "highlights", "indirect": "svgf", "taa": True},
+    # Tokuyoshi 2015's lobe weights in the filter; at full resolution in this slice (the
+    # reduced-resolution indirect light with upsampling is not composed yet)
+    "tokuyoshi2015": {"direct": "pathtraced", "indirect": "svgf-lobe", "taa": False},
+    # everything: LTC+BSPVT when the occluders are static, LTC+ratio when one moves
+    "full": {"direct": "auto", "indirect": "svgf-lobe", "taa": True},
+    # progressive accumulation of the converged path-traced frame
+    "reference": {"direct": "pathtraced", "indirect": "none", "taa": False,
+                  "accumulate": True, "spp": 16},
+}
+
+#: what a preset still lacks against issue 25, recorded in the frames' meta
+PRESET_NOTES: dict[str, str] = {
+    "tokuyoshi2015": "indirect light at full resolution: the 1/2-resolution indirect light "
+                     "with lobe-aware upsampling is not part of the pipeline yet",
+    "full": "indirect light at full resolution and no specaa stage yet",
+}
+
+
+def _check_value(name: str, value: Any) -> Any:
+    kind = OPTIONS[name]
+    if value is None and name == "max_depth":
+        return None
+    if isinstance(kind, tuple):
+        if value not in kind:
+            raise GlossrtError(f"pipeline option {name}={value!r}: choose one of "
+                               f"{', '.join(map(str, kind))}")
+        return value
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise GlossrtError(f"pipeline option {name} must be true or false, got {value!r}")
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise GlossrtError(f"pipeline option {name} must be an integer, got {value!r}")
+        if name in ("bspvt_resolution", "ratio_spp", "highlight_samples", "spp") and value < 1:
+            raise GlossrtError(f"pipeline option {name} must be >= 1, got {value}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise GlossrtError(f"pipeline option {name} must be a number, got {value!r}")
+    value = float(value)
+    if name == "taa_alpha" and not 0.0 < value <= 1.0:
+        raise GlossrtError(f"pipeline option taa_alpha must lie in (0, 1], got {value}")
+    if value != value or abs(value) == float("inf"):
+        raise GlossrtError(f"pipeline option {name} must be finite, got {value}")
+    return value
+
+
+def resolve(preset: str | None = "schied2017", **choices: Any) -> dict[str, Any]:
+    """The full option dict of ``preset`` with ``choices`` applied, every name and value
+    checked (GlossrtError listing the choices otherwise)."""
+    preset = preset or "schied2017"
+    if preset not in PRESETS:
+        raise GlossrtError(f"unknown pipeline preset {preset!r}; choose one of "
+                           f"{', '.join(PRESETS)} (or a .toml file)")
+    check_names(choices)
+    out = dict(DEFAULTS)
+    out.update(PRESETS[preset])
+    for k, v in choices.items():
+        out[k] = _check_value(k, v)
+    out["preset"] = preset
+    return out
+
+
+def check_names(choices: Mapping[str, Any]) -> None:
+    unknown = sorted(set(choices) - set(OPTIONS))
+    if unknown:
+        raise GlossrtError(f"unknown pipeline option(s) {', '.join(unknown)}; the options are "
+                           f"{', '.join(OPTIONS)}")
+
+
+def load_toml(path: str | os.PathLike) -> tuple[str, dict[str, Any]]:
+    """``(preset, choices)`` of a TOML pipeline description (module docstring)."""
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise GlossrtError(f"pipeline file not found: {path}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise GlossrtError(f"{path}: not a valid TOML pipeline description ({e})") from None
+    preset = data.pop("preset", "schied2017")
+    if not isinstance(preset, str):
+        raise GlossrtError(f"{path}: preset must be a string, got {preset!r}")
+    choices: dict[str, Any] = {}
+    for key, value in data.items():
+        if isinstance(value, dict):  # [stage] table: method = ..., options
+            if key not in ("direct", "indirect", "taa", "display"):
+                raise GlossrtError(f"{path}: unknown stage table [{key}]; the stages with "
+                                   "options are direct, indirect, taa, display")
+            for k, v in value.items():
+                if k in ("method", "enabled"):
+                    choices[key] = v
+                else:
+                    choices[k] = v
+        else:
+            choices[key] = value
+    try:
+        resolve(preset, **choices)
+    except GlossrtError as e:
+        raise GlossrtError(f"{path}: {e}") from None
+    return preset, choices
+
+
+def parse(spec: str) -> tuple[str, dict[str, Any]]:
+    """``--pipeline PRESET|FILE``: a preset name, or a TOML file."""
+    if spec in PRESETS:
+        return spec, {}
+    if spec.endswith(".toml") or os.path.exists(spec):
+        return load_toml(spec)
+    raise GlossrtError(f"unknown pipeline {spec!r}: not a preset ({', '.join(PRESETS)}) "
+                       "and not a .toml file")

@@ -1,0 +1,330 @@
+"""glossrt.pipeline (issue 25, first slice): stage layers, no double counting, presets on
+built-in and XML scenes, configure() without re-tracing, refusals, the CLI's frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from glossrt import pipeline, render, scenes
+from glossrt.errors import GlossrtError
+from glossrt.frame import Frame
+
+SMALL = (32, 24)
+BSPVT_RES = 8  # coarse visibility maps: the trees build in about a second
+
+
+def _rgb(v):
+    return {"type": "rgb", "value": list(v)}
+
+
+def _rect(to_world, bsdf, emitter=None):
+    d = {"type": "rectangle", "to_world": to_world, "bsdf": bsdf}
+    if emitter:
+        d["emitter"] = emitter
+    return d
+
+
+def _no_occluder_scene(size=(40, 30)):
+    """A glossy floor and a glossy back wall under a quad light in front of the wall: no
+    point of either plane has the light occluded (the segment to the light stays on the
+    planes' lit side), and the planes light each other (indirect light)."""
+    from glossrt.backend import mi
+
+    T = mi.ScalarTransform4f
+    glossy = {"type": "roughplastic", "distribution": "ggx", "alpha": 0.3,
+              "diffuse_reflectance": _rgb((0.5, 0.45, 0.4))}
+    d = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3},
+        "sensor": {"type": "perspective", "fov": 50.0,
+                   "to_world": T().look_at(origin=[0, 1.2, 3.0], target=[0, 0.5, 0],
+                                           up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": size[0], "height": size[1]}},
+        "floor": _rect(T().rotate([1, 0, 0], -90).scale([2.0, 1.0, 1.0]), glossy),
+        "wall": _rect(T().translate([0, 1.0, -1.0]).scale([2.0, 1.0, 1.0]), glossy),
+        "light": _rect(T().translate([0.0, 1.4, 0.2]).rotate([1, 0, 0], 70)
+                       .scale([0.5, 0.3, 1.0]),
+                       {"type": "diffuse", "reflectance": _rgb((0, 0, 0))},
+                       {"type": "area", "radiance": _rgb((10.0, 9.5, 9.0))}),
+    }
+    return scenes.load(d, size=size)
+
+
+XML = """<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0, 2, 5" target="0, 0.3, 0" up="0, 1, 0"/>
+    </transform>
+    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/>
+    </film>
+  </sensor>
+  <shape type="cube" id="floor">
+    <transform name="to_world"><scale x="3" y="0.05" z="3"/></transform>
+    <bsdf type="roughplastic"><string name="distribution" value="ggx"/>
+      <float name="alpha" value="0.2"/></bsdf>
+  </shape>
+  <shape type="cube" id="box">
+    <transform name="to_world"><scale value="0.4"/><translate x="0" y="0.45" z="0"/></transform>
+    <bsdf type="roughconductor"><string name="distribution" value="ggx"/>
+      <float name="alpha" value="0.3"/></bsdf>
+  </shape>
+  <shape type="rectangle" id="light">
+    <transform name="to_world"><scale x="0.6" y="0.4"/><rotate x="1" angle="90"/>
+      <translate x="0" y="2.2" z="0.5"/></transform>
+    <emitter type="area"><rgb name="radiance" value="8, 8, 8"/></emitter>
+  </shape>
+</scene>
+"""
+
+
+@pytest.fixture(scope="module")
+def xml_path(tmp_path_factory):
+    p = tmp_path_factory.mktemp("xml") / "small.xml"
+    p.write_text(XML)
+    return str(p)
+
+
+def _sum_layers(f: Frame) -> np.ndarray:
+    return f.numpy("emission") + f.numpy("direct") + f.numpy("indirect")
+
+
+# -- layers and presets ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preset", list(pipeline.PRESETS))
+def test_every_preset_on_a_builtin_scene(preset):
+    pipe = pipeline.Pipeline("polygon-light", preset=preset, size=SMALL, progress=False,
+                             bspvt_resolution=BSPVT_RES)
+    for i in range(2):
+        f = pipe.render(i)
+    for name in pipeline.LAYERS + ("emission", "normal", "motion"):
+        assert name in f.names
+        assert np.isfinite(f.numpy(name)).all(), name
+    # the stage layers add up to the composed image (float32 adds)
+    np.testing.assert_allclose(f.numpy("composite"), _sum_layers(f), rtol=1e-6, atol=1e-6)
+    if not pipe.opts["taa"]:
+        np.testing.assert_array_equal(f.numpy("color"), f.numpy("composite"))
+    ms = f.meta["pipeline"]["stage_ms"]
+    assert set(ms) == {"gbuffer", "direct", "indirect", "composite", "taa"}
+    assert f.numpy("composite").mean() > 0.05
+
+
+@pytest.mark.parametrize("preset", list(pipeline.PRESETS))
+def test_every_preset_on_a_mitsuba_xml(xml_path, preset):
+    pipe = pipeline.Pipeline(xml_path, preset=preset, progress=False,
+                             bspvt_resolution=BSPVT_RES)
+    f = pipe.render(0)
+    f = pipe.render(1)
+    assert f.size == (32, 24)
+    np.testing.assert_allclose(f.numpy("composite"), _sum_layers(f), rtol=1e-6, atol=1e-6)
+    assert np.isfinite(f.numpy("color")).all()
+    img = pipe.display(f)
+    assert img.dtype == np.uint8 and img.shape == (24, 32, 3)
+
+
+def test_analytic_direct_leaves_the_lights_out_of_the_primary_hit():
+    """With direct=ltc the polygon light is excluded at the primary hit: the path-traced
+    direct channels of a scene lit only by it are 0, and its LTC light is in ``direct``."""
+    setup = _no_occluder_scene((24, 18))
+    f = pipeline.Pipeline(setup, direct="ltc", indirect="none", progress=False).render(0)
+    assert f.meta["pipeline"]["primary_exclude"] == [0]
+    assert np.abs(f.numpy("direct_diffuse")).max() == 0.0
+    assert np.abs(f.numpy("direct_specular")).max() == 0.0
+    assert f.numpy("direct").mean() > 0.05
+
+
+def test_ltc_composition_equals_the_converged_path_traced_image():
+    """direct=ltc (unshadowed) on a scene without occluders: the converged composed image
+    (path tracing with the light excluded at the primary hit, accumulated, plus LTC) equals
+    the converged path-traced image within LTC's own measured error (LTC's direct light
+    against the path tracer's converged direct light) plus noise. Counting the light twice
+    is far outside that."""
+    setup = _no_occluder_scene()
+    spp = 256
+    ref = render.Renderer(setup).render_reference(0, spp=spp, seed=11)
+    ref_color = ref.numpy("color")
+    pipe = pipeline.Pipeline(setup, direct="ltc", indirect="none", accumulate=True, spp=128,
+                             progress=False)
+    pipe.render(0)
+    f = pipe.render(0)  # 256 spp accumulated
+    assert f.meta["spp"] == 256
+    composed = f.numpy("color")
+    ltc = f.numpy("direct")
+    ref_direct = ref.numpy("direct_diffuse") + ref.numpy("direct_specular")
+    ltc_err = float(np.sqrt(np.mean((ltc - ref_direct) ** 2)))
+    err = float(np.sqrt(np.mean((composed - ref_color) ** 2)))
+    # the noise of two independent 256 spp estimates of the remaining (indirect) light
+    noise = float(np.sqrt(np.mean((f.numpy("indirect") - (
+        ref.numpy("indirect_diffuse") + ref.numpy("indirect_specular"))) ** 2)))
+    assert f.numpy("indirect").mean() > 0.002  # the planes do light each other
+    print(f"composed-vs-reference RMSE {err:.5f}, LTC error {ltc_err:.5f}, noise {noise:.5f}, "
+          f"mean {composed.mean():.4f} vs {ref_color.mean():.4f}")
+    assert err <= ltc_err + noise + 1e-4, (err, ltc_err, noise)
+    assert abs(composed.mean() - ref_color.mean()) < 0.03 * ref_color.mean()
+    double = ref_color + ltc  # what the composition would be without the exclusion
+    assert float(np.sqrt(np.mean((double - ref_color) ** 2))) > 5 * err
+
+
+# -- configure, recordings -----------------------------------------------------------------
+
+
+def test_configure_records_once_and_never_retraces_steady_frames():
+    setup = scenes.load_static("polygon-light", size=SMALL)
+    pipe = pipeline.Pipeline(setup, preset="schied2017", progress=False)
+    renderer = pipe.stages["gbuffer"].renderer
+    for i in range(4):
+        pipe.render(i)
+    steady = pipe.recordings()
+    for i in range(4, 7):
+        pipe.render(i)
+    assert pipe.recordings() == steady  # steady-state frames replay their recordings
+    pipe.configure(indirect="atrous")
+    assert pipe.stages["gbuffer"].renderer is renderer  # unchanged stages are kept
+    # the new filter records on its first frame and once more on its second (when its own
+    # history replaces the empty one: SVGF's two frozen stages see another input layout)
+    pipe.render(7)
+    pipe.render(8)
+    after = pipe.recordings()
+    assert after <= steady - 2 + 4  # two new frozen stages, at most two recordings each
+    for i in range(9, 11):
+        pipe.render(i)
+    assert pipe.recordings() == after
+    n_trace = renderer._trace_frozen.n_recordings
+    pipe.configure(direct="ltc")  # the exclusion changes: the trace records once more
+    for i in range(11, 13):
+        pipe.render(i)
+    assert renderer._trace_frozen.n_recordings == n_trace + 1
+    after = pipe.recordings()
+    for i in range(13, 16):
+        pipe.render(i)
+    assert pipe.recordings() == after
+    assert pipe.stages["gbuffer"].renderer is renderer
+
+
+def test_reset_and_taa_history():
+    pipe = pipeline.Pipeline("polygon-light", preset="schied2017", size=SMALL, progress=False)
+    pipe.render(0)
+    pipe.render(1)
+    assert pipe.stages["taa"].history is not None
+    pipe.reset()
+    assert pipe.stages["taa"].history is None
+    f = pipe.render(2)  # first frame after a reset: no history to blend
+    np.testing.assert_array_equal(f.numpy("color"), f.numpy("composite"))
+
+
+# -- refusals ----------------------------------------------------------------------------------
+
+
+def test_unknown_options_list_the_choices():
+    with pytest.raises(GlossrtError, match="unknown pipeline option.*bogus.*direct"):
+        pipeline.Pipeline("polygon-light", bogus=1)
+    with pytest.raises(GlossrtError, match="direct='ltx'.*pathtraced, ltc, ltc\\+bspvt"):
+        pipeline.Pipeline("polygon-light", direct="ltx")
+    with pytest.raises(GlossrtError, match="svgf, svgf-lobe, atrous, oidn, none"):
+        pipeline.Pipeline("polygon-light", indirect="bm3d")
+    with pytest.raises(GlossrtError, match="unknown pipeline 'nope'.*schied2017"):
+        pipeline.Pipeline("polygon-light", preset="nope")
+    pipe = pipeline.Pipeline("polygon-light", size=SMALL, progress=False)
+    with pytest.raises(GlossrtError, match="taa must be true or false"):
+        pipe.configure(taa="yes")
+    assert pipe.opts["taa"] is True  # nothing changed
+
+
+def test_bspvt_refused_when_an_occluder_moves():
+    from glossrt.scenes.library import polygon_light_scene
+
+    spec = polygon_light_scene(0.25, teapot_n=2, floor_n=4, sphere_n=4)
+    spec.object_paths["teapot"] = lambda f: scenes.translation((0.01 * f, 0.0, 0.0))
+    setup = scenes.from_spec("moving-teapot", spec, size=SMALL)
+    with pytest.raises(GlossrtError, match="object 'teapot'.*moves.*ltc\\+ratio"):
+        pipeline.Pipeline(setup, preset="okuno-iwasaki", progress=False)
+    # full picks the ratio estimator instead
+    pipe = pipeline.Pipeline(setup, preset="full", progress=False)
+    assert pipe.direct_mode == "ltc+ratio"
+
+
+def test_highlights_refused_without_polygon_lights():
+    from glossrt.backend import mi
+
+    d = {"type": "scene",
+         "sensor": {"type": "perspective",
+                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, 1, 3], target=[0, 0, 0],
+                                                               up=[0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": 16, "height": 12}},
+         "floor": {"type": "rectangle",
+                   "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),
+                   "bsdf": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2}},
+         "lamp": {"type": "point", "position": [0, 1, 0], "intensity": _rgb((3, 3, 3))}}
+    with pytest.raises(GlossrtError, match="direct=highlights.*no polygon.*pathtraced"):
+        pipeline.Pipeline(d, preset="kimura-tokoi", progress=False)
+
+
+def test_point_lights_analytic_with_shadow_rays():
+    """A point light over a floor with a box between them: with direct=ltc the lamp is
+    shaded analytically with a shadow ray and left out of the primary hit; the converged
+    composition matches the converged path-traced image (the shadow included)."""
+    from glossrt.backend import mi
+
+    T = mi.ScalarTransform4f
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "fov": 50.0,
+                    "to_world": T().look_at(origin=[0, 2.5, 3], target=[0, 0, 0], up=[0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": 24, "height": 18}},
+         "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2.0),
+                   "bsdf": {"type": "diffuse", "reflectance": _rgb((0.6, 0.6, 0.6))}},
+         "box": {"type": "cube", "to_world": T().translate([0, 0.6, 0]).scale(0.25),
+                 "bsdf": {"type": "diffuse", "reflectance": _rgb((0.4, 0.4, 0.4))}},
+         "lamp": {"type": "point", "position": [0.0, 1.6, 0.0], "intensity": _rgb((4, 4, 4))}}
+    setup = scenes.load(d)
+    ref = render.Renderer(setup, max_depth=2).render_reference(0, spp=64, seed=3)
+    pipe = pipeline.Pipeline(setup, direct="ltc", indirect="none", accumulate=True, spp=64,
+                             max_depth=2, progress=False)
+    f = pipe.render(0)
+    assert f.meta["pipeline"]["point_lights"].startswith("analytic")
+    ref_direct = ref.numpy("direct_diffuse") + ref.numpy("direct_specular")
+    # diffuse surfaces, point light: the path tracer's NEE is exact per pixel (no noise)
+    np.testing.assert_allclose(f.numpy("direct"), ref_direct, atol=2e-3, rtol=2e-3)
+    assert (ref_direct[..., 0] < 1e-6).sum() > 10  # the box's shadow is in the image
+
+
+# -- TOML and CLI ------------------------------------------------------------------------------
+
+
+def test_toml_description(tmp_path):
+    p = tmp_path / "pipe.toml"
+    p.write_text('preset = "okuno-iwasaki"\ntaa = false\n[direct]\nmethod = "ltc+ratio"\n'
+                 'ratio_spp = 2\n[indirect]\nmethod = "atrous"\n')
+    preset, choices = pipeline.load_toml(p)
+    assert preset == "okuno-iwasaki"
+    assert choices == {"taa": False, "direct": "ltc+ratio", "ratio_spp": 2,
+                       "indirect": "atrous"}
+    pipe = pipeline.Pipeline("polygon-light", preset=str(p), size=SMALL, progress=False)
+    assert (pipe.direct_mode, pipe.opts["indirect"], pipe.opts["taa"]) == (
+        "ltc+ratio", "atrous", False)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('direct = "ltc"\n[upsample]\nfactor = 2\n')
+    with pytest.raises(GlossrtError, match="unknown stage table \\[upsample\\]"):
+        pipeline.load_toml(bad)
+
+
+def test_cli_writes_composed_frames_with_the_layers(tmp_path):
+    from glossrt.cli import main
+
+    out = tmp_path / "frames"
+    rc = main(["render", "polygon-light", "--pipeline", "schied2017", "--frames", "2",
+               "--size", "32x24", "--out", str(out)])
+    assert rc == 0
+    f = Frame.load(out / "frame_0001.exr")
+    for name in pipeline.LAYERS + render.GBUFFER_OUT + ("emission", "direct_diffuse"):
+        assert name in f.names, name
+    meta = f.meta["pipeline"]
+    assert meta["preset"] == "schied2017"
+    assert set(meta["stage_ms"]) == {"gbuffer", "direct", "indirect", "composite", "taa"}
+    assert meta["stages"]["composite"]["inputs"] == ["frame", "direct", "indirect"]
+    np.testing.assert_allclose(f.numpy("composite"), _sum_layers(f), rtol=1e-6, atol=1e-6)
+    bad = tmp_path / "bad"
+    assert main(["render", "polygon-light", "--pipeline", "okuno-iwasaki", "--size", "32x24",
+                 "--out", str(bad), "--spp", "4"]) != 0
+    assert not bad.exists()  # refused before anything is written
