@@ -284,6 +284,8 @@ def cmd_render(args) -> int:
     reference = args.reference or args.mitsuba or args.spp > 1
     if args.pipeline is not None:
         return _render_pipeline(args, size)
+    if args.bspvt is not None:
+        raise GlossrtError("--bspvt (prebuilt BSPVT trees) goes with --pipeline")
     if args.specaa is not None:
         from .specaa import parse_method
 
@@ -352,11 +354,13 @@ def _render_pipeline(args, size) -> int:
     pipeline.resolve(preset, **choices)
     todo = list(range(args.start, args.start + args.frames, args.every))
     _refuse_overwrite([Path(args.out) / frame_filename(i) for i in todo],
-                      _scene_files(args.scene), "render --out")
+                      _scene_files(args.scene) + ([Path(args.bspvt)] if args.bspvt else []),
+                      "render --out")
     setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
     if size is None:
         _check_memory(setup.size, "the scene's film size")
-    pipe = pipeline.Pipeline(setup, preset=preset, **choices)  # every refusal before work
+    # every refusal before work (a --bspvt file of another scene too)
+    pipe = pipeline.Pipeline(setup, preset=preset, bspvt=args.bspvt, **choices)
     out = _writable_dir(args.out)
     desc = f"pipeline {preset} {setup.name} {setup.size[0]}x{setup.size[1]}"
     with Progress(len(todo), desc) as p:
@@ -796,6 +800,10 @@ COMMANDS: tuple[Command, ...] = (
                           "(schied2017, okuno-iwasaki, kimura-tokoi, tokuyoshi2015, full, "
                           "reference) or a TOML file; writes color plus every stage's layer "
                           "and the per-stage timings (docs/FORMATS.md)"),
+                _arg("--bspvt", default=None, metavar="FILE",
+                     help="--pipeline with direct=ltc+bspvt: prebuilt trees (`glossrt bspvt "
+                          "build`) instead of building them; refused unless they fit the "
+                          "scene"),
             ), more_help=_builtin_scenes_help),
     Command("light", cmd_light,
             "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",

@@ -29,13 +29,16 @@ import numpy as np
 
 from ..backend import mi
 
-__all__ = ["SCHLICK", "CONDUCTOR", "DIELECTRIC", "ROW", "Fresnel", "fresnel_exact",
+__all__ = ["SCHLICK", "CONDUCTOR", "DIELECTRIC", "NONE", "ROW", "Fresnel", "fresnel_exact",
            "effective_cos", "split_sum"]
 
-#: ``Fresnel.kind``: only F0 is known (Schlick's form), a conductor, a dielectric coating
+#: ``Fresnel.kind``: only F0 is known (Schlick's form), a conductor, a dielectric coating, or
+#: no specular lobe at all (Mitsuba's ``diffuse``: ``F = 0`` at every angle, where Schlick's
+#: form with ``F0 = 0`` would still leave its grazing ``(1 - cos)^5`` term)
 SCHLICK = 0
 CONDUCTOR = 1
 DIELECTRIC = 2
+NONE = 3
 
 
 @dataclass(frozen=True)
@@ -64,15 +67,19 @@ def fresnel_exact(cos: mi.Float, kind, eta: mi.Color3f, k: mi.Color3f, scale: mi
     """The Fresnel term at ``cos = wo.h`` per lane, as Mitsuba's plugins evaluate it:
     conductors ``mi.fresnel_conductor`` with ``eta + i k``, dielectrics ``mi.fresnel`` with
     ``eta``, both times ``scale``; :data:`SCHLICK` lanes Schlick's form with ``f0``
-    (Schlick 1994). ``kind`` is per lane (``mi.UInt32``) or a Python int."""
+    (Schlick 1994); :data:`NONE` lanes (no specular lobe) 0. ``kind`` is per lane
+    (``mi.UInt32``) or a Python int."""
     c = dr.clip(mi.Float(cos), 0.0, 1.0)
     m = 1.0 - c
     schlick = f0 + (1.0 - f0) * (m * m * m * m * m)
     if isinstance(kind, int) and kind == SCHLICK:
         return mi.Color3f(schlick)
+    if isinstance(kind, int) and kind == NONE:
+        return dr.zeros(mi.Color3f, dr.width(c))
     cond = mi.Color3f(*(mi.fresnel_conductor(c, mi.Complex2f(eta[i], k[i])) for i in range(3)))
     diel = mi.Color3f(*(mi.fresnel(c, eta[i])[0] for i in range(3)))
     exact = dr.select(kind == CONDUCTOR, cond, diel) * scale
+    exact = dr.select(kind == NONE, 0.0, exact)
     return dr.select(kind == SCHLICK, schlick, exact)
 
 
@@ -87,7 +94,7 @@ def split_sum(norm: mi.Float, fres: mi.Float, kind, eta: mi.Color3f, k: mi.Color
               scale: mi.Color3f, f0: mi.Color3f) -> mi.Color3f:
     """``integral rho F cos`` from a split-sum table's ``norm`` and ``fres``: Schlick's exact
     split ``F0 (norm - fres) + fres`` on :data:`SCHLICK` lanes, ``norm F(c_eff)`` with the exact
-    term elsewhere (module docstring)."""
+    term elsewhere (module docstring; 0 on :data:`NONE` lanes)."""
     schlick = f0 * (norm - fres) + fres
     if isinstance(kind, int) and kind == SCHLICK:
         return mi.Color3f(schlick)

@@ -61,6 +61,16 @@ SIGNAL_SETS = {
         (("direct_diffuse", "direct_specular"), ("albedo_diffuse", "albedo_specular")),
         (("indirect_diffuse", "indirect_specular"), ("albedo_diffuse", "albedo_specular")),
     ],
+    # one half of "separate" (the pipeline's reduced-resolution indirect light and its
+    # full-resolution path-traced direct light, glossrt.pipeline.stages)
+    "direct": [
+        (("direct_diffuse",), ("albedo_diffuse",)),
+        (("direct_specular",), ("albedo_specular",)),
+    ],
+    "indirect": [
+        (("indirect_diffuse",), ("albedo_diffuse",)),
+        (("indirect_specular",), ("albedo_specular",)),
+    ],
     "single": [
         (("direct_diffuse", "direct_specular", "indirect_diffuse", "indirect_specular"),
          ("albedo_diffuse", "albedo_specular")),
@@ -262,8 +272,12 @@ class SVGFParams:
     spatial: str = "svgf"  # or "dammertz": the a-trous-temporal baseline
     temporal: bool = True
     # "normal": the paper's w_n; "lobe": Tokuyoshi 2015's specular-lobe weight instead of w_n
-    # for the specular signals (beyond the papers; needs signals="separate")
+    # for the specular signals (beyond the papers; needs one component per signal:
+    # signals "separate", "direct" or "indirect")
     weights: str = "normal"
+    # "color": the remodulated image plus emission; "illumination": the filtered demodulated
+    # signals themselves, 3 channels each in SIGNAL_SETS order (an upsampler remodulates them)
+    output: str = "color"
     beta: float = 20.0
     kappa: float = 100.0
     # Dammertz 2010 weights (used when spatial == "dammertz")
@@ -329,8 +343,11 @@ def _reconstruct(frame_ch: dict, colors, moments, albedos, length, lanes, p: SVG
             dr.eval(c)
         if level == p.feedback_level:
             feedback = c
-    for k in range(n_sig):
-        out = add(out, remodulate(c[k], albedos[k]))
+    if p.output == "illumination":
+        out = [ch for k in range(n_sig) for ch in c[k]]
+    else:
+        for k in range(n_sig):
+            out = add(out, remodulate(c[k], albedos[k]))
     new_hist = History(color=feedback, moments=moments, length=length, normal=gb.normal,
                        inv_z=gb.inv_z, mesh=gb.mesh)
     return out, new_hist
@@ -362,8 +379,12 @@ class SVGF:
             raise GlossrtError("variance must be 'temporal' or 'spatial'")
         if self.params.weights not in ("normal", "lobe"):
             raise GlossrtError("weights must be 'normal' or 'lobe'")
-        if self.params.weights == "lobe" and self.params.signals != "separate":
-            raise GlossrtError("weights='lobe' needs signals='separate' (a lobe per signal)")
+        if self.params.weights == "lobe" and any(
+                len(rad) != 1 for rad, _ in SIGNAL_SETS[self.params.signals]):
+            raise GlossrtError("weights='lobe' needs signals='separate' (a lobe per signal; "
+                               "or its halves 'direct', 'indirect')")
+        if self.params.output not in ("color", "illumination"):
+            raise GlossrtError("output must be 'color' or 'illumination'")
         self.frozen = frozen
         # two frozen stages: the compaction of young-history pixels between them has a
         # data-dependent size, which a single frozen function would re-record every frame

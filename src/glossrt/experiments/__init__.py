@@ -7,7 +7,9 @@ and ``glossrt bench`` / ``glossrt experiment``:
 * :mod:`.ltc`: Heitz et al. 2016's LTC against quadrature and Monte Carlo;
 * :mod:`.bspvt`: Okuno & Iwasaki's BSPVT shadows, with the ratio estimator beside them;
 * :mod:`.highlights`: Kimura & Tokoi 2004's light-shape highlights;
-* :mod:`.specaa`: specular antialiasing (Kaplanyan et al. 2016, Tokuyoshi & Kaplanyan 2021).
+* :mod:`.specaa`: specular antialiasing (Kaplanyan et al. 2016, Tokuyoshi & Kaplanyan 2021);
+* :mod:`.pipeline`: the frame pipeline that composes them (issue 25), every preset against
+  converged references.
 
 Each module registers its report section (:func:`glossrt.report.register_section`), its
 benchmark case (:func:`glossrt.report.registry.benchmark`) and its ``glossrt experiment``
@@ -21,7 +23,8 @@ from __future__ import annotations
 import importlib
 
 #: the experiment modules, one per paper (``upsampling`` is the second half of ``lobes``'s)
-MODULES = ("svgf", "lobes", "upsampling", "ltc", "bspvt", "highlights", "specaa")
+MODULES = ("svgf", "lobes", "upsampling", "ltc", "bspvt", "highlights", "specaa",
+           "pipeline")
 
 
 def load_all() -> None:

@@ -14,7 +14,10 @@ where a frame has no such channel):
 The Fresnel term is Mitsuba's exact conductor or dielectric one when the shading functions are
 given :func:`fresnel_image` (the CLI's choice: per sample in the Monte Carlo reference, at the
 lobe's effective angle in LTC's split sum, :mod:`glossrt.brdf.fresnel`), Schlick's with the
-material's F0 when given an (H, W, 3) F0 image. What it still approximates: LTC's fit of the
+material's F0 when given an (H, W, 3) F0 image. A material without a specular lobe
+(Mitsuba's ``diffuse``) has no specular term in :func:`fresnel_image`'s rows (Fresnel kind
+NONE: ``F = 0``); an F0 image cannot say so, and Schlick's form with its F0 = 0 keeps a faint
+grazing ``(1 - wo.h)^5`` lobe there. What it still approximates: LTC's fit of the
 lobe and the effective angle of its Fresnel weight, and ``roughplastic``'s diffuse lobe, taken
 as Lambert with the ``albedo_diffuse`` the renderer writes.
 
@@ -31,7 +34,7 @@ import numpy as np
 
 from ..backend import mi
 from ..brdf import microfacet as mf
-from ..brdf.fresnel import ROW, fresnel_exact, split_sum
+from ..brdf.fresnel import NONE, ROW, Fresnel, fresnel_exact, split_sum
 from ..brdf.ggx import ALPHA_MIN, fresnel_schlick
 from ..errors import FrameError, GlossrtError
 from ..images import check_frame, split, view_directions
@@ -163,7 +166,11 @@ def mesh_material_tables(meshes, with_scale: bool = True
     ``rows`` and ``scales``)."""
     from ..render.materials import DIFFUSE_SCALE_NODES, describe_bsdf
 
-    rows = np.array([describe_bsdf(m.bsdf()).fresnel.row() for m in meshes],
+    # a BSDF without a specular lobe (Mitsuba's ``diffuse``) gets the Fresnel term NONE
+    # (F = 0): Schlick's form with F0 = 0 would give it a grazing (1 - wo.h)^5 lobe that
+    # Mitsuba does not render
+    mats = [describe_bsdf(m.bsdf()) for m in meshes]
+    rows = np.array([(mt.fresnel if mt.has_specular else Fresnel(NONE)).row() for mt in mats],
                     np.float64).reshape(len(meshes), ROW)
     if not with_scale:
         return rows, None

@@ -5,6 +5,24 @@
 >>> frame = pipe.render(0)          # Frame: color + every stage's layer  # doctest: +SKIP
 >>> pipe.configure(direct="ltc+ratio")   # re-records the changed stage once  # doctest: +SKIP
 >>> rgb8 = pipe.display(frame)      # (H, W, 3) uint8 for viewers     # doctest: +SKIP
+>>> pipe.set_camera(position=(0, 1, 4), target=(0, 0.5, 0))  # explicit pose  # doctest: +SKIP
+>>> pipe.set_transform("light", matrix)  # a polygon light or object, rigid  # doctest: +SKIP
+>>> frame = pipe.render(1)   # posed explicitly, the rest from the animation  # doctest: +SKIP
+
+Posing: a frame is posed by its index (the scene's animation) or explicitly
+(:meth:`Pipeline.set_camera`, :meth:`Pipeline.set_transform`, :meth:`Pipeline.clear_pose`):
+explicit parts replace the animation's in every later frame. Motion vectors (and so the
+denoiser's and TAA's reprojection) point back to the pose of the previous frame rendered,
+whatever its index. A new pose replays the frozen kernels (camera, shapes and lights are
+their inputs): it never re-records.
+
+BSPVT trees (``direct=ltc+bspvt``) are built on first use with a progress bar and cached in
+memory keyed by the occluders' geometry and the resolution (:func:`stages.scene_trees`;
+``bspvt_cache=DIR`` also keeps them on disk); ``bspvt=FILE`` uses prebuilt trees
+(``glossrt bspvt build``), checked against the scene before any work. Moving an occluder
+invalidates them: :meth:`Pipeline.set_transform` refuses it under ``direct=ltc+bspvt`` and the
+``full`` preset (``direct=auto``) switches to ``ltc+ratio`` while an occluder is away from its
+rest pose (and back when it returns: the trees are still cached).
 
 Stages (:mod:`glossrt.pipeline.stages`, each with declared input and output channels):
 ``gbuffer`` -> ``direct`` -> ``indirect`` -> ``composite`` -> ``taa`` (-> ``display``).
@@ -21,10 +39,12 @@ is one :class:`~glossrt.errors.GlossrtError` raised by the constructor or
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
 import drjit as dr
+import numpy as np
 
 from ..errors import GlossrtError
 from ..frame import Frame
@@ -57,14 +77,25 @@ def _setup_of(scene_or_setup, size):
     return load(scene_or_setup, size=size)
 
 
+def _is_occluder(setup, sid: str) -> bool:
+    shape = next((s for s in setup.shapes if s.id() == sid), None)
+    return shape is not None and not shape.is_emitter()
+
+
 def moving_occluders(setup) -> list[str]:
-    """Ids of the shapes that move in ``setup``'s animation and are not lights."""
-    moving = []
-    for sid in setup.object_paths:
-        shape = next((s for s in setup.shapes if s.id() == sid), None)
-        if shape is not None and not shape.is_emitter():
-            moving.append(sid)
-    return moving
+    """Ids of the shapes that are not lights and move: in ``setup``'s animation, or placed
+    away from their rest pose explicitly (``SceneSetup.object_overrides``, not identity)."""
+    moved = list(setup.object_paths)
+    moved += [sid for sid, m in getattr(setup, "object_overrides", {}).items()
+              if sid not in moved and not np.array_equal(m, np.eye(4))]
+    return [sid for sid in moved if _is_occluder(setup, sid)]
+
+
+def _matrix(m):
+    """A 4x4 (or 3x4) NumPy matrix of ``m``: array-like or a Mitsuba transform."""
+    from ..scenes import to_matrix
+
+    return to_matrix(m) if hasattr(m, "matrix") else m
 
 
 class Pipeline:
@@ -73,20 +104,31 @@ class Pipeline:
     ``setup_or_scene``: a :class:`glossrt.scenes.SceneSetup`, or anything
     :func:`glossrt.scenes.load` takes (built-in name, XML path, scene dict, ``mi.Scene``);
     ``preset``: a name of :data:`PRESETS` or a ``.toml`` file; ``choices``: options of
-    :data:`OPTIONS` overriding the preset. ``progress``: progress bars (BSPVT's trees)."""
+    :data:`OPTIONS` overriding the preset. ``progress``: progress bars (BSPVT's trees).
+    ``bspvt``: a file of prebuilt BSPVT trees (``glossrt bspvt build``, or a
+    :class:`glossrt.lights.bspvt.BSPVT`) for ``direct=ltc+bspvt`` (or ``auto``), checked against
+    the scene before any work; ``bspvt_cache``: a folder where built trees are kept, keyed by
+    the geometry, and found again by later pipelines."""
 
     def __init__(self, setup_or_scene, preset: str = "schied2017", size=None,
-                 progress: bool = True, **choices: Any):
+                 progress: bool = True, bspvt=None, bspvt_cache=None, **choices: Any):
         if preset not in PRESETS:
             preset, file_choices = parse(preset)
             choices = {**file_choices, **choices}
         self.opts = resolve(preset, **choices)  # names and values, before the scene loads
+        if bspvt_cache is not None and not os.path.isdir(bspvt_cache):
+            raise GlossrtError(f"bspvt_cache: not a folder: {bspvt_cache}")
+        self.bspvt_cache = bspvt_cache
+        trees = self._load_trees(bspvt, self.opts)  # a bad file fails before the scene loads
         self.setup = _setup_of(setup_or_scene, size)
+        self.setup.prepare_to_move()  # moving a shape later never re-records (set_transform)
         self.progress = progress
         self.stages: dict[str, Stage] = {}
         self._gbuffer: GBufferStage | None = None
         self.frames = 0
-        self._apply(self.opts)
+        self._last_pose = None  # the pose of the previous frame rendered
+        self.bspvt_trees = None
+        self._apply(self.opts, trees)
 
     # -- configuration ---------------------------------------------------------------------
     @property
@@ -103,13 +145,41 @@ class Pipeline:
             return mode
         return "ltc+ratio" if moving_occluders(self.setup) else "ltc+bspvt"
 
-    def _check(self, opts: dict, direct: str) -> tuple[list, list]:
+    @staticmethod
+    def _load_trees(bspvt, opts: dict):
+        """The prebuilt trees of ``bspvt`` (a path or BSPVT trees; None: none), refused with
+        a ``direct`` that never uses them."""
+        if bspvt is None:
+            return None
+        if opts["direct"] not in ("ltc+bspvt", "auto"):
+            what = os.fspath(bspvt) if isinstance(bspvt, (str, os.PathLike)) else "trees"
+            raise GlossrtError(f"bspvt={what}: direct={opts['direct']} does not use BSPVT "
+                               "trees; choose "
+                               "direct=ltc+bspvt (presets okuno-iwasaki, full)")
+        if isinstance(bspvt, (str, os.PathLike)):
+            from ..lights.bspvt import BSPVT
+
+            return BSPVT.load(os.fspath(bspvt))
+        if not hasattr(bspvt, "vertex_count"):
+            raise GlossrtError("bspvt must be a BSPVT tree file (glossrt bspvt build) or "
+                               f"glossrt.lights.bspvt.BSPVT trees, got {type(bspvt).__name__}")
+        return bspvt
+
+    def _check(self, opts: dict, direct: str, trees=None) -> tuple[list, list]:
         """Every refusal of ``opts`` for this scene, before any work. Returns the polygon and
-        point/directional lights at frame 0."""
+        point/directional lights at frame 0. ``trees``: prebuilt BSPVT trees (checked
+        against the scene: :func:`glossrt.lights.bspvt.match_scene`)."""
         from ..lights.analytic import analytic_lights
         from ..lights.scene import polygon_lights
 
         name = self.setup.name
+        if opts["indirect_scale"] > 1:  # the reduced-resolution indirect light
+            from .stages import check_scale
+
+            check_scale(self.setup.size, opts["indirect_scale"])
+            if opts["accumulate"]:
+                raise GlossrtError("accumulate=true traces the converged reference at full "
+                                   "resolution: use indirect_scale=1")
         polys = polygon_lights(self.setup, 0) if direct != "pathtraced" else []
         points = analytic_lights(self.setup, 0) if direct != "pathtraced" else []
         if direct in POLYGON_MODES and not polys and (direct != "ltc" or not points):
@@ -126,6 +196,13 @@ class Pipeline:
             if not scene_meshes(self.setup.scene):
                 raise GlossrtError(f"direct=ltc+bspvt: scene {name!r} has no triangle "
                                    "meshes to precompute visibility at; use direct=ltc+ratio")
+            if trees is not None:
+                from ..lights.bspvt import match_scene
+
+                try:
+                    match_scene(self.setup.scene, trees)
+                except GlossrtError as e:
+                    raise GlossrtError(f"bspvt: scene {name!r}: {e}") from None
         if direct != "pathtraced":
             from ..render.pathtracer import ShapeTable
 
@@ -154,16 +231,19 @@ class Pipeline:
                 out.append(index)
         return tuple(out)
 
-    def _apply(self, opts: dict) -> None:
+    def _apply(self, opts: dict, trees=None) -> None:
         old = getattr(self, "_applied", None)
         direct = self._resolve_direct(opts)
-        polys, points = self._check(opts, direct)
+        trees = self.bspvt_trees if trees is None else trees
+        polys, points = self._check(opts, direct, trees)
         exclude = self._exclude(direct, polys, points)
+        self.bspvt_trees = trees
 
         def same(*keys: str) -> bool:
             return old is not None and all(old[k] == opts[k] for k in keys)
 
-        if not same("max_depth", "seed", "accumulate", "spp") or self._gbuffer is None:
+        if (not same("max_depth", "seed", "accumulate", "spp", "indirect_scale")
+                or self._gbuffer is None):
             self._gbuffer = GBufferStage(self.setup, opts, exclude)
         elif self._gbuffer.exclude != exclude:
             # the frozen trace records once more (render.Renderer.primary_exclude)
@@ -172,15 +252,19 @@ class Pipeline:
             self._gbuffer.reset()
         stages: dict[str, Stage] = {"gbuffer": self._gbuffer}
         prev = self.stages
-        if (old is not None and old.get("_direct") == direct
+        if (old is not None and old.get("_direct") == direct and old.get("_trees") is trees
                 and same("bspvt_mode", "bspvt_resolution", "ratio_spp", "highlight_samples")):
             stages["direct"] = prev["direct"]
         else:
-            stages["direct"] = DirectStage(self.setup, opts, direct, self.progress)
-        if old is not None and same("indirect") and old.get("_direct") == direct:
+            stages["direct"] = DirectStage(self.setup, opts, direct, self.progress,
+                                           trees=trees, cache_dir=self.bspvt_cache)
+        if (old is not None and old.get("_direct") == direct
+                and same("indirect", "indirect_scale", "upsampling", "upsampling_weight",
+                         "resample", "resample_threshold", "resample_spp", "max_depth",
+                         "seed")):
             stages["indirect"] = prev["indirect"]
         else:
-            stages["indirect"] = IndirectStage(opts["indirect"])
+            stages["indirect"] = IndirectStage(opts["indirect"], opts, self.setup, exclude)
         stages["composite"] = prev.get("composite") or CompositeStage()
         if old is not None and same("taa", "taa_alpha"):
             stages["taa"] = prev["taa"]
@@ -188,23 +272,107 @@ class Pipeline:
             stages["taa"] = TAAStage(opts["taa"], opts["taa_alpha"])
         self.stages = stages
         self.opts = dict(opts)
-        self._applied = dict(opts, _direct=direct)
+        self._applied = dict(opts, _direct=direct, _trees=trees)
         self.direct_mode = direct
         self.point_lights = ("analytic, one shadow ray each" if direct != "pathtraced"
                              else "path-traced")
 
-    def configure(self, **choices: Any) -> None:
+    def configure(self, bspvt=None, **choices: Any) -> None:
         """Change options between frames (checked first; nothing changes on a refusal). Only
         the stages whose options changed are rebuilt: their frozen kernels record once on
-        the next frame; the others keep replaying theirs."""
+        the next frame; the others keep replaying theirs. ``bspvt``: another file of prebuilt
+        trees (as the constructor's)."""
         config.check_names(choices)
         opts = resolve(self.opts["preset"], **{**self.choices, **choices})
-        self._apply(opts)
+        self._apply(opts, self._load_trees(bspvt, opts))
 
     def reset(self) -> None:
         """Drop every history (denoiser, TAA, accumulation): the next frame starts anew."""
         for stage in self.stages.values():
             stage.reset()
+        self._last_pose = None
+
+    # -- posing ------------------------------------------------------------------------------
+    def set_camera(self, camera=None, *, position=None, target=None, up=(0.0, 1.0, 0.0),
+                   fov: float | None = None) -> None:
+        """Pose the camera explicitly in every later frame (instead of the animation's):
+        ``camera`` a :class:`glossrt.frame.Camera` (its ``to_world`` and ``fov``; its
+        resolution must be the pipeline's) or a 4x4 ``to_world`` matrix (Mitsuba's
+        convention, rigid); or ``position`` and ``target`` (and ``up``): Mitsuba's
+        ``look_at``. ``fov``: the horizontal field of view in degrees (alone: only the field
+        of view changes). Checked first: a GlossrtError changes nothing."""
+        from ..frame import Camera
+        from ..scenes import look_at
+
+        to_world = None
+        if camera is not None and position is not None:
+            raise GlossrtError("set_camera: give a camera or position/target, not both")
+        if isinstance(camera, Camera):
+            if tuple(camera.resolution) != tuple(self.setup.size):
+                raise GlossrtError(f"set_camera: the camera is {camera.resolution[0]}x"
+                                   f"{camera.resolution[1]}, the pipeline renders "
+                                   f"{self.setup.size[0]}x{self.setup.size[1]}")
+            to_world, fov = camera.to_world, camera.fov if fov is None else fov
+        elif camera is not None:
+            to_world = _matrix(camera)
+        elif position is not None or target is not None:
+            if position is None or target is None:
+                raise GlossrtError("set_camera: position and target go together")
+            try:
+                p, t, u = (np.asarray(v, np.float64).reshape(3) for v in (position, target, up))
+            except ValueError:
+                raise GlossrtError("set_camera: position, target and up must be 3-vectors") \
+                    from None
+            d = t - p
+            if not (np.isfinite([p, t, u]).all() and np.linalg.norm(d) > 0
+                    and np.linalg.norm(np.cross(d, u)) > 1e-9 * np.linalg.norm(d)):
+                raise GlossrtError("set_camera: position and target must be finite and apart, "
+                                   "and up must not be along the view direction")
+            to_world = look_at(p.tolist(), t.tolist(), u.tolist())
+        elif fov is None:
+            raise GlossrtError("set_camera: give a camera, position and target, or fov "
+                               "(clear_pose() goes back to the animation)")
+        keep = self.setup.camera_override if to_world is None else to_world
+        keep_fov = self.setup.fov_override if fov is None else fov
+        self.setup.set_camera_override(keep, keep_fov)  # SceneError (a GlossrtError) first
+        self._pose_changed()
+
+    def set_transform(self, name: str, matrix) -> None:
+        """Place shape ``name`` (an object, or a polygon light's shape) by the rigid
+        ``matrix`` (4x4, on top of its rest pose, as the animation's paths) in every later
+        frame; None: back to its animation. Moving an occluder (a shape that is not a light)
+        invalidates BSPVT's precomputed visibility: refused under ``direct=ltc+bspvt``
+        (naming the object); ``direct=auto`` (the ``full`` preset) switches to ``ltc+ratio``
+        while it is away from its rest pose. Checked first: a GlossrtError changes
+        nothing."""
+        from ..scenes import check_rigid
+
+        setup = self.setup
+        if not isinstance(name, str) or name not in setup.shape_index:
+            raise GlossrtError(f"set_transform: scene {setup.name!r} has no shape {name!r}; "
+                               "the shapes that can move are "
+                               f"{', '.join(sorted(setup.movable_shapes())) or 'none'}")
+        m = None
+        if matrix is not None:
+            m = check_rigid(_matrix(matrix), f"set_transform({name!r})")
+        moves = m is not None and not np.array_equal(m, np.eye(4))
+        if moves and self.opts["direct"] == "ltc+bspvt" and _is_occluder(setup, name):
+            raise GlossrtError(
+                f"set_transform: moving object {name!r} of scene {setup.name!r} invalidates "
+                "the BSPVT trees (visibility precomputed for static occluders); use "
+                "configure(direct=\"ltc+ratio\") (or the full preset, which switches by "
+                "itself)")
+        setup.set_object_override(name, m)
+        self._pose_changed()
+
+    def clear_pose(self) -> None:
+        """Back to the animation: no explicit camera, field of view or shape transforms."""
+        self.setup.clear_overrides()
+        self._pose_changed()
+
+    def _pose_changed(self) -> None:
+        if self.opts["direct"] == "auto" and self._resolve_direct(self.opts) != self.direct_mode:
+            self._apply(self.opts)  # full: ltc+bspvt <-> ltc+ratio as occluders move
 
     # -- frames --------------------------------------------------------------------------
     def recordings(self) -> int:
@@ -219,6 +387,11 @@ class Pipeline:
         ctx: dict[str, Any] = {}
         ms: dict[str, float] = {}
         t_all = time.perf_counter()
+        pose = self.setup.pose(index)
+        if self._last_pose is not None and not pose.same(self._last_pose):
+            self._gbuffer.reset()  # (an accumulation starts anew; no history to drop else)
+        # motion vectors point back to the previous frame rendered (None: index - 1)
+        self._gbuffer.renderer.previous_pose = self._last_pose
         for name, stage in self.stages.items():
             t0 = time.perf_counter()
             out = stage.run(index, ctx)
@@ -249,6 +422,18 @@ class Pipeline:
         note = config.PRESET_NOTES.get(self.preset)
         if note:
             meta["pipeline"]["note"] = note
+        if self.direct_mode == "ltc+bspvt":
+            trees = self.stages["direct"].trees
+            meta["pipeline"]["bspvt"] = {
+                "trees": getattr(trees, "source", "") or "built (cached by geometry)",
+                "resolution": int(trees.resolution), "vertices": int(trees.vertex_count)}
+        if self.setup.camera_override is not None or self.setup.fov_override is not None \
+                or self.setup.object_overrides:
+            meta["pipeline"]["explicit_pose"] = {
+                "camera": self.setup.camera_override is not None,
+                "fov": self.setup.fov_override,
+                "shapes": sorted(self.setup.object_overrides)}
+        self._last_pose = pose
         self.frames += 1
         return Frame(channels=channels, camera=gb.camera, prev_camera=gb.prev_camera,
                      index=index, meta=meta)

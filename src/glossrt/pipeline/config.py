@@ -26,11 +26,21 @@ DIRECT = ("pathtraced", "ltc", "ltc+bspvt", "ltc+ratio", "highlights")
 INDIRECT = ("svgf", "svgf-lobe", "atrous", "oidn", "none")
 TONEMAPS = ("srgb", "filmic")
 BSPVT_MODES = ("vertex", "pixel")
+#: the path-traced indirect light at full, 1/2 or 1/4 resolution (issue 25), upsampled by
+UPSAMPLING = ("joint-bilateral", "spatio-temporal")
+UPSAMPLING_WEIGHTS = ("normal", "lobe")
+INDIRECT_SCALES = (1, 2, 4)
 
 #: option -> (allowed values, or a type) ; "auto" of ``direct`` is resolved per scene
 OPTIONS: dict[str, Any] = {
     "direct": DIRECT + ("auto",),
     "indirect": INDIRECT,
+    "indirect_scale": INDIRECT_SCALES,
+    "upsampling": UPSAMPLING,
+    "upsampling_weight": UPSAMPLING_WEIGHTS,
+    "resample": bool,
+    "resample_threshold": float,
+    "resample_spp": int,
     "taa": bool,
     "taa_alpha": float,
     "exposure": float,
@@ -48,6 +58,12 @@ OPTIONS: dict[str, Any] = {
 DEFAULTS: dict[str, Any] = {
     "direct": "pathtraced",
     "indirect": "svgf",
+    "indirect_scale": 1,
+    "upsampling": "spatio-temporal",
+    "upsampling_weight": "lobe",
+    "resample": False,
+    "resample_threshold": 0.05,
+    "resample_spp": 4,
     "taa": False,
     "taa_alpha": 0.1,
     "exposure": 0.0,
@@ -70,11 +86,15 @@ PRESETS: dict[str, dict[str, Any]] = {
     "okuno-iwasaki": {"direct": "ltc+bspvt", "indirect": "svgf", "taa": True},
     # Kimura & Tokoi: light shapes in the highlights (specular), LTC diffuse
     "kimura-tokoi": {"direct": "highlights", "indirect": "svgf", "taa": True},
-    # Tokuyoshi 2015's lobe weights in the filter; at full resolution in this slice (the
-    # reduced-resolution indirect light with upsampling is not composed yet)
-    "tokuyoshi2015": {"direct": "pathtraced", "indirect": "svgf-lobe", "taa": False},
-    # everything: LTC+BSPVT when the occluders are static, LTC+ratio when one moves
-    "full": {"direct": "auto", "indirect": "svgf-lobe", "taa": True},
+    # Tokuyoshi 2015: the indirect light at 1/2 resolution, filtered with the lobe weights
+    # and upsampled spatio-temporally with them (secs. 4.2, 5.3)
+    "tokuyoshi2015": {"direct": "pathtraced", "indirect": "svgf-lobe", "taa": False,
+                      "indirect_scale": 2, "upsampling": "spatio-temporal",
+                      "upsampling_weight": "lobe"},
+    # everything: LTC+BSPVT when the occluders are static, LTC+ratio when one moves;
+    # 1/2-resolution indirect light with lobe-aware upsampling and SVGF-lobe
+    "full": {"direct": "auto", "indirect": "svgf-lobe", "taa": True, "indirect_scale": 2,
+             "upsampling": "spatio-temporal", "upsampling_weight": "lobe"},
     # progressive accumulation of the converged path-traced frame
     "reference": {"direct": "pathtraced", "indirect": "none", "taa": False,
                   "accumulate": True, "spp": 16},
@@ -82,9 +102,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 #: what a preset still lacks against issue 25, recorded in the frames' meta
 PRESET_NOTES: dict[str, str] = {
-    "tokuyoshi2015": "indirect light at full resolution: the 1/2-resolution indirect light "
-                     "with lobe-aware upsampling is not part of the pipeline yet",
-    "full": "indirect light at full resolution and no specaa stage yet",
+    "full": "no specaa stage yet",
 }
 
 
@@ -93,7 +111,7 @@ def _check_value(name: str, value: Any) -> Any:
     if value is None and name == "max_depth":
         return None
     if isinstance(kind, tuple):
-        if value not in kind:
+        if isinstance(value, bool) or value not in kind:
             raise GlossrtError(f"pipeline option {name}={value!r}: choose one of "
                                f"{', '.join(map(str, kind))}")
         return value
@@ -104,12 +122,15 @@ def _check_value(name: str, value: Any) -> Any:
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise GlossrtError(f"pipeline option {name} must be an integer, got {value!r}")
-        if name in ("bspvt_resolution", "ratio_spp", "highlight_samples", "spp") and value < 1:
+        if name in ("bspvt_resolution", "ratio_spp", "highlight_samples", "spp",
+                    "resample_spp") and value < 1:
             raise GlossrtError(f"pipeline option {name} must be >= 1, got {value}")
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise GlossrtError(f"pipeline option {name} must be a number, got {value!r}")
     value = float(value)
+    if name == "resample_threshold" and not 0.0 <= value <= 1.0:
+        raise GlossrtError(f"pipeline option resample_threshold must lie in [0, 1], got {value}")
     if name == "taa_alpha" and not 0.0 < value <= 1.0:
         raise GlossrtError(f"pipeline option taa_alpha must lie in (0, 1], got {value}")
     if value != value or abs(value) == float("inf"):

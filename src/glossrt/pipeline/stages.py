@@ -67,11 +67,71 @@ class Stage:
 # -- gbuffer -------------------------------------------------------------------------------
 
 
+def check_scale(size: tuple[int, int], scale: int) -> None:
+    """Refuse an ``indirect_scale`` that does not divide the image size (issue 25), before
+    any work: one GlossrtError line naming both."""
+    w, h = size
+    if w % scale or h % scale:
+        raise GlossrtError(f"indirect_scale={scale} does not divide the image size {w}x{h}: "
+                           f"choose a size whose width and height are multiples of {scale}, "
+                           "or another scale (1, 2 or 4)")
+
+
+class ScaledSetup:
+    """``setup``'s scene seen by a sensor of the same pose, field of view and clip planes at
+    ``1/scale`` the size (the reduced-resolution indirect light). Posing goes through the
+    full setup (its ``set_frame``, and so its animation or explicit pose); the sensor then
+    copies the full sensor's ``to_world``. Everything else is the full setup's."""
+
+    def __init__(self, setup, scale: int):
+        check_scale(setup.size, scale)
+        self._full = setup
+        self.scale = int(scale)
+        w, h = setup.size
+        self.size = (w // scale, h // scale)
+        sp = setup.sensor_params
+        keys = sp.keys()
+        self.sensor = mi.load_dict({
+            "type": "perspective", "fov": setup.fov, "fov_axis": "x",
+            "near_clip": float(sp["near_clip"]) if "near_clip" in keys else 1e-2,
+            "far_clip": float(sp["far_clip"]) if "far_clip" in keys else 1e4,
+            "to_world": mi.ScalarTransform4f(setup.rest_camera),
+            "film": {"type": "hdrfilm", "width": self.size[0], "height": self.size[1],
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"}})
+        self.sensor_params = mi.traverse(self.sensor)
+
+    def __getattr__(self, name):
+        return getattr(self._full, name)
+
+    def set_frame(self, frame: int) -> None:
+        self._full.set_frame(frame)
+        full = self._full.sensor_params
+        self.sensor_params["to_world"] = full["to_world"]
+        self.sensor_params["x_fov"] = full["x_fov"]  # an explicit field of view too
+        self.sensor_params.update()
+
+    def camera(self, frame: int):
+        import dataclasses
+
+        cam = self._full.camera(frame)
+        return None if cam is None else dataclasses.replace(cam, resolution=self.size)
+
+
 class GBufferStage(Stage):
     """G-buffer plus 1 spp path tracing (:class:`glossrt.render.Renderer`), or with
     ``accumulate`` the running mean of converged estimates (``spp`` per frame) while the
     scene holds still. ``exclude``: emitter indices the analytic direct stage shades
-    (removed from the path tracer at the primary hit only)."""
+    (removed from the path tracer at the primary hit only).
+
+    ``indirect_scale`` 2 or 4 (issue 25; Tokuyoshi 2015's pipeline, sec. 3): the
+    full-resolution renderer traces the G-buffer and the direct light only (path depth 2:
+    NEE and the BSDF-sampled emitter hit at the primary vertex), and a second renderer
+    traces the indirect light at ``1/scale`` the size (``frame_low``: its own low-resolution
+    G-buffer, every emitter excluded at its primary hit so that it holds the indirect light
+    alone, bit-identical to a full-depth render's). Its primary rays are jittered by
+    :func:`glossrt.denoise.upsampling.jitter_sequence` (recorded in ``meta["jitter"]``,
+    where the upsamplers put the samples), a cycle over the ``scale^2`` full-resolution
+    pixel centres of a low-resolution pixel."""
 
     name = "gbuffer"
     outputs = ("frame",)
@@ -79,7 +139,21 @@ class GBufferStage(Stage):
     def __init__(self, setup, opts: dict, exclude: tuple[int, ...] = ()):
         from .. import render
 
-        self.renderer = render.Renderer(setup, max_depth=opts["max_depth"], seed=opts["seed"],
+        self.scale = int(opts.get("indirect_scale", 1))
+        self.low = None
+        md = opts["max_depth"]
+        if self.scale > 1:
+            if opts["accumulate"]:
+                raise GlossrtError("accumulate=true traces the converged reference at full "
+                                   "resolution: use indirect_scale=1")
+            low_setup = ScaledSetup(setup, self.scale)
+            n = len(render.emitter_index(setup))
+            self.low = render.Renderer(low_setup, max_depth=md, seed=opts["seed"] + 1,
+                                       primary_exclude=tuple(range(n)))
+            full_md = self.low.mitsuba_max_depth
+            md = 2 if full_md < 0 or full_md > 2 else full_md
+            self.outputs = ("frame", "frame_low")
+        self.renderer = render.Renderer(setup, max_depth=md, seed=opts["seed"],
                                         primary_exclude=tuple(exclude))
         self.setup = setup
         self.exclude = tuple(exclude)
@@ -95,9 +169,23 @@ class GBufferStage(Stage):
         self._passes = 0
 
     def frozen(self) -> list:
-        return [self.renderer._trace_frozen]
+        low = [self.low._trace_frozen] if self.low is not None else []
+        return [self.renderer._trace_frozen] + low
 
     def run(self, index: int, ctx: dict) -> dict:
+        if self.low is not None:
+            from ..denoise.upsampling import jitter_sequence
+
+            # the motion vectors' previous pose, when the pipeline sets one (explicit posing)
+            self.low.previous_pose = getattr(self.renderer, "previous_pose", None)
+            f = self.renderer.render(index)
+            low = self.low.render(index, jitter=jitter_sequence(self.scale, index))
+            # the full frame's light: emission and direct from it, the indirect light from
+            # the low-resolution frame (the indirect stage upsamples it)
+            f.meta["max_depth"] = low.meta["max_depth"]
+            f.meta["max_depth_from"] = low.meta["max_depth_from"]
+            f.meta["indirect_scale"] = self.scale
+            return {"frame": f, "frame_low": low}
         if not self.accumulate:
             return {"frame": self.renderer.render(index)}
         pose = index if self.setup.animated else 0
@@ -174,34 +262,58 @@ class PointLights:
         return out
 
 
-#: BSPVT trees, built on first use, keyed by the scene's geometry (vertex positions of its
-#: non-emitting meshes, the analytic occluders' boxes) and the resolution
+#: BSPVT trees, built on first use, keyed by the scene's geometry (vertex positions and
+#: faces of its non-emitting meshes, the analytic occluders' boxes) and the resolution
 _TREES: dict = {}
 _TREES_MAX = 4
+#: trees built by :func:`scene_trees` in this process (a cache hit builds none)
+BUILDS = {"count": 0}
 
 
 def geometry_key(scene, resolution: int) -> str:
     """A digest of what BSPVT's visibility depends on: the non-emitting meshes' vertices and
-    the analytic occluders' bounds."""
+    faces (their ids and order), the analytic occluders' bounds, and the resolution. Lights
+    are not occluders (moving one keeps the trees); moving an occluder changes the key."""
     from ..lights.bspvt.scene import occluder_bounds, scene_meshes
 
-    h = hashlib.sha1(str(resolution).encode())
+    h = hashlib.sha1(f"bspvt-v1 {int(resolution)}".encode())
     for m in scene_meshes(scene):
+        h.update(m.id().encode() + b"\0")
         h.update(np.asarray(m.vertex_positions_buffer(), np.float32).tobytes())
+        h.update(np.asarray(m.faces_buffer(), np.uint32).tobytes())
     h.update(repr(occluder_bounds(scene)).encode())
     return h.hexdigest()
 
 
-def scene_trees(scene, resolution: int, progress: bool = True):
-    """BSPVT trees of ``scene`` (cached per geometry; built with a progress bar on a miss)."""
-    from ..lights.bspvt import build_scene_trees
+def scene_trees(scene, resolution: int, progress: bool = True, cache_dir=None):
+    """BSPVT trees of ``scene`` as it is posed now: cached in memory per
+    :func:`geometry_key`; with ``cache_dir`` also on disk (``bspvt-<key>.npz``, read back by
+    later processes, checked against the scene); built with a progress bar on a miss."""
+    import os
+
+    from ..lights.bspvt import BSPVT, build_scene_trees, match_scene
 
     key = geometry_key(scene, resolution)
-    if key not in _TREES:
-        if len(_TREES) >= _TREES_MAX:
-            _TREES.pop(next(iter(_TREES)))
-        _TREES[key] = build_scene_trees(scene, resolution, progress=progress)
-    return _TREES[key]
+    if key in _TREES:
+        return _TREES[key]
+    path = os.path.join(os.fspath(cache_dir), f"bspvt-{key[:20]}.npz") if cache_dir else None
+    trees = None
+    if path is not None and os.path.exists(path):
+        try:
+            trees = BSPVT.load(path)
+            match_scene(scene, trees)
+        except GlossrtError:  # a stale or damaged cache file: built anew below
+            trees = None
+    if trees is None:
+        trees = build_scene_trees(scene, resolution, progress=progress)
+        BUILDS["count"] += 1
+        if path is not None:
+            trees.save(path)
+            trees.source = path
+    if len(_TREES) >= _TREES_MAX:
+        _TREES.pop(next(iter(_TREES)))
+    _TREES[key] = trees
+    return trees
 
 
 class DirectStage(Stage):
@@ -216,14 +328,16 @@ class DirectStage(Stage):
     inputs = ("frame",)
     outputs = ("direct",)
 
-    def __init__(self, setup, opts: dict, mode: str, progress: bool = True):
+    def __init__(self, setup, opts: dict, mode: str, progress: bool = True, trees=None,
+                 cache_dir=None):
         self.setup = setup
         self.mode = mode
         self.opts = opts
         self.points = PointLights(setup) if mode != "pathtraced" else None
         self.trees = None
-        if mode == "ltc+bspvt":
-            self.trees = scene_trees(setup.scene, int(opts["bspvt_resolution"]), progress)
+        if mode == "ltc+bspvt":  # prebuilt ``trees`` (checked by the pipeline), else cached
+            self.trees = trees if trees is not None else scene_trees(
+                setup.scene, int(opts["bspvt_resolution"]), progress, cache_dir)
         self.highlights = None
         if mode == "highlights":
             from ..lights.highlights import HighlightRenderer
@@ -290,53 +404,191 @@ class DirectStage(Stage):
 # -- indirect ---------------------------------------------------------------------------------
 
 
+def _denoiser(method: str, **params):
+    """The frozen filter of ``method`` (None for ``none`` and ``oidn``)."""
+    from ..denoise import SVGF
+
+    if method == "svgf":
+        return SVGF(**params)
+    if method == "svgf-lobe":
+        return SVGF(weights="lobe", **params)
+    if method == "atrous":
+        return SVGF(temporal=False, spatial="dammertz", **params)
+    return None
+
+
+#: the low-resolution frame's channels the upsamplers read besides the light
+LOW_GUIDES = ("normal", "depth", "mesh_id", "roughness", "distribution")
+INDIRECT_PT = ("indirect_diffuse", "indirect_specular")
+DIRECT_PT = ("direct_diffuse", "direct_specular")
+
+
 class IndirectStage(Stage):
     """The path-traced light beyond emission, denoised: ``svgf`` (Schied et al. 2017),
     ``svgf-lobe`` (SVGF with Tokuyoshi 2015's specular-lobe weights), ``atrous`` (Dammertz
     et al. 2010, frozen), ``oidn`` or ``none`` (the raw estimate). The denoiser sees the
     frame with its emission set to 0 (the composite adds the noise-free primary-hit
-    emission), so its output is exactly this layer."""
+    emission), so its output is exactly this layer.
+
+    ``indirect_scale`` 2 or 4 (inputs ``frame`` and ``frame_low``, :class:`GBufferStage`):
+    Tokuyoshi 2015's pipeline (sec. 3: filter or upsample the albedo-demodulated indirect
+    light, remodulate, add the direct light). The low-resolution indirect light is denoised
+    at its own resolution (the SVGF filters give their demodulated signals,
+    ``output="illumination"``), then upsampled to the full G-buffer
+    (:mod:`glossrt.denoise.upsampling`): ``joint-bilateral`` (Tokuyoshi eq. 1 with Kopf
+    et al. 2007's spatial Gaussian on the low grid) or ``spatio-temporal`` (Herzog et al.
+    2010, sec. 5.3 / fig. 7), with the ``normal`` weight (sec. 2.2) or the ``lobe`` weight
+    (sec. 4.2) for the specular component, and remodulated by the full-resolution albedo.
+    ``resample``: adaptive re-sampling (sec. 5.4, fig. 8): the pixels whose normalised weight
+    sum (the denominator of eq. 1) is below ``resample_threshold`` are path-traced again at
+    full resolution with ``resample_spp`` samples. The direct light the path tracer keeps
+    at the primary hit (``direct=pathtraced``, or lights no analytic stage shades) is traced
+    at full resolution and denoised there by a second filter of the same method."""
 
     name = "indirect"
     inputs = ("frame",)
     outputs = ("indirect",)
 
-    def __init__(self, method: str):
-        from ..denoise import SVGF
-
+    def __init__(self, method: str, opts: dict | None = None, setup=None,
+                 exclude: tuple[int, ...] = ()):
         self.method = method
+        opts = opts or {}
+        self.scale = int(opts.get("indirect_scale", 1))
+        self.last_resampled = 0
+        if self.scale == 1:
+            self.denoiser = _denoiser(method)
+            self.low_denoiser = self.direct_denoiser = self.upsampler = None
+            return
+        from .. import render
+        from ..denoise.upsampling import SpatioTemporalUpsampler
+
+        self.inputs = ("frame", "frame_low")
         self.denoiser = None
-        if method == "svgf":
-            self.denoiser = SVGF()
-        elif method == "svgf-lobe":
-            self.denoiser = SVGF(weights="lobe")
-        elif method == "atrous":
-            self.denoiser = SVGF(temporal=False, spatial="dammertz")
+        self.setup = setup
+        self.opts = opts
+        self.weight = opts["upsampling_weight"]
+        self.mode = opts["upsampling"]
+        self.resample = bool(opts["resample"])
+        self._resampler = None
+        self.low_denoiser = _denoiser(method, signals="indirect", output="illumination")
+        # the primary hit's path-traced direct light: left to the path tracer for some lights
+        self.direct_pt = len(tuple(exclude)) < len(render.emitter_index(setup))
+        self.direct_denoiser = _denoiser(method, signals="direct") if self.direct_pt else None
+        self.upsampler = (SpatioTemporalUpsampler(weight=self.weight, channels=INDIRECT_PT)
+                          if self.mode == "spatio-temporal" else None)
 
     def reset(self) -> None:
-        if self.denoiser is not None:
-            self.denoiser.reset()
+        for d in (self.denoiser, self.low_denoiser, self.direct_denoiser, self.upsampler):
+            if d is not None:
+                d.reset()
 
     def frozen(self) -> list:
-        d = self.denoiser
-        return [d._accumulate, d._reconstruct] if d is not None else []
+        out = []
+        for d in (self.denoiser, self.low_denoiser, self.direct_denoiser):
+            if d is not None:
+                out += [d._accumulate, d._reconstruct]
+        return out
 
-    def run(self, index: int, ctx: dict) -> dict:
-        gb: Frame = ctx["frame"]
+    @staticmethod
+    def _input(gb: Frame, names: tuple[str, ...]) -> Frame:
+        """``gb`` with emission 0 and only the radiance ``names`` (the others 0): the frame
+        a denoiser of this layer sees."""
         h, w = gb.height, gb.width
-        raw = gb[RADIANCE_PT[0]] + gb[RADIANCE_PT[1]] + gb[RADIANCE_PT[2]] + gb[RADIANCE_PT[3]]
+        ch = {k: gb[k] for k in GUIDES if k in gb}
+        for k in ("emission",) + RADIANCE_PT:
+            ch[k] = gb[k] if k in names else _zeros(h, w)
+        ch["color"] = sum((gb[k] for k in names[1:]), gb[names[0]])
+        return Frame(channels=ch, camera=gb.camera, prev_camera=gb.prev_camera,
+                     index=gb.index, meta=gb.meta)
+
+    def _denoise(self, f: Frame, names: tuple[str, ...], denoiser) -> mi.TensorXf:
         if self.method == "none":
-            return {"indirect": raw}
-        ch = {k: gb[k] for k in RADIANCE_PT + GUIDES if k in gb}
-        ch["emission"] = _zeros(h, w)
-        ch["color"] = raw
-        f = Frame(channels=ch, camera=gb.camera, prev_camera=gb.prev_camera, index=gb.index,
-                  meta=gb.meta)
+            return f["color"]
         if self.method == "oidn":
             from ..denoise.oidn import oidn_denoise
 
-            return {"indirect": _tensor(oidn_denoise(f, quality="fast"))}
-        return {"indirect": self.denoiser(f)}
+            return _tensor(oidn_denoise(f, quality="fast"))
+        return denoiser(f)
+
+    def run(self, index: int, ctx: dict) -> dict:
+        gb: Frame = ctx["frame"]
+        if self.scale == 1:
+            return {"indirect": self._denoise(self._input(gb, RADIANCE_PT), RADIANCE_PT,
+                                              self.denoiser)}
+        img = self._upsampled(index, gb, ctx["frame_low"])
+        if self.direct_pt:
+            img = img + self._denoise(self._input(gb, DIRECT_PT), DIRECT_PT,
+                                      self.direct_denoiser)
+        return {"indirect": img}
+
+    def _low_light(self, low: Frame) -> dict:
+        """The low-resolution indirect light, denoised, as the upsamplers read it: per
+        component, with the albedo that demodulates it (1 where it already is)."""
+        h, w = low.height, low.width
+        if self.low_denoiser is not None:
+            illum = self.low_denoiser(self._input(low, INDIRECT_PT))  # (h, w, 6)
+            arr = illum.array
+            idx = dr.arange(mi.UInt32, h * w) * 6
+            ones = dr.ones(mi.TensorXf, (h, w, 3))
+            out = {}
+            for k, c in enumerate(INDIRECT_PT):
+                out[c] = merge([dr.gather(mi.Float, arr, idx + 3 * k + j) for j in range(3)],
+                               h, w)
+            out["albedo_diffuse"] = out["albedo_specular"] = ones
+            return out
+        out = {"albedo_diffuse": low["albedo_diffuse"],
+               "albedo_specular": low["albedo_specular"]}
+        for c in INDIRECT_PT:  # none: the raw estimate; oidn: each component alone
+            out[c] = self._denoise(self._input(low, (c,)), (c,), None)
+        return out
+
+    def _upsampled(self, index: int, gb: Frame, low: Frame) -> mi.TensorXf:
+        from ..denoise.upsampling import adaptive_resample, upsample
+
+        h, w = gb.height, gb.width
+        lch = {k: low[k] for k in LOW_GUIDES if k in low}
+        lch.update(self._low_light(low))
+        for k in ("emission",) + DIRECT_PT:
+            lch[k] = _zeros(low.height, low.width)
+        lo = Frame(channels=lch, camera=low.camera, prev_camera=low.prev_camera,
+                   index=low.index, meta=low.meta)
+        # the full frame as the upsamplers see it: its G-buffer, no light of its own (the
+        # upsampled components are all this part of the layer)
+        fch = {k: gb[k] for k in GUIDES if k in gb}
+        for k in ("emission",) + RADIANCE_PT:
+            fch[k] = _zeros(h, w)
+        full = Frame(channels=fch, camera=gb.camera, prev_camera=gb.prev_camera,
+                     index=gb.index, meta=gb.meta)
+        wts = None
+        if self.upsampler is not None:
+            img = self.upsampler(full, lo)
+            if self.resample:
+                _, wts = upsample(full, lo, weight=self.weight, channels=INDIRECT_PT,
+                                  return_weights=True)
+        elif self.resample:
+            img, wts = upsample(full, lo, weight=self.weight, channels=INDIRECT_PT,
+                                return_weights=True)
+        else:
+            img = upsample(full, lo, weight=self.weight, channels=INDIRECT_PT)
+        if wts is not None:
+            img, mask = adaptive_resample(self._resample_renderer(), index, full, img, wts,
+                                          threshold=float(self.opts["resample_threshold"]),
+                                          channels=INDIRECT_PT,
+                                          spp=int(self.opts["resample_spp"]))
+            self.last_resampled = int(mask.sum())
+        return img
+
+    def _resample_renderer(self):
+        """A full-resolution, full-depth renderer for adaptive re-sampling (every emitter
+        excluded at the primary hit: its ``indirect_*`` are the indirect light alone)."""
+        if self._resampler is None:
+            from .. import render
+
+            n = len(render.emitter_index(self.setup))
+            self._resampler = render.Renderer(self.setup, max_depth=self.opts["max_depth"],
+                                              seed=self.opts["seed"] + 2, frozen=False,
+                                              primary_exclude=tuple(range(n)))
+        return self._resampler
 
 
 # -- composite, taa ---------------------------------------------------------------------------
@@ -401,4 +653,4 @@ def display(image, exposure: float = 0.0, tonemap: str = "filmic") -> np.ndarray
 
 
 __all__ = ["CompositeStage", "DirectStage", "GBufferStage", "IndirectStage", "PointLights",
-           "Stage", "TAAStage", "display", "scene_trees"]
+           "Stage", "TAAStage", "display", "geometry_key", "scene_trees"]

@@ -199,6 +199,9 @@ class Renderer:
         self.table = SpecularAlbedoTable.load()
         self.width, self.height = setup.size
         self.n_meshes = len(setup.shapes)
+        #: the pose motion vectors point back to (:class:`glossrt.scenes.Pose`, e.g. the
+        #: previous frame a real-time pipeline rendered); None: the animation's frame - 1
+        self.previous_pose = None
 
     @property
     def primary_exclude(self) -> tuple[int, ...]:
@@ -222,10 +225,26 @@ class Renderer:
         """``max_depth`` in Mitsuba's convention (-1: no limit)."""
         return -1 if self.max_depth == UNBOUNDED_DEPTH else self.max_depth
 
+    def _prev_camera(self, frame: int):
+        """The camera motion vectors point back to: :attr:`previous_pose`'s when set, else
+        the animation's at ``frame - 1`` (``frame`` itself for frame 0)."""
+        from ..frame import Camera
+
+        p = self.previous_pose
+        if p is not None:
+            return Camera(to_world=p.camera, fov=p.fov, resolution=self.setup.size)
+        return self.setup.camera(frame - 1 if frame > 0 else frame)
+
     def _motion_inputs(self, frame: int) -> MotionInputs:
-        prev = frame - 1 if frame > 0 else frame
-        return MotionInputs(self.setup.camera(prev), self.setup.object_transforms(frame),
-                            self.setup.object_transforms(prev), self.n_meshes)
+        p = self.previous_pose
+        cur = self.setup.object_transforms(frame)
+        if p is not None:
+            prev_objs = p.objects
+        else:
+            prev_objs = self.setup.object_transforms(frame - 1 if frame > 0 else frame)
+        for m in prev_objs:  # a shape moved then but at rest now
+            cur.setdefault(m, np.eye(4))
+        return MotionInputs(self._prev_camera(frame), cur, prev_objs, self.n_meshes)
 
     def trace(self, frame: int, pixel: mi.UInt32, seed: mi.UInt32,
               frozen: bool | None = None, jitter: tuple[float, float] = (0.0, 0.0),
@@ -361,7 +380,7 @@ class Renderer:
     def _frame(self, frame: int, channels: dict, spp: int, bad: int, seconds: float,
                reference: bool = False) -> Frame:
         cam = self.setup.camera(frame)
-        prev = self.setup.camera(frame - 1) if frame > 0 else cam
+        prev = self._prev_camera(frame)
         meta = {
             "scene": self.setup.name,
             "spp": spp,

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..backend import mi
 from ..errors import SceneError
+from ..jit import owned_float
 
 Matrix = np.ndarray
 #: Mitsuba plugins glossrt's renderer supports (BSDF and emitter types).
@@ -54,6 +55,60 @@ class SceneSpec:
 
 
 BUILTIN: dict[str, tuple[Callable[[], SceneSpec], str]] = {}
+
+
+@dataclass(eq=False)
+class Pose:
+    """Where a frame's camera and moving shapes are (:meth:`SceneSetup.pose`): the camera's
+    ``to_world`` (4x4) and horizontal ``fov`` (degrees), and ``objects``: mesh index (as in
+    the ``mesh_id`` channel) -> the rigid transform applied on top of that shape's rest pose
+    (shapes not listed are at rest). What motion vectors point back to
+    (:attr:`glossrt.render.Renderer.previous_pose`)."""
+
+    camera: Matrix
+    fov: float
+    objects: dict[int, Matrix]
+
+    def same(self, other: Pose | None) -> bool:
+        """Whether ``other`` is the same pose (exact values; shapes at identity count as
+        unlisted)."""
+        if other is None or self.fov != other.fov:
+            return False
+        if not np.array_equal(self.camera, other.camera):
+            return False
+        eye = np.eye(4)
+        for m in set(self.objects) | set(other.objects):
+            if not np.array_equal(self.objects.get(m, eye), other.objects.get(m, eye)):
+                return False
+        return True
+
+
+#: how far a shape transform's 3x3 part may be from a rotation (``R^T R = I``, ``det R =
+#: 1``) and its last row from (0, 0, 0, 1) to count as rigid
+RIGID_TOL = 1e-5
+
+
+def check_rigid(matrix, what: str) -> Matrix:
+    """``matrix`` as a 4x4 float64 rigid transform (rotation + translation), or one
+    :class:`SceneError` naming ``what`` and the problem."""
+    try:
+        m = np.array(matrix, dtype=np.float64)
+        if m.shape == (3, 4):
+            m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+        m = m.reshape(4, 4)
+    except (TypeError, ValueError):
+        raise SceneError(f"{what}: a transform must be a 4x4 (or 3x4) matrix, got "
+                         f"{np.shape(matrix)}") from None
+    if not np.isfinite(m).all():
+        raise SceneError(f"{what}: the transform has NaN/Inf entries")
+    r = m[:3, :3]
+    if (np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOL
+            or np.abs(r.T @ r - np.eye(3)).max() > RIGID_TOL or np.linalg.det(r) < 0):
+        raise SceneError(f"{what}: the transform is not rigid (rotation + translation; no "
+                         "scaling, shearing, mirroring or projection)")
+    return m
+
+
 
 
 def builtin(name: str, description: str):
@@ -247,25 +302,56 @@ class SceneSetup:
         self.object_paths = dict(object_paths or {})
         self.params = mi.traverse(scene)
         self._rest: dict[str, tuple[str, object]] = {}
+        self._rest_normals: dict[str, np.ndarray] = {}
         #: shapes in mesh_id order (1-based); stable across loads of the same scene
         self.shapes = stable_shapes(scene)
         shapes = {s.id(): s for s in self.shapes}
         for sid in self.object_paths:
             if sid not in shapes:
                 raise SceneError(f"{name}: animated shape {sid!r} is not in the scene")
-            for key in (f"{sid}.vertex_positions", f"{sid}.to_world"):
-                if key in self.params.keys():
-                    val = self.params[key]
-                    self._rest[sid] = (key, type(val)(val))
-                    break
-            else:
-                raise SceneError(f"{name}: shape {sid!r} cannot be moved (no transform parameter)")
+            self._keep_rest(sid)
         self.shape_index = {s.id(): i + 1 for i, s in enumerate(self.shapes) if s.id()}
+        #: the frame index last posed by :meth:`set_frame`
         self.frame = None
+        #: explicit pose (the viewer moves things): see :meth:`set_camera_override` and
+        #: :meth:`set_object_override`; they replace the animation's camera and shape paths
+        self.camera_override: Matrix | None = None
+        self.fov_override: float | None = None
+        self.object_overrides: dict[str, Matrix] = {}
+        self._pose_version = 0
+        self._posed: tuple | None = None  # (frame, pose version) last set by set_frame
+        self._applied: dict[str, Matrix] = {}  # shape id -> transform last written
+        self._fov_applied = self.fov
+
+    def _keep_rest(self, sid: str) -> None:
+        """Remember shape ``sid``'s rest-pose parameter (its ``to_world`` or vertices)."""
+        if sid in self._rest:
+            return
+        for key in (f"{sid}.vertex_positions", f"{sid}.to_world"):
+            if key in self.params.keys():
+                val = self.params[key]
+                self._rest[sid] = (key, type(val)(val))
+                normals = f"{sid}.vertex_normals"
+                if key.endswith("vertex_positions") and normals in self.params.keys():
+                    # written with the positions: Mitsuba would recompute them otherwise
+                    # (a mesh's own normals replaced by face-averaged ones)
+                    self._rest_normals[sid] = np.array(self.params[normals],
+                                                       dtype=np.float64).reshape(-1, 3)
+                return
+        raise SceneError(f"{self.name}: shape {sid!r} cannot be moved (no transform parameter)")
 
     # -- animation -------------------------------------------------------------------
     def camera_matrix(self, frame: int) -> Matrix:
+        """The camera's ``to_world`` at ``frame``: the explicit one when set
+        (:meth:`set_camera_override`), else the camera path's, else the scene's."""
+        if self.camera_override is not None:
+            return self.camera_override
         return self.rest_camera if self.camera_path is None else self.camera_path(frame)
+
+    @property
+    def current_fov(self) -> float:
+        """The horizontal field of view in degrees (the explicit one when set)."""
+        return self.fov if self.fov_override is None else self.fov_override
 
     def camera(self, frame: int):
         """The :class:`glossrt.frame.Camera` of ``frame`` (None for frame < 0)."""
@@ -273,41 +359,131 @@ class SceneSetup:
 
         if frame < 0:
             return None
-        return Camera(to_world=self.camera_matrix(frame), fov=self.fov, resolution=self.size)
+        return Camera(to_world=self.camera_matrix(frame), fov=self.current_fov,
+                      resolution=self.size)
+
+    def _shape_transform(self, sid: str, frame: int) -> Matrix:
+        if sid in self.object_overrides:
+            return self.object_overrides[sid]
+        path = self.object_paths.get(sid)
+        return np.eye(4) if path is None else path(frame)
 
     def object_transforms(self, frame: int) -> dict[int, Matrix]:
-        """Mesh index (1-based, as in the ``mesh_id`` channel) -> rigid transform at ``frame``."""
-        return {self.shape_index[sid]: path(frame) for sid, path in self.object_paths.items()}
+        """Mesh index (1-based, as in the ``mesh_id`` channel) -> rigid transform at ``frame``
+        (explicit transforms, :meth:`set_object_override`, replace the paths')."""
+        return {self.shape_index[sid]: self._shape_transform(sid, frame)
+                for sid in {**self.object_paths, **self.object_overrides}}
+
+    def pose(self, frame: int) -> Pose:
+        """The :class:`Pose` of ``frame`` (camera, field of view, moved shapes)."""
+        return Pose(np.array(self.camera_matrix(frame), dtype=np.float64), self.current_fov,
+                    self.object_transforms(frame))
 
     @property
     def animated(self) -> bool:
         return self.camera_path is not None or bool(self.object_paths)
 
+    # -- explicit pose (issue 25: the viewer moves things) -----------------------------
+    def movable_shapes(self) -> list[str]:
+        """Ids of the shapes :meth:`set_object_override` can move (those with a transform
+        or vertex parameter)."""
+        keys = set(self.params.keys())
+        return [sid for sid in self.shape_index
+                if f"{sid}.to_world" in keys or f"{sid}.vertex_positions" in keys]
+
+    def prepare_to_move(self) -> None:
+        """Write every movable shape's rest pose once (the next :meth:`set_frame`), so that
+        frozen kernels recorded from then on already take those shapes' placement as
+        evaluated inputs: moving a shape for the first time later replays them (a shape
+        first moved after the recording was measured to record the trace once more)."""
+        for sid in self.movable_shapes():
+            self._keep_rest(sid)
+        self._posed = None
+
+    def set_camera_override(self, to_world=None, fov: float | None = None) -> None:
+        """Pose the camera explicitly in every frame from now on: ``to_world`` (4x4, rigid;
+        None: the animation's) and ``fov`` (horizontal, degrees; None: the scene's). Checked
+        first (:class:`SceneError`; nothing changes then)."""
+        m = None if to_world is None else check_rigid(to_world, f"{self.name}: camera")
+        if fov is not None:
+            fov = float(fov)
+            if not 0.0 < fov < 180.0:
+                raise SceneError(f"{self.name}: camera fov must lie in (0, 180) degrees, "
+                                 f"got {fov}")
+        self.camera_override, self.fov_override = m, fov
+        self._pose_version += 1
+
+    def set_object_override(self, sid: str, matrix) -> None:
+        """Place shape ``sid`` (an object or a polygon light) by ``matrix`` (4x4, rigid,
+        applied on top of its rest pose, as the animation's paths are) in every frame from
+        now on; None: back to its animation (or rest pose). Checked first
+        (:class:`SceneError`; nothing changes then)."""
+        if sid not in self.shape_index:
+            raise SceneError(f"{self.name}: no shape {sid!r} to move; the shapes are "
+                             f"{', '.join(sorted(self.movable_shapes())) or 'none'}")
+        if matrix is None:
+            if self.object_overrides.pop(sid, None) is not None:
+                self._pose_version += 1
+            return
+        m = check_rigid(matrix, f"{self.name}: shape {sid!r}")
+        self._keep_rest(sid)
+        self.object_overrides[sid] = m
+        self._pose_version += 1
+
+    def clear_overrides(self) -> None:
+        """Back to the animation: no explicit camera, field of view or shape transforms."""
+        if self.camera_override is None and self.fov_override is None \
+                and not self.object_overrides:
+            return
+        self.camera_override = self.fov_override = None
+        self.object_overrides = {}
+        self._pose_version += 1
+
     def set_frame(self, frame: int) -> None:
-        """Pose camera and moving objects for ``frame``."""
-        if frame == self.frame:
+        """Pose camera and moving objects for ``frame`` (explicit overrides included)."""
+        if (frame, self._pose_version) == self._posed:
             return
         cam = self.camera_matrix(frame)
         if not _finite(cam):
             raise SceneError(f"{self.name}: the camera path gives a NaN/Inf transform at "
                              f"frame {frame}")
         self.sensor_params["to_world"] = mi.Transform4f(cam)
+        if self.current_fov != self._fov_applied:
+            self.sensor_params["x_fov"] = self.current_fov
+            self._fov_applied = self.current_fov
         self.sensor_params.update()
-        if self.object_paths:
-            for sid, path in self.object_paths.items():
-                key, rest = self._rest[sid]
-                m = path(frame)
-                if not _finite(m):
-                    raise SceneError(f"{self.name}: the path of shape {sid!r} gives a NaN/Inf "
-                                     f"transform at frame {frame}")
-                if key.endswith("to_world"):
-                    self.params[key] = mi.Transform4f(m) @ rest
-                else:
-                    v = np.array(rest, dtype=np.float64).reshape(-1, 3)
-                    v = v @ m[:3, :3].T + m[:3, 3]
-                    self.params[key] = mi.Float(v.astype(np.float32).ravel())
+        changed = False
+        for sid, (key, rest) in self._rest.items():  # every shape ever moved
+            m = self._shape_transform(sid, frame)
+            if not _finite(m):
+                raise SceneError(f"{self.name}: the path of shape {sid!r} gives a NaN/Inf "
+                                 f"transform at frame {frame}")
+            last = self._applied.get(sid)
+            if last is not None and np.array_equal(last, m):
+                continue
+            if key.endswith("to_world"):
+                self.params[key] = mi.Transform4f(m) @ rest
+            else:
+                v = np.array(rest, dtype=np.float64).reshape(-1, 3)
+                v = v @ m[:3, :3].T + m[:3, 3]
+                # in memory Dr.Jit allocated: a NumPy-backed buffer's alignment varies, and
+                # dr.freeze then re-records now and then (glossrt.jit.owned_float)
+                self.params[key] = owned_float(v)
+                n = self._rest_normals.get(sid)
+                if n is not None:  # normals transform by the inverse transpose
+                    r = m[:3, :3]
+                    if np.allclose(r.T @ r, np.eye(3), atol=RIGID_TOL):
+                        n = n @ r.T  # a rotation: itself (and the rest pose exact)
+                    else:
+                        n = n @ np.linalg.inv(r)
+                        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+                    self.params[f"{sid}.vertex_normals"] = owned_float(n)
+            self._applied[sid] = np.array(m, dtype=np.float64)
+            changed = True
+        if changed:
             self.params.update()
         self.frame = frame
+        self._posed = (frame, self._pose_version)
 
     def look_at_point(self) -> np.ndarray:
         """The point the camera orbits: on its view axis, level with the scene's centre."""

@@ -1,0 +1,452 @@
+"""Measurements behind docs/RESULTS.md for the frame pipeline that composes the five papers
+(:mod:`glossrt.pipeline`, issue 25): the report section ``pipeline``, the benchmark case
+``pipeline`` and ``glossrt experiment --which pipeline``.
+
+For every preset of :data:`PRESETS` on every scene of :data:`SCENES` (a pair the pipeline
+refuses is kept as a row with the pipeline's own reason), against the converged reference
+(:meth:`glossrt.render.Renderer.render_reference` at ``spp``, the same frame indices):
+
+* **with motion**: frames ``0 .. F-1`` of the scene's animation, one reference per frame;
+  **without motion**: the same number of frames of a static copy
+  (:func:`glossrt.scenes.load_static`), one reference for all of them;
+* RMSE and FLIP (:mod:`glossrt.metrics`), averaged over the frames ``F // 2 .. F-1`` (the
+  temporal filters' history is built in the first half);
+* temporal error: the part of the sequence's frame-to-frame luminance change the reference
+  does not have, ``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` over the same
+  frames (:func:`flicker`). Without motion the reference is one image, so this is Schied et
+  al. 2017's temporal error (:func:`glossrt.metrics.temporal_error`, sec. 5.4) of the
+  sequence itself;
+* per-stage milliseconds: the median of each frame's ``meta["pipeline"]["stage_ms"]`` over
+  the frames after the first two (the first records the frozen kernels), on the static copy;
+* the floor to beat: the raw 1 spp input, the path tracer's ``color`` (no light removed), and
+  the reference scored against itself (0 by construction: a check of the metric path).
+
+Composition interactions (:data:`VARIANTS`, on :data:`INTERACTION_SCENE`): ``full`` with one
+choice changed (SVGF's normal weights instead of Tokuyoshi 2015's lobe weights, BSPVT per
+pixel instead of per vertex, TAA off); the notes state, with numbers, where adding one
+paper's technique makes the composed result worse.
+
+The benchmark case times the steady state (:func:`timing`): the composed frame against the
+sum of its stages run alone, called in turn in one run (:func:`glossrt.timing.round_robin`).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GlossrtError
+from ..report import DemoContext, Report, register_section
+from ..report.registry import (
+    BenchContext,
+    benchmark,
+    finish_experiment,
+    markdown_table,
+    register_experiment,
+    section_size,
+)
+
+PRESETS = ("schied2017", "okuno-iwasaki", "kimura-tokoi", "tokuyoshi2015", "full")
+SCENES = ("glossy-cornell", "polygon-light", "light-shapes", "normal-mapped", "roughness-map")
+FLOOR = "1 spp input"
+REFERENCE = "reference"
+#: ``full`` with one choice changed: where one paper's technique meets another's
+VARIANTS: dict[str, tuple[str, dict]] = {
+    "full, indirect=svgf": ("full", {"indirect": "svgf"}),
+    "full, bspvt_mode=pixel": ("full", {"bspvt_mode": "pixel"}),
+    "full, taa off": ("full", {"taa": False}),
+}
+INTERACTION_SCENE = "polygon-light"
+#: the benchmark's cases: (preset, scene, issue 25's fps target at 320x180)
+BENCH_CASES = (("schied2017", "glossy-cornell", 30.0), ("full", "polygon-light", 20.0))
+TARGET_RATIO = 1.10  # the composed frame against the sum of its stages run alone
+
+
+def flicker(frames, refs) -> float:
+    """``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (module docstring)."""
+    from ..metrics import luminance
+
+    if len(frames) != len(refs) or len(frames) < 2:
+        raise GlossrtError("flicker needs two or more frames and one reference per frame")
+    d = [luminance(np.asarray(f)) - luminance(np.asarray(r))
+         for f, r in zip(frames, refs, strict=True)]
+    return float(np.mean([np.mean(np.abs(d[t] - d[t - 1])) for t in range(1, len(d))]))
+
+
+@dataclass
+class PipelineResults:
+    size: tuple[int, int]
+    spp: int
+    frames: int
+    scenes: tuple[str, ...]
+    presets: tuple[str, ...]
+    #: one dict per (scene, row label, motion): metrics, or ``skipped`` with the reason
+    rows: list[dict] = field(default_factory=list)
+    #: scene -> label -> last frame of the motion sequence (colour); ``layers``: full's layers
+    images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    layers: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def first(self) -> int:
+        """The first frame scored (the temporal filters' history builds before it)."""
+        return max(1, self.frames // 2)
+
+    def row(self, scene: str, label: str, motion: bool) -> dict | None:
+        return next((r for r in self.rows if r["scene"] == scene and r["label"] == label
+                     and r["motion"] == motion), None)
+
+    def labels(self, scene: str) -> list[str]:
+        out: list[str] = []
+        for r in self.rows:
+            if r["scene"] == scene and r["label"] not in out:
+                out.append(r["label"])
+        return out
+
+    def markdown(self) -> str:
+        lines = ["| scene | pipeline (direct) | RMSE | x floor | FLIP | temporal | RMSE "
+                 "static | FLIP static | temporal static | ms / frame: stages (static) |",
+                 "|---|---|---|---|---|---|---|---|---|---|"]
+        for scene in self.scenes:
+            for label in self.labels(scene):
+                mo, st = self.row(scene, label, True), self.row(scene, label, False)
+                floor = self.row(scene, FLOOR, True)
+                direct = next((r.get("direct") for r in (mo, st) if r and r.get("direct")),
+                              None)
+                name = f"{label} ({direct})" if direct else label
+                cells = [scene, name]
+                for r in (mo, st):
+                    if r is None or r.get("skipped"):
+                        cells += ["-"] * (4 if r is mo else 3)
+                        continue
+                    cells.append(f"{r['rmse']:.4f}")
+                    if r is mo:
+                        ratio = (r["rmse"] / floor["rmse"] if floor and floor["rmse"] > 0
+                                 else float("nan"))
+                        cells.append(f"{ratio:.2f}")
+                    cells += [f"{r['flip']:.4f}", f"{r['temporal']:.4f}"]
+                ms = (st or {}).get("stage_ms") or (mo or {}).get("stage_ms")
+                cells.append(" + ".join(f"{k} {v:.1f}" for k, v in ms.items())
+                             + f" = {sum(ms.values()):.1f}" if ms else "-")
+                lines.append("| " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+    def skips(self) -> list[str]:
+        return [f"{r['label']} on {r['scene']} ({'with' if r['motion'] else 'without'} "
+                f"motion): {r['skipped']}" for r in self.rows if r.get("skipped")]
+
+    def interactions(self) -> list[str]:
+        """One sentence per :data:`VARIANTS` row measured: the change of RMSE, FLIP and
+        temporal error from ``full`` (with and without motion) when the one choice differs."""
+        out = []
+        for scene in self.scenes:
+            for label, (preset, choices) in VARIANTS.items():
+                parts = []
+                for motion in (True, False):
+                    v, base = self.row(scene, label, motion), self.row(scene, preset, motion)
+                    if not v or not base or v.get("skipped") or base.get("skipped"):
+                        continue
+                    d = {k: v[k] - base[k] for k in ("rmse", "flip", "temporal")}
+                    parts.append(f"{'with' if motion else 'without'} motion: RMSE "
+                                 f"{base['rmse']:.4f} -> {v['rmse']:.4f} ({d['rmse']:+.4f}), "
+                                 f"FLIP {base['flip']:.4f} -> {v['flip']:.4f} "
+                                 f"({d['flip']:+.4f}), temporal {base['temporal']:.4f} -> "
+                                 f"{v['temporal']:.4f} ({d['temporal']:+.4f})")
+                if parts:
+                    change = ", ".join(f"{k}={c}" for k, c in choices.items())
+                    out.append(f"{scene}, {preset} -> {change}: " + "; ".join(parts))
+        return out
+
+    def as_dict(self) -> dict:
+        return {"size": list(self.size), "spp": self.spp, "frames": self.frames,
+                "scored_frames": [self.first, self.frames - 1], "scenes": list(self.scenes),
+                "presets": list(self.presets), "rows": self.rows,
+                "interactions": self.interactions(), "seconds": self.seconds}
+
+    def montage(self, path: str | Path, scene: str) -> Path:
+        """One scene: the 1 spp input, every preset's composed frame and the reference (last
+        frame with motion), the error ``|x - reference|`` under each, and ``full``'s stage
+        layers in the last row."""
+        from ..report.figures import Panel, montage
+        from ..report.page import tonemap
+
+        imgs = self.images[scene]
+        ref = imgs[REFERENCE]
+        keys = [k for k in imgs if k != REFERENCE] + [REFERENCE]
+        layers = self.layers.get(scene, {})
+        cols = max(len(keys), len(layers), 1)
+        scale = max(float(np.percentile(np.abs(ref), 99.5)), 1e-6)
+        grid: list[list[Panel | None]] = [
+            [Panel(tonemap(imgs[k]), k, fontsize=7) for k in keys],
+            [Panel(np.abs(imgs[k] - ref).mean(axis=-1), f"|{k} - ref|", "magma", 0,
+                   0.25 * scale, fontsize=6) for k in keys]]
+        if layers:
+            grid.append([Panel(tonemap(v), f"full: {k}", fontsize=7) for k, v in layers.items()])
+        h, w = ref.shape[:2]
+        return montage(path, grid, (2.2 * cols, len(grid) * 2.2 * h / w + 0.5), dpi=100)
+
+
+def _sequence(setup, preset: str, choices: dict, frames: int) -> dict:
+    """Render ``frames`` frames through a Pipeline: colours, stage times, last frame's layers
+    (``skipped``: the pipeline's refusal)."""
+    from ..pipeline import LAYERS, Pipeline
+
+    try:
+        pipe = Pipeline(setup, preset=preset, progress=False, **choices)
+    except GlossrtError as e:
+        return {"skipped": str(e)}
+    colours, ms = [], []
+    frame = None
+    for i in range(frames):
+        frame = pipe.render(i)
+        colours.append(frame.numpy("color"))
+        ms.append(frame.meta["pipeline"]["stage_ms"])
+    steady = ms[2:] or ms[1:] or ms
+    stage_ms = {k: float(statistics.median(m[k] for m in steady)) for k in ms[0]}
+    layers = {k: frame.numpy(k) for k in LAYERS if k in frame.names}
+    return {"colours": colours, "stage_ms": stage_ms, "layers": layers,
+            "direct": pipe.direct_mode}
+
+
+def _score(colours, refs, first: int) -> dict:
+    from .. import metrics
+
+    scored = range(first, len(colours))
+    return {"rmse": float(np.mean([metrics.rmse(colours[t], refs[t]) for t in scored])),
+            "flip": float(np.mean([metrics.flip(colours[t], refs[t]) for t in scored])),
+            "temporal": flicker(colours[first - 1:], refs[first - 1:])}
+
+
+def check_args(size, spp: int, frames: int, scenes=SCENES, presets=PRESETS) -> None:
+    """Refuse bad arguments before any work."""
+    from ..pipeline import PRESETS as KNOWN
+    from ..scenes import BUILTIN, library  # noqa: F401  (library registers the built-ins)
+
+    if frames < 2:
+        raise GlossrtError(f"pipeline experiment: --frames must be >= 2 (temporal error), "
+                           f"got {frames}")
+    if spp < 1:
+        raise GlossrtError(f"pipeline experiment: --spp must be >= 1, got {spp}")
+    if len(size) != 2 or min(size) < 8:
+        raise GlossrtError(f"pipeline experiment: size must be at least 8x8, got {size}")
+    bad = [p for p in presets if p not in KNOWN or p == "reference"]
+    if bad:
+        raise GlossrtError(f"pipeline experiment: unknown preset(s) {bad}; choose from "
+                           f"{', '.join(p for p in KNOWN if p != 'reference')}")
+    bad = [s for s in scenes if s not in BUILTIN]
+    if bad:
+        raise GlossrtError(f"pipeline experiment: unknown scene(s) {bad}")
+
+
+def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, presets=PRESETS,
+             variants: bool = True, static: bool = True, choices: dict | None = None,
+             progress: Callable[[str], None] | None = None) -> PipelineResults:
+    """Every preset on every scene against the converged reference (module docstring).
+    ``choices``: pipeline options applied to every run (e.g. a coarse ``bspvt_resolution``
+    in tests); ``variants``: also the :data:`VARIANTS` rows on :data:`INTERACTION_SCENE`;
+    ``static``: also the runs without motion."""
+    from .. import render
+    from .. import scenes as scn
+
+    scenes, presets = tuple(scenes), tuple(presets)
+    check_args(size, spp, frames, scenes, presets)
+    say = progress or (lambda _m: None)
+    choices = dict(choices or {})
+    t0 = time.perf_counter()
+    res = PipelineResults(tuple(size), spp, frames, scenes, presets)
+    for scene in scenes:
+        runs = [(p, p, {}) for p in presets]
+        if variants and scene == INTERACTION_SCENE:
+            runs += [(label, p, c) for label, (p, c) in VARIANTS.items()]
+        for motion in ((True, False) if static else (True,)):
+            setup = (scn.load(scene, size=size, frames=frames) if motion
+                     else scn.load_static(scene, size=size))
+            rend = render.Renderer(setup)
+            say(f"{scene} ({'with' if motion else 'without'} motion): references, {spp} spp")
+            refs = [rend.render_reference(i, spp).numpy("color")
+                    for i in (range(frames) if motion else range(1))]
+            refs = refs if motion else refs * frames
+            raw = [rend.render(i).numpy("color") for i in range(frames)]
+            base = {"scene": scene, "motion": motion}
+            res.rows.append({**base, "label": FLOOR, **_score(raw, refs, res.first)})
+            res.rows.append({**base, "label": REFERENCE, **_score(refs, refs, res.first)})
+            if motion:
+                res.images[scene] = {FLOOR: raw[-1]}
+            for label, preset, extra in runs:
+                say(f"{scene} ({'with' if motion else 'without'} motion): {label}")
+                seq = _sequence(setup, preset, {**choices, **extra}, frames)
+                if "skipped" in seq:
+                    res.rows.append({**base, "label": label, "skipped": seq["skipped"]})
+                    continue
+                res.rows.append({**base, "label": label, "direct": seq["direct"],
+                                 "stage_ms": seq["stage_ms"],
+                                 **_score(seq["colours"], refs, res.first)})
+                if motion and label in presets:
+                    res.images[scene][label] = seq["colours"][-1]
+                    if label == "full":
+                        res.layers[scene] = seq["layers"]
+            if motion:
+                res.images[scene][REFERENCE] = refs[-1]
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def _notes(res: PipelineResults) -> str:
+    lines = [f"Scored frames {res.first}..{res.frames - 1} of {res.frames}; `x floor`: RMSE "
+             f"with motion over the raw 1 spp input's; temporal: flicker against the "
+             f"reference's own change (without motion: the sequence's temporal error)."]
+    if res.skips():
+        lines.append("Skipped (the pipeline refuses): " + "; ".join(res.skips()) + ".")
+    if res.interactions():
+        lines.append("Composition (one choice of `full` changed; a positive change is worse): "
+                     + " | ".join(res.interactions()) + ".")
+    return "\n\n".join(lines)
+
+
+# -- timing (benchmark case) -----------------------------------------------------------------
+
+
+def _evaluated(out: dict) -> None:
+    import drjit as dr
+
+    vals = []
+    for v in out.values():
+        vals += [v[k] for k in v.names] if hasattr(v, "names") else [v]
+    dr.eval(vals)
+
+
+def timing(preset: str, scene: str, size=(320, 180), warmup: int = 3, repeats: int = 9,
+           min_sample: float = 0.0, choices: dict | None = None) -> dict:
+    """Steady state of ``preset`` on the static copy of ``scene`` (frames differ only in
+    noise, so the temporal histories stay full): the composed frame (``Pipeline.render``)
+    and each stage run alone on the inputs a composed frame gave it (``stage.run`` with the
+    stage's declared inputs), called in turn (:func:`glossrt.timing.round_robin`); the ratio
+    of the frame to the sum of the stages alone is the median of per-repeat ratios."""
+    import drjit as dr
+
+    from .. import scenes as scn
+    from ..pipeline import Pipeline
+    from ..timing import round_robin
+
+    pipe = Pipeline(scn.load_static(scene, size=size), preset=preset, progress=False,
+                    **(choices or {}))
+    metas = [pipe.render(i).meta["pipeline"] for i in range(8)]  # records, fills histories
+    ctxs = []
+    for i in range(8, 12):  # four frames of inputs for the stages alone
+        ctx: dict = {}
+        for stage in pipe.stages.values():
+            out = stage.run(i, ctx)
+            _evaluated(out)
+            ctx.update(out)
+        ctxs.append((i, ctx))
+    dr.sync_thread()
+    counter = {"frame": 12}
+
+    def frame():
+        counter["frame"] += 1
+        metas.append(pipe.render(counter["frame"]).meta["pipeline"])
+
+    cases: dict[str, Callable[[], object]] = {"frame": frame}
+    for name, stage in pipe.stages.items():
+        turn = {"k": 0}
+
+        def alone(stage=stage, turn=turn):
+            turn["k"] += 1
+            i, ctx = ctxs[turn["k"] % len(ctxs)]
+            _evaluated(stage.run(i, {k: ctx[k] for k in stage.inputs}))
+
+        cases[name] = alone
+    times = round_robin(cases, warmup, repeats, min_sample)
+    stages = [n for n in cases if n != "frame"]
+    sums = [sum(times[n][r] for n in stages) for r in range(repeats)]
+    frame_s = statistics.median(times["frame"])
+    steady = metas[8:]
+    return {
+        "preset": preset, "scene": f"{scene} (static copy)", "size": list(size),
+        "direct": pipe.direct_mode,
+        "frame_ms": 1000 * frame_s, "fps": 1.0 / frame_s,
+        "stage_ms_alone": {n: 1000 * statistics.median(times[n]) for n in stages},
+        "sum_alone_ms": 1000 * statistics.median(sums),
+        "stage_ms_in_frame": {n: float(statistics.median(m["stage_ms"][n] for m in steady))
+                              for n in steady[0]["stage_ms"]},
+        "ratio_frame_vs_sum": statistics.median(a / b for a, b in zip(times["frame"], sums,
+                                                                       strict=True)),
+        "target_ratio": TARGET_RATIO,
+        "repeats": repeats,
+    }
+
+
+def timing_markdown(t: dict) -> str:
+    lines = ["| preset / scene | direct | frame ms | fps | target fps (320x180) | stages "
+             "alone (ms) | sum alone | frame / sum (target <= 1.10) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for c in t["cases"].values():
+        alone = ", ".join(f"{k} {v:.2f}" for k, v in c["stage_ms_alone"].items())
+        lines.append(f"| {c['preset']} / {c['scene']} | {c['direct']} | {c['frame_ms']:.2f} "
+                     f"| {c['fps']:.1f} | {c['target_fps']:.0f} | {alone} | "
+                     f"{c['sum_alone_ms']:.2f} | {c['ratio_frame_vs_sum']:.3f} |")
+    return "\n".join(lines)
+
+
+@benchmark("pipeline", order=80)
+def bench_pipeline(ctx: BenchContext) -> dict:
+    """Steady-state milliseconds per frame of ``schied2017`` on glossy-cornell and ``full``
+    on polygon-light (static copies) at the bench size, per stage and composed, and the
+    composed frame against the sum of its stages run alone (issue 25: at most 1.1x; fps
+    targets at 320x180: 30 and 20). ``ctx.extra["pipeline_choices"]``: options for every
+    pipeline (e.g. a coarse ``bspvt_resolution``)."""
+    cases = {}
+    for preset, scene, fps in BENCH_CASES:
+        t = timing(preset, scene, size=ctx.size, warmup=ctx.warmup, repeats=ctx.turns,
+                   min_sample=ctx.min_sample, choices=ctx.extra.get("pipeline_choices"))
+        cases[f"{preset}/{scene}"] = {**t, "target_fps": fps}
+    return {"size": list(ctx.size), "cases": cases, "repeats": ctx.turns}
+
+
+# -- report section and experiment -------------------------------------------------------------
+
+
+@register_section("pipeline", order=85)
+def section_pipeline(ctx: DemoContext, report: Report) -> None:
+    t0 = time.perf_counter()
+    scale, size = section_size(ctx, (128, 96), 4, (32, 24))
+    spp, frames = (64, 4) if scale >= 1 else (8, 3)
+    presets = ("schied2017", "tokuyoshi2015", "full")
+    scene = "glossy-cornell"
+    res = evaluate(size=size, spp=spp, frames=frames, scenes=(scene,), presets=presets,
+                   variants=False, static=False)
+    s = report.section(
+        "Frame pipeline",
+        f"glossrt.pipeline composes the papers into one real-time frame (issue 25): "
+        f"{', '.join(presets)} on {scene} ({size[0]}x{size[1]}, {frames} frames of its "
+        f"animation) against the converged reference ({spp} spp), with the raw 1 spp input "
+        "as the floor to beat; stage times are per frame on this machine. See "
+        "docs/RESULTS.md (`glossrt experiment --which pipeline`).")
+    markdown_table(s, res.markdown(), "error against the converged reference")
+    s.paragraph(_notes(res))
+    s.saved_figure("pipeline_montage", lambda p: res.montage(p, scene),
+                   caption="composed frames, |x - reference|, and full's stage layers")
+    ctx.timings["pipeline section"] = time.perf_counter() - t0
+
+
+@register_experiment("pipeline", "issue 25's frame pipeline: every preset on five scenes "
+                     "against the converged reference, with and without motion, per-stage "
+                     "ms, composition interactions (--size, --spp, --frames >= 2)", order=70)
+def run_experiment(out, size, args) -> int:
+    """Every preset against the converged reference (module docstring); writes pipeline.md,
+    pipeline.json and one montage per scene (pipeline_SCENE.png)."""
+    check_args(size, args.spp, args.frames)
+    res = evaluate(size=size, spp=args.spp, frames=args.frames,
+                   progress=lambda m: print(m, flush=True))
+    for scene in res.scenes:
+        res.montage(out / f"pipeline_{scene}.png", scene)
+    w, h = size
+    md = (f"## every preset against the converged reference ({w}x{h}, reference {args.spp} "
+          f"spp, {args.frames} frames)\n\n{res.markdown()}\n\n{_notes(res)}")
+    return finish_experiment(out, "pipeline", md, f"pipeline_{res.scenes[0]}.png",
+                             res.as_dict())

@@ -1,0 +1,151 @@
+"""glossrt experiment --which pipeline (issue 25's evidence), the report's pipeline section and
+the ``pipeline`` benchmark case, on tiny images."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from glossrt.errors import GlossrtError
+from glossrt.experiments import pipeline as ep
+
+TINY = (32, 24)
+COARSE = {"bspvt_resolution": 8}
+#: the grid test's scenes: a moving occluder (BSPVT refused with motion) and the interaction
+#: scene; the whole grid (every scene) is what `glossrt experiment --which pipeline` runs
+GRID_SCENES = ("glossy-cornell", "polygon-light")  # coarse visibility maps: BSPVT's trees build in a second
+
+
+@pytest.fixture(scope="module")
+def results():
+    return ep.evaluate(size=TINY, spp=8, frames=2, scenes=GRID_SCENES, choices=COARSE)
+
+
+def test_every_pair_has_a_row_or_a_reason(results, tmp_path):
+    for scene in GRID_SCENES:
+        for motion in (True, False):
+            for label in ep.PRESETS + (ep.FLOOR, ep.REFERENCE):
+                row = results.row(scene, label, motion)
+                assert row is not None, (scene, label, motion)
+                if row.get("skipped"):
+                    assert len(row["skipped"]) > 20  # the pipeline's stated reason
+                else:
+                    assert all(np.isfinite(row[k]) for k in ("rmse", "flip", "temporal"))
+    # glossy-cornell's sphere moves: BSPVT is refused with motion and runs without it
+    skip = results.row("glossy-cornell", "okuno-iwasaki", True)["skipped"]
+    assert "sphere" in skip and "ltc+ratio" in skip
+    assert not results.row("glossy-cornell", "okuno-iwasaki", False).get("skipped")
+    for label in ep.VARIANTS:
+        assert results.row(ep.INTERACTION_SCENE, label, True) is not None
+    assert len(results.interactions()) == len(ep.VARIANTS)
+    md = results.markdown()
+    for scene in GRID_SCENES:
+        for label in ep.PRESETS:
+            assert f"| {scene} | {label}" in md
+    data = json.loads(json.dumps(results.as_dict(), default=float))
+    assert len(data["rows"]) == len(results.rows)
+    assert results.montage(tmp_path / "m.png", "polygon-light").stat().st_size > 1000
+
+
+def test_reference_is_zero_and_the_floor_is_not(results):
+    for scene in GRID_SCENES:
+        for motion in (True, False):
+            ref = results.row(scene, ep.REFERENCE, motion)
+            assert ref["rmse"] == 0 and ref["flip"] == 0 and ref["temporal"] == 0
+            floor = results.row(scene, ep.FLOOR, motion)
+            assert floor["rmse"] > 0 and floor["flip"] > 0 and floor["temporal"] > 0
+
+
+def test_flicker_against_numpy():
+    rng = np.random.default_rng(3)
+    frames = [rng.uniform(0, 1, (4, 5, 3)) for _ in range(3)]
+    refs = [rng.uniform(0, 1, (4, 5, 3)) for _ in range(3)]
+    w = np.array([0.2126, 0.7152, 0.0722])
+    d = [f @ w - r @ w for f, r in zip(frames, refs, strict=True)]
+    want = np.mean([np.mean(np.abs(d[1] - d[0])), np.mean(np.abs(d[2] - d[1]))])
+    assert ep.flicker(frames, refs) == pytest.approx(want, rel=1e-6)
+    # a constant reference: flicker is Schied et al.'s temporal error of the sequence
+    from glossrt import metrics
+
+    assert ep.flicker(frames, [refs[0]] * 3) == pytest.approx(metrics.temporal_error(frames))
+
+
+def test_experiment_cli_writes_table_and_json(tmp_path, monkeypatch):
+    calls = {}
+    real = ep.evaluate
+
+    def small(**kw):  # the CLI's run, restricted to one scene and two presets
+        calls.update(kw)
+        calls["res"] = real(**{**kw, "scenes": ("polygon-light",),
+                               "presets": ("schied2017", "full"), "choices": COARSE,
+                               "static": False})
+        return calls["res"]
+
+    monkeypatch.setattr(ep, "evaluate", small)
+    args = SimpleNamespace(spp=4, frames=2)
+    assert ep.run_experiment(tmp_path, TINY, args) == 0
+    md = (tmp_path / "pipeline.md").read_text()
+    assert "| polygon-light | full (ltc+bspvt)" in md and "1 spp input" in md
+    data = json.loads((tmp_path / "pipeline.json").read_text())
+    assert {r["label"] for r in data["rows"]} >= {"schied2017", "full", ep.FLOOR}
+    assert (tmp_path / "pipeline_polygon-light.png").is_file()
+    assert calls["spp"] == 4 and calls["frames"] == 2
+    # with 2 frames only frame 1 is scored: the rows against NumPy on the kept images
+    res = calls["res"]
+    imgs = res.images["polygon-light"]
+    for label in (ep.FLOOR, "full"):
+        want = float(np.sqrt(np.mean((imgs[label].astype(np.float64)
+                                      - imgs[ep.REFERENCE]) ** 2)))
+        assert res.row("polygon-light", label, True)["rmse"] == pytest.approx(want, rel=1e-5)
+        assert want > 0
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"frames": 1}, "frames must be >= 2"),
+    ({"spp": 0}, "spp must be >= 1"),
+    ({"presets": ("nope",)}, "unknown preset"),
+    ({"presets": ("reference",)}, "unknown preset"),
+    ({"scenes": ("no-such-scene",)}, "unknown scene"),
+])
+def test_bad_arguments_refused(kw, match):
+    with pytest.raises(GlossrtError, match=match):
+        ep.evaluate(size=TINY, **{"spp": 4, "frames": 2, **kw})
+
+
+def test_demo_section_renders(tmp_path):
+    from glossrt.report import DemoContext, Report
+
+    class _F:  # the section reads only the demo's frame width
+        width, height = 32, 24
+
+    ctx = DemoContext(out_dir=tmp_path, scene="glossy-cornell", frames=[_F()])
+    rep = Report(tmp_path, "t")
+    ep.section_pipeline(ctx, rep)
+    page = rep.write()
+    html = page.read_text()
+    assert "Frame pipeline" in html and "schied2017" in html
+    assert list((tmp_path / "img").glob("pipeline_montage*.png"))
+
+
+def test_bench_case_keys():
+    from glossrt import bench
+    from glossrt.report.registry import BENCHMARKS, BenchContext, registered_benchmarks
+
+    assert "pipeline" in registered_benchmarks()
+    bench.check_args(names=["pipeline"])
+    ctx = BenchContext(size=TINY, warmup=1, repeats=1, min_sample=0.0,
+                       extra={"pipeline_choices": COARSE})
+    out = BENCHMARKS["pipeline"](ctx)
+    assert set(out["cases"]) == {"schied2017/glossy-cornell", "full/polygon-light"}
+    for c in out["cases"].values():
+        for k in ("frame_ms", "fps", "stage_ms_alone", "sum_alone_ms", "stage_ms_in_frame",
+                  "ratio_frame_vs_sum", "target_ratio", "target_fps", "direct"):
+            assert k in c, k
+        assert set(c["stage_ms_alone"]) >= {"gbuffer", "direct", "indirect", "composite",
+                                            "taa"}
+        assert c["frame_ms"] > 0 and c["sum_alone_ms"] > 0
+        assert c["fps"] == pytest.approx(1000 / c["frame_ms"])
+    assert "| full / polygon-light" in ep.timing_markdown(out)
