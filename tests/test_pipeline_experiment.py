@@ -13,10 +13,10 @@ from glossrt.errors import GlossrtError
 from glossrt.experiments import pipeline as ep
 
 TINY = (32, 24)
-COARSE = {"bspvt_resolution": 8}
+COARSE = {"bspvt_resolution": 8}  # coarse visibility maps: BSPVT's trees build in a second
 #: the grid test's scenes: a moving occluder (BSPVT refused with motion) and the interaction
 #: scene; the whole grid (every scene) is what `glossrt experiment --which pipeline` runs
-GRID_SCENES = ("glossy-cornell", "polygon-light")  # coarse visibility maps: BSPVT's trees build in a second
+GRID_SCENES = ("glossy-cornell", "polygon-light")
 
 
 @pytest.fixture(scope="module")

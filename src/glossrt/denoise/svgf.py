@@ -504,10 +504,19 @@ class ATrousTemporal(SVGF):
 
 
 def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
-        alpha: float = 0.1) -> mi.TensorXf:
+        alpha: float = 0.1, mesh_id: mi.TensorXf | None = None,
+        prev_mesh_id: mi.TensorXf | None = None) -> mi.TensorXf:
     """Temporal antialiasing (Karis 2014) as a separate pass: reproject ``history`` with the
     motion vectors (bilinear), clamp it to the 3x3 neighbourhood's min/max of ``image``,
     blend with weight ``alpha`` for the new frame. Pass the result as next ``history``.
+
+    ``mesh_id`` / ``prev_mesh_id`` (the G-buffer's ``mesh_id`` of this frame and of the
+    history's frame): each of the four bilinear taps counts only if it showed the same
+    surface in the previous frame (the weights renormalised; none left: a disocclusion, the
+    history is dropped), as SVGF's 2x2 reprojection with its consistency test (Schied 2017,
+    sec. 4.1). Without it the neighbourhood clamp keeps a moving bright emitter's trail
+    wherever one of the 3x3 neighbours still shows it, and an emitter's edge pixels blend
+    its history with the background's.
 
     Input hygiene: NaN/Inf in ``image`` or ``history`` count as 0 (they reach neither the
     neighbours' clamp nor the next history); non-finite motion drops the pixel's history,
@@ -528,12 +537,24 @@ def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
     prev = finite(split(history))[0]
+    if (mesh_id is None) != (prev_mesh_id is None):
+        raise GlossrtError("taa: give both mesh_id and prev_mesh_id, or neither")
+    cur_id = split(mesh_id)[0] if mesh_id is not None else None
+    was_ids = split(prev_mesh_id)[0] if mesh_id is not None else None
     acc = [dr.zeros(mi.Float, w * h) for _ in prev]
+    wsum = dr.zeros(mi.Float, w * h)
     for dx, dy, wb in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
                        (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        vals = fetch(prev, grid.index(x0 + dx, y0 + dy))
+        tap = grid.index(x0 + dx, y0 + dy)
+        if cur_id is not None:  # a tap that showed another surface is left out
+            wb = dr.select(dr.gather(mi.Float, was_ids, tap) == cur_id, wb, 0.0)
+        vals = fetch(prev, tap)
         acc = [a + wb * v for a, v in zip(acc, vals, strict=True)]
+        wsum += wb
     onscreen = grid.inside(mi.Int32(dr.round(px)), mi.Int32(dr.round(py)))
+    if cur_id is not None:
+        onscreen &= wsum > 1e-3
+        acc = [a / dr.maximum(wsum, 1e-3) for a in acc]
     out = [dr.select(onscreen, dr.lerp(dr.clip(p, l, u), c, alpha), c)
            for p, l, u, c in zip(acc, lo, hi, cur, strict=True)]
     return merge(out, h, w)

@@ -621,6 +621,7 @@ class TAAStage(Stage):
 
     def reset(self) -> None:
         self.history = None
+        self.history_ids = None
 
     def run(self, index: int, ctx: dict) -> dict:
         img = ctx["composite"]
@@ -628,8 +629,12 @@ class TAAStage(Stage):
             return {"color": img}
         from ..denoise import taa
 
-        out = taa(img, self.history, ctx["frame"]["motion"], self.alpha)
-        self.history = out
+        ids = ctx["frame"]["mesh_id"]
+        # the previous frame's surfaces: a pixel that showed another one (a light that moved
+        # away) drops its history instead of keeping the emitter's trail
+        out = taa(img, self.history, ctx["frame"]["motion"], self.alpha, mesh_id=ids,
+                  prev_mesh_id=self.history_ids if self.history is not None else ids)
+        self.history, self.history_ids = out, ids
         return {"color": out}
 
 
