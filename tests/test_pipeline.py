@@ -3,6 +3,8 @@ built-in and XML scenes, configure() without re-tracing, refusals, the CLI's fra
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -328,3 +330,30 @@ def test_cli_writes_composed_frames_with_the_layers(tmp_path):
     assert main(["render", "polygon-light", "--pipeline", "okuno-iwasaki", "--size", "32x24",
                  "--out", str(bad), "--spp", "4"]) != 0
     assert not bad.exists()  # refused before anything is written
+
+
+def test_bspvt_refused_where_its_visibility_cannot_see_the_light(xml_path):
+    """BSPVT's visibility texels are 1 only for rays that escape the scene without its
+    lights, so a light mounted under a ceiling reads as occluded everywhere, and shapes
+    that are not meshes have no trees: before this check okuno-iwasaki shaded glossy-cornell's
+    direct light as 0 on every object (0.13 in the converged path-traced reference)."""
+    static = scenes.load_static("glossy-cornell", size=SMALL)
+    with pytest.raises(GlossrtError, match="'sphere' is not a triangle mesh.*ltc\\+ratio"):
+        pipeline.Pipeline(static, preset="okuno-iwasaki", progress=False)
+    assert pipeline.Pipeline(static, preset="full", progress=False).direct_mode == "ltc+ratio"
+    # meshes only, the light 0.005 under a ceiling slab: refused by the light's name
+    ceiling = XML.replace('<shape type="rectangle" id="light">', '''<shape type="cube" id="ceiling">
+    <transform name="to_world"><scale x="2" y="0.05" z="2"/><translate x="0" y="2.255" z="0.5"/>
+    </transform>
+  </shape>
+  <shape type="rectangle" id="light">''')
+    path = os.path.join(os.path.dirname(xml_path), "ceiling.xml")
+    with open(path, "w") as f:
+        f.write(ceiling)
+    with pytest.raises(GlossrtError, match="light 'light' has 'ceiling' behind it"):
+        pipeline.Pipeline(path, preset="okuno-iwasaki", size=SMALL, progress=False)
+    assert pipeline.Pipeline(path, preset="full", size=SMALL,
+                             progress=False).direct_mode == "ltc+ratio"
+    # the same scene without the slab keeps BSPVT
+    assert pipeline.Pipeline(xml_path, preset="full", size=SMALL, progress=False,
+                             bspvt_resolution=8).direct_mode == "ltc+bspvt"

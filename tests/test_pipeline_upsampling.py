@@ -143,3 +143,32 @@ def test_scale_that_does_not_divide_the_size_is_refused(tmp_path):
     assert main(["render", "polygon-light", "--pipeline", "tokuyoshi2015", "--size", "33x24",
                  "--frames", "1", "--out", str(out)]) != 0
     assert not out.exists()
+
+
+def test_frozen_upsamplers_equal_unfrozen_with_a_moving_camera():
+    """The pipeline's frozen upsamplers (camera terms and jitter opaque inputs) give the
+    unfrozen path's result to float32 rounding on every frame of a moving camera, and steady
+    frames replay without recording again."""
+    from glossrt.denoise.upsampling import SpatioTemporalUpsampler, Upsampler
+
+    setup = scenes.load("polygon-light", size=(32, 24), orbit=20.0, frames=5)
+    pipe = pipeline.Pipeline(setup, preset="tokuyoshi2015", indirect="none", progress=False)
+    g = pipe.stages["gbuffer"]
+    ups = {(kind, frozen): cls(weight="lobe", channels=INDIRECT, frozen=frozen)
+           for kind, cls in (("jb", Upsampler), ("st", SpatioTemporalUpsampler))
+           for frozen in (True, False)}
+    cameras, counts = [], []
+    for i in range(5):
+        ctx = g.run(i, {})
+        gb, low = ctx["frame"], ctx["frame_low"]
+        cameras.append((np.asarray(gb.camera.to_world).copy(), tuple(low.meta["jitter"])))
+        for kind in ("jb", "st"):
+            a = np.array(ups[kind, True](gb, low))
+            b = np.array(ups[kind, False](gb, low))
+            assert np.abs(b).max() > 0.01
+            np.testing.assert_allclose(a, b, rtol=2e-6, atol=1e-7, err_msg=f"{kind} {i}")
+        counts.append((ups["jb", True].n_recordings, ups["st", True].n_recordings))
+    assert not np.allclose(cameras[0][0], cameras[-1][0])  # the camera moved
+    assert len({c[1] for c in cameras}) > 1  # and the jitter cycled
+    # the temporal one records a second time when its own history replaces the empty one
+    assert counts[0] == (1, 1) and set(counts[1:]) == {(1, 2)}

@@ -213,6 +213,13 @@ def pixel_view_directions(frame, grid: Grid, purpose: str = "this filter") -> mi
     it on rendered frames) without reading ``position``: on the CPU the three strided reads
     of that channel cost more than this affine map (measured, docs/PERFORMANCE.md). The map's
     nine coefficients are opaque (a moving camera does not recompile kernels)."""
+    return apply_view_coefficients(grid, view_coefficients(frame, purpose))
+
+
+def view_coefficients(frame, purpose: str = "this filter") -> tuple[list, list, list]:
+    """The opaque coefficients ``(a, b, c)`` of :func:`pixel_view_directions`'s affine map
+    (camera-space direction ``x a + y b + c`` of pixel ``(x, y)``): computed on the host, so
+    that a frozen function can take them as inputs (a recording would bake the camera in)."""
     cam = frame.camera
     if cam is None:
         raise FrameError(f"{frame.where}: {purpose} needs the camera (view directions)")
@@ -226,7 +233,12 @@ def pixel_view_directions(frame, grid: Grid, purpose: str = "this filter") -> mi
     step_y = rot @ np.array([0.0, -2.0 * t * sy / cw, 0.0])
     origin = rot @ np.array([t * (1.0 - 2.0 * (0.5 + jx) * sx / cw),
                              t * (chh - 2.0 * (0.5 + jy) * sy) / cw, 1.0])
-    a, b, c = opaque(step_x), opaque(step_y), opaque(origin)
+    return opaque(step_x), opaque(step_y), opaque(origin)
+
+
+def apply_view_coefficients(grid: Grid, coefficients) -> mi.Vector3f:
+    """Per-pixel ``wo`` from :func:`view_coefficients` (see :func:`pixel_view_directions`)."""
+    a, b, c = coefficients
     x, y = mi.Float(grid.x), mi.Float(grid.y)
     d = mi.Vector3f(*(dr.fma(x, a[k], dr.fma(y, b[k], c[k])) for k in range(3)))
     return -dr.normalize(d)

@@ -65,11 +65,12 @@ from ..backend import mi
 from ..brdf.sg import lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
-from ..jit import exp_weight
+from ..jit import exp_weight, no_gc, opaque
 from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2
 from .common import (
     Grid,
     albedo_channel,
+    apply_view_coefficients,
     check_frame,
     demodulate,
     finite,
@@ -77,12 +78,12 @@ from .common import (
     lobe_tap_weight,
     merge,
     pixel_guides,
-    pixel_view_directions,
     remodulate,
     require_camera,
     split,
     tap_channels,
     tap_sharpness,
+    view_coefficients,
 )
 
 #: default screen kernel in *low-resolution* pixels, and the window half width (2r x 2r taps)
@@ -98,6 +99,7 @@ THRESHOLD = 0.05
 _FLOOR = 1e-6
 
 __all__ = ["ALPHA", "RADIUS", "SIGMA_S", "THRESHOLD", "WEIGHTS", "SpatioTemporalUpsampler",
+           "Upsampler",
            "adaptive_resample", "factor_of", "jitter_sequence", "upsample"]
 
 
@@ -137,12 +139,13 @@ class _Guides:
     lam: mi.Float | None = None
 
     @staticmethod
-    def of(frame, grid: Grid, lobes: bool, kappa: float | None = KAPPA) -> _Guides:
+    def of(frame, grid: Grid, lobes: bool, kappa: float | None = KAPPA,
+           view=None) -> _Guides:
         pg = pixel_guides(frame, lobes)  # non-finite guides: background (never a sample)
         hit, n = pg.hit, mi.Vector3f(*pg.normal)
         g = _Guides(hit, pg.z, n)
         if lobes:
-            wo = pixel_view_directions(frame, grid, "weight='lobe'")
+            wo = apply_view_coefficients(grid, view)  # the camera's terms (_camera_terms)
             xi, lam = lobe_to_sg(n, wo, pg.roughness, pg.beckmann)
             g.xi = dr.select(hit, xi, mi.Vector3f(0.0, 0.0, 1.0))
             # Tokuyoshi 2015, sec. 4.2: the smoothed sharpness lambda_bar, once per pixel
@@ -164,15 +167,48 @@ def _check(frame, low, channels, weight) -> tuple[tuple, dict, bool]:
     return channels, albedo_of, use_lobe
 
 
-def _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius, sigma_s, sigma_n2,
-                    beta, kappa, approx, sigma_z2):
+class _Channels:
+    """The channels of a frame as plain arrays (what a frozen function may take as input),
+    with the parts of :class:`~glossrt.frame.Frame` the upsampling kernels read."""
+
+    def __init__(self, chs: dict, width: int, height: int):
+        self.chs, self.width, self.height = chs, width, height
+
+    def __getitem__(self, name):
+        return self.chs[name]
+
+    def require(self, *names):
+        return tuple(self.chs[n] for n in names)
+
+    @property
+    def names(self) -> tuple:
+        return tuple(self.chs)
+
+
+def _camera_terms(frame, low, use_lobe: bool) -> dict:
+    """The per-frame camera terms of the kernels, computed on the host and opaque: the low
+    frame's jitter and, for lobes, both frames' view-direction maps. Inputs of the frozen
+    functions (a recording would bake them in as literals)."""
+    terms = {"jitter": opaque(frame_jitter(low))}
+    if use_lobe:
+        terms["view"] = view_coefficients(frame, "weight='lobe'")
+        terms["view_low"] = view_coefficients(low, "weight='lobe'")
+    return terms
+
+
+def _arrays(frame, names) -> dict:
+    return {n: frame[n] for n in names if n in frame.names}
+
+
+def _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, radius, sigma_s,
+                    sigma_n2, beta, kappa, approx, sigma_z2):
     """Upsampled demodulated illumination per channel (full resolution) and the normalised
-    weight sum per channel."""
+    weight sum per channel (``terms``: :func:`_camera_terms`)."""
     f = factor_of(frame, low)
     grid, lgrid = Grid(frame.width, frame.height), Grid(low.width, low.height)
-    jx, jy = frame_jitter(low)
-    hi = _Guides.of(frame, grid, use_lobe, kappa)
-    lo = _Guides.of(low, lgrid, use_lobe, kappa)
+    jx, jy = terms["jitter"]
+    hi = _Guides.of(frame, grid, use_lobe, kappa, terms.get("view"))
+    lo = _Guides.of(low, lgrid, use_lobe, kappa, terms.get("view_low"))
     # position of each full-resolution pixel centre in low-resolution pixel-index units
     u = (mi.Float(grid.x) + 0.5) / f - 0.5 - jx
     v = (mi.Float(grid.y) + 0.5) / f - 0.5 - jy
@@ -264,17 +300,82 @@ def upsample(frame, low, weight: str = "normal",
     the G-buffer of ``frame`` (see the module docstring); the other radiance components come
     from ``frame``. Returns the RGB image (H, W, 3); with ``return_weights=True`` also the
     normalised weight sums (H, W, len(channels)) in [0, 1] (0: no similar sample)."""
-    channels, albedo_of, use_lobe = _check(frame, low, channels, weight)
-    radius = int(radius)
-    if radius < 1 or not sigma_s > 0 or not sigma_n2 > 0:
-        raise GlossrtError("upsample: need radius >= 1, sigma_s > 0 and sigma_n2 > 0")
-    illum, weights, hit = _upsample_illum(frame, low, channels, albedo_of, use_lobe, radius,
-                                          sigma_s, sigma_n2, beta, kappa, approx, sigma_z2)
-    img = merge(_compose(frame, channels, albedo_of, illum, hit), frame.height, frame.width)
+    return Upsampler(weight, channels, frozen=False, radius=radius, sigma_s=sigma_s,
+                     sigma_n2=sigma_n2, beta=beta, kappa=kappa, approx=approx,
+                     sigma_z2=sigma_z2)(frame, low, return_weights=return_weights)
+
+
+_FULL = (*RADIANCE, "albedo_diffuse", "albedo_specular", "normal", "depth", "mesh_id",
+         "roughness", "distribution", "motion")
+
+
+def _spatial(fch, lch, terms, static):
+    """:func:`upsample` on arrays (the function :class:`Upsampler` freezes): ``fch`` /
+    ``lch`` the full / low frames' channels, ``terms`` the camera terms, ``static`` the
+    sizes and parameters (part of a recording's key)."""
+    (fw, fh, lw, lh, channels, albedo_of, use_lobe, p, return_weights) = static
+    frame, low = _Channels(fch, fw, fh), _Channels(lch, lw, lh)
+    albedo_of = dict(albedo_of)
+    illum, weights, hit = _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe,
+                                          *p)
+    img = merge(_compose(frame, channels, albedo_of, illum, hit), fh, fw)
     if return_weights:
         wts = [dr.select(hit, wk, 1.0) for wk in weights]  # background needs nothing
-        return img, merge(wts, frame.height, frame.width)
+        return img, merge(wts, fh, fw)
     return img
+
+
+def _params(who: str, params: dict) -> dict:
+    p = dict(radius=RADIUS, sigma_s=SIGMA_S, sigma_n2=SIGMA_N2, beta=BETA, kappa=KAPPA,
+             approx=True, sigma_z2=SIGMA_Z2)
+    unknown = set(params) - set(p)
+    if unknown:
+        raise GlossrtError(f"{who}: unknown parameters {sorted(unknown)}")
+    p.update(params)
+    p["radius"] = int(p["radius"])
+    if p["radius"] < 1 or not p["sigma_s"] > 0 or not p["sigma_n2"] > 0:
+        raise GlossrtError(f"{who}: need radius >= 1, sigma_s > 0 and sigma_n2 > 0")
+    return p
+
+
+def _static(frame, low, channels, albedo_of, use_lobe, p, *extra) -> tuple:
+    return (frame.width, frame.height, low.width, low.height, channels,
+            tuple(albedo_of.items()), use_lobe,
+            (p["radius"], p["sigma_s"], p["sigma_n2"], p["beta"], p["kappa"], p["approx"],
+             p["sigma_z2"]), *extra)
+
+
+class Upsampler:
+    """:func:`upsample` as an object: ``up(frame, low, return_weights=False)``, with
+    ``frozen=True`` replaying recorded kernels on steady-state frames (``dr.freeze``; the
+    camera terms and the jitter are opaque inputs, so a moving camera replays too).
+    ``up.n_recordings``: the recordings made so far (0 when not frozen)."""
+
+    def __init__(self, weight: str = "normal",
+                 channels: tuple[str, ...] = ("indirect_diffuse", "indirect_specular"),
+                 frozen: bool = True, **params):
+        self.weight, self.channels = weight, tuple(channels)
+        if weight not in WEIGHTS:
+            raise GlossrtError(f"upsample: unknown weight {weight!r}; choose one of "
+                               f"{', '.join(WEIGHTS)}")
+        self.params = _params("upsample", params)
+        self.frozen = frozen
+        self._fn = dr.freeze(_spatial) if frozen else _spatial
+
+    @property
+    def n_recordings(self) -> int:
+        return int(self._fn.n_recordings) if self.frozen else 0
+
+    def reset(self) -> None:
+        """Nothing to forget (no history): for the stages' interface."""
+
+    def __call__(self, frame, low, return_weights: bool = False):
+        channels, albedo_of, use_lobe = _check(frame, low, self.channels, self.weight)
+        terms = _camera_terms(frame, low, use_lobe)
+        static = _static(frame, low, channels, albedo_of, use_lobe, self.params,
+                         bool(return_weights))
+        with no_gc():
+            return self._fn(_arrays(frame, _FULL), _arrays(low, _FULL), terms, static)
 
 
 def adaptive_resample(renderer, frame_index: int, frame, image, weights,
@@ -311,17 +412,18 @@ class SpatioTemporalUpsampler:
 
     def __init__(self, weight: str = "normal",
                  channels: tuple[str, ...] = ("indirect_diffuse", "indirect_specular"),
-                 alpha: float = ALPHA, **params):
+                 alpha: float = ALPHA, frozen: bool = False, **params):
         if not 0.0 < alpha <= 1.0:
             raise GlossrtError(f"SpatioTemporalUpsampler: alpha must be in (0, 1], got {alpha}")
         self.weight, self.channels, self.alpha = weight, tuple(channels), float(alpha)
-        self.params = dict(radius=RADIUS, sigma_s=SIGMA_S, sigma_n2=SIGMA_N2, beta=BETA,
-                           kappa=KAPPA, approx=True, sigma_z2=SIGMA_Z2)
-        unknown = set(params) - set(self.params)
-        if unknown:
-            raise GlossrtError(f"SpatioTemporalUpsampler: unknown parameters {sorted(unknown)}")
-        self.params.update(params)
+        self.params = _params("SpatioTemporalUpsampler", params)
+        self.frozen = frozen
+        self._fn = dr.freeze(_temporal) if frozen else _temporal
         self.reset()
+
+    @property
+    def n_recordings(self) -> int:
+        return int(self._fn.n_recordings) if self.frozen else 0
 
     def reset(self) -> None:
         """Forget the history (the next frame is the spatial upsample alone)."""
@@ -329,39 +431,52 @@ class SpatioTemporalUpsampler:
         self._size = None
 
     def __call__(self, frame, low) -> mi.TensorXf:
-        from .common import gbuffer
-        from .svgf import History, reproject
+        from .svgf import History
 
         channels, albedo_of, use_lobe = _check(frame, low, self.channels, self.weight)
         check_frame(frame, ["motion"])
         require_camera(frame, "SpatioTemporalUpsampler")
-        p = self.params
-        illum, _, hit = _upsample_illum(frame, low, channels, albedo_of, use_lobe,
-                                        int(p["radius"]), p["sigma_s"], p["sigma_n2"],
-                                        p["beta"], p["kappa"], p["approx"], p["sigma_z2"])
         size = (frame.width, frame.height)
-        grid = Grid(*size)
-        # its geometry for the consistency tests: background where _Guides.of says so
-        gb = gbuffer(frame, grid, with_roughness=use_lobe)
-        n = size[0] * size[1]
         if self._history is None or self._size != size:
-            zero = dr.zeros(mi.Float, n)
-            prev = History(color=[[zero] * 3 for _ in channels],
-                           moments=[[zero, zero] for _ in channels],
-                           length=zero, normal=[zero] * 3, inv_z=zero, mesh=zero)
+            n = size[0] * size[1]
+            zero = [dr.zeros(mi.Float, n) for _ in range(4 + 3 * len(channels))]
+            dr.make_opaque(zero)  # the layout of a history of evaluated arrays (one recording)
+            prev = History(color=[zero[4 + 3 * k:7 + 3 * k] for k in range(len(channels))],
+                           moments=[[zero[0], zero[0]] for _ in channels],
+                           length=zero[0], normal=zero[1:4], inv_z=zero[0], mesh=zero[0])
         else:
             prev = self._history
-        moments = [[dr.zeros(mi.Float, n)] * 2 for _ in channels]
-        # Herzog 2010 / Schied 2017 sec. 4.1: reprojected history, consistency-tested, blended
-        # with the new spatial estimate by an exponential moving average
-        blended, _, length = reproject(grid, gb, split(frame["motion"]), prev, illum, moments,
-                                       self.alpha, 1.0)
-        blended = [[dr.select(hit, b, 0.0) for b in bl] for bl in blended]
-        length = dr.select(hit, length, 0.0)
-        dr.eval(blended, length)
-        # moments are SVGF's; the upsampler keeps none (zeros satisfy reproject's interface)
-        self._history = History(color=blended, moments=moments, length=length,
-                                normal=gb.normal, inv_z=gb.inv_z, mesh=gb.mesh)
+        static = _static(frame, low, channels, albedo_of, use_lobe, self.params, self.alpha)
+        with no_gc():
+            img, self._history = self._fn(_arrays(frame, _FULL), _arrays(low, _FULL),
+                                          _camera_terms(frame, low, use_lobe), prev, static)
         self._size = size
-        return merge(_compose(frame, channels, albedo_of, blended, hit),
-                     frame.height, frame.width)
+        return img
+
+
+def _temporal(fch, lch, terms, prev, static):
+    """One frame of :class:`SpatioTemporalUpsampler` on arrays (the function it freezes):
+    the output image and the new history."""
+    from .common import gbuffer
+    from .svgf import History, reproject
+
+    (fw, fh, lw, lh, channels, albedo_of, use_lobe, p, alpha) = static
+    frame, low = _Channels(fch, fw, fh), _Channels(lch, lw, lh)
+    albedo_of = dict(albedo_of)
+    illum, _, hit = _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, *p)
+    grid = Grid(fw, fh)
+    # its geometry for the consistency tests: background where _Guides.of says so
+    gb = gbuffer(frame, grid, with_roughness=use_lobe)
+    n = fw * fh
+    moments = [[dr.zeros(mi.Float, n)] * 2 for _ in channels]
+    # Herzog 2010 / Schied 2017 sec. 4.1: reprojected history, consistency-tested, blended
+    # with the new spatial estimate by an exponential moving average
+    blended, _, length = reproject(grid, gb, split(frame["motion"]), prev, illum, moments,
+                                   alpha, 1.0)
+    blended = [[dr.select(hit, b, 0.0) for b in bl] for bl in blended]
+    length = dr.select(hit, length, 0.0)
+    dr.eval(blended, length)
+    # moments are SVGF's; the upsampler keeps none (zeros satisfy reproject's interface)
+    history = History(color=blended, moments=moments, length=length,
+                      normal=gb.normal, inv_z=gb.inv_z, mesh=gb.mesh)
+    return merge(_compose(frame, channels, albedo_of, blended, hit), fh, fw), history

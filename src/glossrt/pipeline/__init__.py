@@ -91,6 +91,43 @@ def moving_occluders(setup) -> list[str]:
     return [sid for sid in moved if _is_occluder(setup, sid)]
 
 
+def bspvt_obstacles(setup, polys: list) -> list[str]:
+    """Why BSPVT's precomputed visibility cannot shade ``setup`` (empty: it can).
+
+    * Shapes that are not triangle meshes (an analytic sphere, ...): the trees live at mesh
+      vertices (Okuno & Iwasaki), so such a shape's pixels would get no direct light at all.
+    * A polygon light with geometry behind it (a ceiling light in a closed room): a visibility
+      texel is 1 only if its ray escapes the scene without the lights (the light moves, so the
+      maps cannot stop at it), so every ray through such a light reads as blocked. Found by
+      one ray from the light's centre away from its emitting side.
+    """
+    from ..backend import mi
+
+    out = [f"shape {s.id()!r} is not a triangle mesh (BSPVT's trees live at mesh vertices, "
+           "so its pixels would get no direct light)"
+           for s in setup.shapes if not s.is_emitter() and not s.is_mesh()]
+    for light in polys:
+        v = np.asarray(light.vertices, np.float64)
+        centre = v.mean(axis=0)
+        n = np.cross(v[1] - v[0], v[2] - v[0])
+        n /= np.linalg.norm(n)
+        size = float(np.max(np.linalg.norm(v - centre, axis=1)))
+        o = centre - n * 1e-4 * max(size, 1e-3)
+        ray = mi.Ray3f(mi.Point3f(*(float(x) for x in o)), mi.Vector3f(*(float(-x) for x in n)))
+        si = setup.scene.ray_intersect(ray)
+        if bool(si.is_valid()[0]):
+            import drjit as dr
+
+            key = dr.reinterpret_array(mi.UInt32, si.shape)[0]
+            hit = next((sh.id() for sh in setup.shapes
+                        if dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0] == key),
+                       "") or "geometry"
+            out.append(f"light {light.id or 'polygon'!r} has {hit!r} behind it (BSPVT's "
+                       "visibility rays through the light hit it, so the light reads as "
+                       "occluded)")
+    return out
+
+
 def _matrix(m):
     """A 4x4 (or 3x4) NumPy matrix of ``m``: array-like or a Mitsuba transform."""
     from ..scenes import to_matrix
@@ -143,7 +180,12 @@ class Pipeline:
         mode = opts["direct"]
         if mode != "auto":
             return mode
-        return "ltc+ratio" if moving_occluders(self.setup) else "ltc+bspvt"
+        if moving_occluders(self.setup):
+            return "ltc+ratio"
+        from ..lights.scene import polygon_lights
+
+        return "ltc+ratio" if bspvt_obstacles(self.setup, polygon_lights(self.setup, 0)) \
+            else "ltc+bspvt"
 
     @staticmethod
     def _load_trees(bspvt, opts: dict):
@@ -203,6 +245,10 @@ class Pipeline:
                     match_scene(self.setup.scene, trees)
                 except GlossrtError as e:
                     raise GlossrtError(f"bspvt: scene {name!r}: {e}") from None
+            obstacles = bspvt_obstacles(self.setup, polys)
+            if obstacles:
+                raise GlossrtError(f"direct=ltc+bspvt: scene {name!r}: {obstacles[0]}; use "
+                                   "direct=ltc+ratio")
         if direct != "pathtraced":
             from ..render.pathtracer import ShapeTable
 

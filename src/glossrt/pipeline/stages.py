@@ -460,7 +460,7 @@ class IndirectStage(Stage):
             self.low_denoiser = self.direct_denoiser = self.upsampler = None
             return
         from .. import render
-        from ..denoise.upsampling import SpatioTemporalUpsampler
+        from ..denoise.upsampling import SpatioTemporalUpsampler, Upsampler
 
         self.inputs = ("frame", "frame_low")
         self.denoiser = None
@@ -474,8 +474,12 @@ class IndirectStage(Stage):
         # the primary hit's path-traced direct light: left to the path tracer for some lights
         self.direct_pt = len(tuple(exclude)) < len(render.emitter_index(setup))
         self.direct_denoiser = _denoiser(method, signals="direct") if self.direct_pt else None
-        self.upsampler = (SpatioTemporalUpsampler(weight=self.weight, channels=INDIRECT_PT)
+        # frozen (the camera terms and the jitter opaque inputs): steady frames replay
+        self.upsampler = (SpatioTemporalUpsampler(weight=self.weight, channels=INDIRECT_PT,
+                                                  frozen=True)
                           if self.mode == "spatio-temporal" else None)
+        self.spatial = (Upsampler(weight=self.weight, channels=INDIRECT_PT, frozen=True)
+                        if self.upsampler is None or self.resample else None)
 
     def reset(self) -> None:
         for d in (self.denoiser, self.low_denoiser, self.direct_denoiser, self.upsampler):
@@ -485,8 +489,11 @@ class IndirectStage(Stage):
     def frozen(self) -> list:
         out = []
         for d in (self.denoiser, self.low_denoiser, self.direct_denoiser):
-            if d is not None:
+            if d is not None and getattr(d, "frozen", False):
                 out += [d._accumulate, d._reconstruct]
+        for u in (self.upsampler, getattr(self, "spatial", None)):
+            if u is not None and u.frozen:
+                out.append(u._fn)
         return out
 
     @staticmethod
@@ -543,7 +550,7 @@ class IndirectStage(Stage):
         return out
 
     def _upsampled(self, index: int, gb: Frame, low: Frame) -> mi.TensorXf:
-        from ..denoise.upsampling import adaptive_resample, upsample
+        from ..denoise.upsampling import adaptive_resample
 
         h, w = gb.height, gb.width
         lch = {k: low[k] for k in LOW_GUIDES if k in low}
@@ -563,13 +570,11 @@ class IndirectStage(Stage):
         if self.upsampler is not None:
             img = self.upsampler(full, lo)
             if self.resample:
-                _, wts = upsample(full, lo, weight=self.weight, channels=INDIRECT_PT,
-                                  return_weights=True)
+                _, wts = self.spatial(full, lo, return_weights=True)
         elif self.resample:
-            img, wts = upsample(full, lo, weight=self.weight, channels=INDIRECT_PT,
-                                return_weights=True)
+            img, wts = self.spatial(full, lo, return_weights=True)
         else:
-            img = upsample(full, lo, weight=self.weight, channels=INDIRECT_PT)
+            img = self.spatial(full, lo)
         if wts is not None:
             img, mask = adaptive_resample(self._resample_renderer(), index, full, img, wts,
                                           threshold=float(self.opts["resample_threshold"]),
