@@ -25,14 +25,19 @@ invalidates them: :meth:`Pipeline.set_transform` refuses it under ``direct=ltc+b
 rest pose (and back when it returns: the trees are still cached).
 
 Stages (:mod:`glossrt.pipeline.stages`, each with declared input and output channels):
-``gbuffer`` -> ``direct`` -> ``indirect`` -> ``composite`` -> ``taa`` (-> ``display``).
+``gbuffer`` -> ``specaa`` -> ``direct`` -> ``indirect`` -> ``composite`` -> ``taa``
+(-> ``display``). ``specaa`` (option ``specaa=METHOD``, :mod:`glossrt.specaa`; default
+``none``) replaces the frame's ``roughness`` by the filtered one (the material's kept in
+``roughness_material``), which the analytic direct stage and the lobe weights read; the path
+tracer's primary hit keeps the material roughness (``meta["pipeline"]["specaa"]``).
 No double counting, nothing lost: the lights an analytic ``direct`` stage shades (the
 polygon lights, and the point and directional lights) are removed from the path tracer at
 the primary hit only (:class:`glossrt.render.Renderer`'s ``primary_exclude``); they still
 light every deeper bounce. Presets and options: :mod:`glossrt.pipeline.config`.
 
-Every refusal (unknown option, BSPVT with a moving occluder, highlights or LTC modes in a
-scene without polygon lights, anisotropic materials under analytic shading, OIDN missing)
+Every refusal (unknown option, a specaa method that is unknown or filters per light, BSPVT
+with a moving occluder, highlights or LTC modes in a scene without polygon lights,
+anisotropic materials under analytic shading, OIDN missing)
 is one :class:`~glossrt.errors.GlossrtError` raised by the constructor or
 :meth:`Pipeline.configure` before any rendering.
 """
@@ -55,12 +60,13 @@ from .stages import (
     DirectStage,
     GBufferStage,
     IndirectStage,
+    SpecAAStage,
     Stage,
     TAAStage,
     display,
 )
 
-STAGES = ("gbuffer", "direct", "indirect", "composite", "taa", "display")
+STAGES = ("gbuffer", "specaa", "direct", "indirect", "composite", "taa", "display")
 #: the channels a pipeline frame adds to the G-buffer's (docs/FORMATS.md)
 LAYERS = ("direct", "indirect", "composite", "color")
 POLYGON_MODES = ("ltc", "ltc+bspvt", "ltc+ratio", "highlights")
@@ -298,6 +304,8 @@ class Pipeline:
             self._gbuffer.reset()
         stages: dict[str, Stage] = {"gbuffer": self._gbuffer}
         prev = self.stages
+        stages["specaa"] = (prev["specaa"] if same("specaa") and "specaa" in prev
+                            else SpecAAStage(opts["specaa"]))
         if (old is not None and old.get("_direct") == direct and old.get("_trees") is trees
                 and same("bspvt_mode", "bspvt_resolution", "ratio_spp", "highlight_samples")):
             stages["direct"] = prev["direct"]
@@ -465,6 +473,11 @@ class Pipeline:
             "stage_ms": ms,
             "frame_ms": 1000.0 * (time.perf_counter() - t_all),
         }
+        meta["pipeline"]["specaa"] = {
+            "method": self.opts["specaa"],
+            # Mitsuba's BSDFs take no per-pixel roughness: the 1 spp path-traced layers
+            # (and so the indirect light and path-traced direct light) keep the material's
+            "path_tracer": "material roughness"}
         note = config.PRESET_NOTES.get(self.preset)
         if note:
             meta["pipeline"]["note"] = note

@@ -10,6 +10,8 @@ Layers (docs/FORMATS.md, "Pipeline frames"):
 
 * ``gbuffer`` -> the renderer's G-buffer and separated 1 spp radiance (schema channels),
   with the lights of an analytic ``direct`` stage removed at the primary hit;
+* ``specaa`` -> the frame with its ``roughness`` filtered (:class:`SpecAAStage`; the
+  material's in ``roughness_material``);
 * ``direct`` -> ``direct``: the analytic direct light (0 with ``direct=pathtraced``);
 * ``indirect`` -> ``indirect``: the denoised path-traced light beyond emission (indirect
   light, plus the direct light of every light the direct stage leaves to the path tracer);
@@ -206,6 +208,75 @@ class GBufferStage(Stage):
             f[k] = self._sum[k] * share
         f.meta["spp"] = self._n
         return {"frame": f}
+
+
+# -- specaa ----------------------------------------------------------------------------------
+
+
+def _specaa_kernel(ch: dict, cam: list, method, size: tuple[int, int]) -> mi.TensorXf:
+    """The filtered isotropic alpha per pixel (H, W, 1): :func:`glossrt.specaa.
+    filtered_roughness` of ``method`` (Kaplanyan et al. 2016 / Tokuyoshi eq. 2:
+    ``alpha'^2 = min(alpha^2 + K, 1)``), an anisotropic result reduced to
+    ``sqrt(lambda_max(A))`` (:func:`glossrt.specaa.isotropic_alpha`); the material's
+    roughness where no surface was hit."""
+    from ..lights.shading import ShadingPoints
+    from ..specaa.filters import _quad, filtered_roughness, isotropic_alpha
+
+    h, w = size
+    sp = ShadingPoints.at_camera(ch, cam)
+    q = _quad(ch, sp, mi.Point3f(*cam), size, False)
+    a = filtered_roughness(q, method)
+    alpha = dr.select(sp.hit, isotropic_alpha(*a), sp.alpha)
+    return mi.TensorXf(alpha, (h, w, 1))
+
+
+class SpecAAStage(Stage):
+    """Specular antialiasing of the G-buffer's roughness (:mod:`glossrt.specaa`, Kaplanyan
+    et al. 2016 as evaluated by Tokuyoshi; ``projected``: Tokuyoshi & Kaplanyan 2021): the
+    frame's ``roughness`` channel becomes the filtered isotropic alpha per pixel, which every
+    later reader of the frame sees: the analytic ``direct`` stage (LTC, BSPVT, ratio,
+    highlights, point and directional lights) and the lobe weights of ``svgf-lobe`` and of
+    the lobe upsampling (at the full-resolution target pixels; a reduced-resolution
+    ``frame_low`` keeps its material roughness). The material's roughness stays in
+    ``roughness_material``. The path tracer's primary hit does not see the filtered
+    roughness (Mitsuba's BSDFs take no per-pixel roughness here): its layers keep the
+    material's lobes. ``method="none"``: the frame passes through untouched (no
+    ``roughness_material``). Frozen (``dr.freeze``) per pipeline."""
+
+    name = "specaa"
+    inputs = ("frame",)
+    outputs = ("frame",)
+
+    def __init__(self, method: str):
+        from ..specaa import parse_method
+
+        self.spec = method
+        self.method = parse_method(method)
+        self._fn = (dr.freeze(_specaa_kernel, warn_after=16)
+                    if self.method.source != "none" else None)
+
+    def frozen(self) -> list:
+        return [self._fn] if self._fn is not None else []
+
+    def run(self, index: int, ctx: dict) -> dict:
+        gb: Frame = ctx["frame"]
+        if self._fn is None:
+            return {"frame": gb}
+        from ..lights.shading import f0_tensor, shading_channels
+
+        ch = shading_channels(gb)
+        ch["f0"] = f0_tensor(gb, None)  # (the roughness does not depend on F0)
+        with no_gc():
+            alpha = self._fn(ch, opaque(gb.camera.position), self.method,
+                             (gb.height, gb.width))
+            dr.eval(alpha)
+        channels = dict(gb.channels)
+        channels["roughness_material"] = gb["roughness"]
+        channels["roughness"] = alpha
+        meta = dict(gb.meta)
+        meta["specaa"] = self.spec
+        return {"frame": Frame(channels=channels, camera=gb.camera, prev_camera=gb.prev_camera,
+                               index=gb.index, meta=meta)}
 
 
 # -- direct -----------------------------------------------------------------------------------
@@ -663,4 +734,4 @@ def display(image, exposure: float = 0.0, tonemap: str = "filmic") -> np.ndarray
 
 
 __all__ = ["CompositeStage", "DirectStage", "GBufferStage", "IndirectStage", "PointLights",
-           "Stage", "TAAStage", "display", "geometry_key", "scene_trees"]
+           "SpecAAStage", "Stage", "TAAStage", "display", "geometry_key", "scene_trees"]
