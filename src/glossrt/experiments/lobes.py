@@ -202,6 +202,19 @@ def _screen_sigma_image(frame, **kwargs) -> np.ndarray:
     return np.array(sig).reshape(frame.height, frame.width)
 
 
+def _filter_all(frame, target, t_render: float, methods: list, kw: dict, progress) -> tuple:
+    """The input, the reference and each filter's ``indirect_specular`` of ``frame``, and
+    each one's seconds (``progress(done, total)`` after each filter)."""
+    images = {"input": frame.numpy(CHANNEL), "reference": target}
+    seconds = {"render": t_render}
+    for k, m in enumerate(methods):
+        t0 = time.perf_counter()
+        images[m] = _specular(frame, m, **kw)
+        seconds[m] = time.perf_counter() - t0
+        _tick(progress, k + 1, len(methods))
+    return images, seconds
+
+
 def fig4(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
          filter_kwargs: Mapping[str, Any] | None = None,
          progress: Progress | None = None) -> Fig4Result:
@@ -219,14 +232,8 @@ def fig4(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
     hit = frame.numpy("mesh_id")[..., 0] > 0
     sharp = hit & np.isclose(alpha, SHARP_ALPHA, rtol=1e-3)
     rough = hit & np.isclose(alpha, ROUGH_ALPHA, rtol=1e-3)
-    images = {"input": frame.numpy(CHANNEL), "reference": target}
-    seconds = {"render": t_render}
     methods = [m for m in FIG4_METHODS if m != "input"]
-    for k, m in enumerate(methods):
-        t0 = time.perf_counter()
-        images[m] = _specular(frame, m, **kw)
-        seconds[m] = time.perf_counter() - t0
-        _tick(progress, k + 1, len(methods))
+    images, seconds = _filter_all(frame, target, t_render, methods, kw, progress)
     names = ["input", *methods]
     sig = _screen_sigma_image(frame, **kw)
     return Fig4Result(
@@ -319,14 +326,8 @@ def fig5(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
     setup, frame, ref, t_render = _render("glossy-spheres", size, ref_spp)
     spheres, masks = _spheres(setup, frame)
     target = ref.numpy(CHANNEL)
-    images = {"input": frame.numpy(CHANNEL), "reference": target}
-    seconds = {"render": t_render}
     methods = [m for m in FIG5_METHODS if m != "input"]
-    for k, m in enumerate(methods):
-        t0 = time.perf_counter()
-        images[m] = _specular(frame, m, **kw)
-        seconds[m] = time.perf_counter() - t0
-        _tick(progress, k + 1, len(methods))
+    images, seconds = _filter_all(frame, target, t_render, methods, kw, progress)
     mse = {m: [_mse(images[m], target, mask) for mask in masks] for m in ["input", *methods]}
     return Fig5Result(scene="glossy-spheres", size=tuple(size), ref_spp=int(ref_spp),
                       params=kw, spheres=spheres, mse=mse, images=images, masks=masks,
