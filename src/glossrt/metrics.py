@@ -10,6 +10,8 @@ the two shapes agree and that all values are finite, and returns a Python ``floa
   sRGB-encoded, compared per colour channel and averaged.
 * :func:`flip` -- mean HDR-FLIP (NVIDIA ``flip_evaluator``) of the linear images.
 * :func:`temporal_error` -- mean absolute luminance change between consecutive frames.
+* :func:`flicker` -- the part of a sequence's frame-to-frame luminance change that its
+  reference sequence does not have.
 
 Metrics convert to NumPy (float64) internally; :func:`luminance` keeps the input's type.
 """
@@ -33,6 +35,7 @@ __all__ = [
     "ssim",
     "flip",
     "temporal_error",
+    "flicker",
 ]
 
 #: Rec. 709 / linear sRGB luminance weights (R, G, B).
@@ -218,3 +221,15 @@ def temporal_error(frames: Sequence[Any]) -> float:
             total += float(np.mean(np.abs(lum - prev)))
         prev = lum
     return total / (len(frames) - 1)
+
+
+def flicker(frames: Sequence[Any], refs: Sequence[Any]) -> float:
+    """The part of ``frames``' frame-to-frame luminance change that ``refs`` (one reference
+    per frame) does not have: ``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|``
+    (luminance ``L`` of the frames, ``R`` of the references); with one constant reference it
+    is :func:`temporal_error`. Needs two or more frames."""
+    if len(frames) != len(refs) or len(frames) < 2:
+        raise GlossrtError("flicker needs two or more frames and one reference per frame")
+    d = [luminance(np.asarray(f)) - luminance(np.asarray(r))
+         for f, r in zip(frames, refs, strict=True)]
+    return float(np.mean([np.mean(np.abs(d[t] - d[t - 1])) for t in range(1, len(d))]))

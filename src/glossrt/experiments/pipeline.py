@@ -13,9 +13,9 @@ refuses is kept as a row with the pipeline's own reason), against the converged 
   temporal filters' history is built in the first half);
 * temporal error: the part of the sequence's frame-to-frame luminance change the reference
   does not have, ``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` over the same
-  frames (:func:`flicker`). Without motion the reference is one image, so this is Schied et
-  al. 2017's temporal error (:func:`glossrt.metrics.temporal_error`, sec. 5.4) of the
-  sequence itself;
+  frames (:func:`glossrt.metrics.flicker`). Without motion the reference is one image, so
+  this is Schied et al. 2017's temporal error (:func:`glossrt.metrics.temporal_error`,
+  sec. 5.4) of the sequence itself;
 * per-stage milliseconds: the median of each frame's ``meta["pipeline"]["stage_ms"]`` over
   the frames after the first two (the first records the frozen kernels), on the static copy;
 * the floor to beat: the raw 1 spp input, the path tracer's ``color`` (no light removed), and
@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GlossrtError
+from ..metrics import flicker
 from ..report import DemoContext, Report, register_section
 from ..report.registry import (
     BenchContext,
@@ -66,16 +67,6 @@ INTERACTION_SCENE = "polygon-light"
 BENCH_CASES = (("schied2017", "glossy-cornell", 30.0), ("full", "polygon-light", 20.0))
 TARGET_RATIO = 1.10  # the composed frame against the sum of its stages run alone
 
-
-def flicker(frames, refs) -> float:
-    """``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (module docstring)."""
-    from ..metrics import luminance
-
-    if len(frames) != len(refs) or len(frames) < 2:
-        raise GlossrtError("flicker needs two or more frames and one reference per frame")
-    d = [luminance(np.asarray(f)) - luminance(np.asarray(r))
-         for f, r in zip(frames, refs, strict=True)]
-    return float(np.mean([np.mean(np.abs(d[t] - d[t - 1])) for t in range(1, len(d))]))
 
 
 @dataclass

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GlossrtError
+from ..metrics import flicker
 from ..report import DemoContext, Report, register_section
 from ..report.registry import (
     BenchContext,
@@ -132,16 +132,6 @@ def _flat_mask(setup, frame) -> np.ndarray:
     e[:, :-1] &= e[:, 1:].copy()
     return e
 
-
-def flicker(frames, refs) -> float:
-    """``mean_t mean_pixels |(L_t - L_{t-1}) - (R_t - R_{t-1})|`` (module docstring)."""
-    from ..metrics import luminance
-
-    if len(frames) != len(refs) or len(frames) < 2:
-        raise GlossrtError("flicker needs two or more frames and one reference per frame")
-    d = [luminance(np.asarray(f)) - luminance(np.asarray(r)) for f, r in zip(frames, refs,
-                                                                           strict=True)]
-    return float(np.mean([np.mean(np.abs(d[t] - d[t - 1])) for t in range(1, len(d))]))
 
 
 def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int = 64,

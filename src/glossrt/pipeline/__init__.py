@@ -122,8 +122,6 @@ def bspvt_obstacles(setup, polys: list) -> list[str]:
         ray = mi.Ray3f(mi.Point3f(*(float(x) for x in o)), mi.Vector3f(*(float(-x) for x in n)))
         si = setup.scene.ray_intersect(ray)
         if bool(si.is_valid()[0]):
-            import drjit as dr
-
             key = dr.reinterpret_array(mi.UInt32, si.shape)[0]
             hit = next((sh.id() for sh in setup.shapes
                         if dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0] == key),
@@ -270,7 +268,7 @@ class Pipeline:
                                    "installed; choose svgf, svgf-lobe, atrous or none")
         return polys, points
 
-    def _exclude(self, direct: str, polys: list, points: list) -> tuple[int, ...]:
+    def _exclude(self, direct: str, polys: list) -> tuple[int, ...]:
         """Emitter indices of the lights the analytic direct stage shades."""
         if direct == "pathtraced":
             return ()
@@ -288,7 +286,7 @@ class Pipeline:
         direct = self._resolve_direct(opts)
         trees = self.bspvt_trees if trees is None else trees
         polys, points = self._check(opts, direct, trees)
-        exclude = self._exclude(direct, polys, points)
+        exclude = self._exclude(direct, polys)
         self.bspvt_trees = trees
 
         def same(*keys: str) -> bool:

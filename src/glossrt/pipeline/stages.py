@@ -22,6 +22,7 @@ Layers (docs/FORMATS.md, "Pipeline frames"):
 from __future__ import annotations
 
 import hashlib
+import os
 
 import drjit as dr
 import numpy as np
@@ -29,7 +30,7 @@ import numpy as np
 from ..backend import mi
 from ..errors import GlossrtError
 from ..frame import Frame
-from ..images import merge
+from ..images import merge, split
 from ..jit import no_gc, opaque
 
 RADIANCE_PT = ("direct_diffuse", "direct_specular", "indirect_diffuse", "indirect_specular")
@@ -39,6 +40,12 @@ GUIDES = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "r
 
 def _zeros(h: int, w: int, c: int = 3) -> mi.TensorXf:
     return dr.zeros(mi.TensorXf, (h, w, c))
+
+
+def _with_channels(f: Frame, channels: dict, meta: dict | None = None) -> Frame:
+    """``f``'s camera, previous camera and index with other ``channels`` (and ``meta``)."""
+    return Frame(channels=channels, camera=f.camera, prev_camera=f.prev_camera, index=f.index,
+                 meta=f.meta if meta is None else meta)
 
 
 def _tensor(img) -> mi.TensorXf:
@@ -275,8 +282,7 @@ class SpecAAStage(Stage):
         channels["roughness"] = alpha
         meta = dict(gb.meta)
         meta["specaa"] = self.spec
-        return {"frame": Frame(channels=channels, camera=gb.camera, prev_camera=gb.prev_camera,
-                               index=gb.index, meta=meta)}
+        return {"frame": _with_channels(gb, channels, meta)}
 
 
 # -- direct -----------------------------------------------------------------------------------
@@ -360,8 +366,6 @@ def scene_trees(scene, resolution: int, progress: bool = True, cache_dir=None):
     """BSPVT trees of ``scene`` as it is posed now: cached in memory per
     :func:`geometry_key`; with ``cache_dir`` also on disk (``bspvt-<key>.npz``, read back by
     later processes, checked against the scene); built with a progress bar on a miss."""
-    import os
-
     from ..lights.bspvt import BSPVT, build_scene_trees, match_scene
 
     key = geometry_key(scene, resolution)
@@ -463,8 +467,7 @@ class DirectStage(Stage):
         total = self._ltc(gb, polys, f0)
         ch = dict(gb.channels)
         ch["albedo_diffuse"] = _zeros(gb.height, gb.width)
-        spec = self._ltc(Frame(channels=ch, camera=gb.camera, prev_camera=gb.prev_camera,
-                               index=gb.index, meta=gb.meta), polys, f0)
+        spec = self._ltc(_with_channels(gb, ch), polys, f0)
         return dr.maximum(total - spec, 0.0)
 
     def _highlights(self, gb: Frame, index: int, polys: list, f0) -> mi.TensorXf:
@@ -576,10 +579,9 @@ class IndirectStage(Stage):
         for k in ("emission",) + RADIANCE_PT:
             ch[k] = gb[k] if k in names else _zeros(h, w)
         ch["color"] = sum((gb[k] for k in names[1:]), gb[names[0]])
-        return Frame(channels=ch, camera=gb.camera, prev_camera=gb.prev_camera,
-                     index=gb.index, meta=gb.meta)
+        return _with_channels(gb, ch)
 
-    def _denoise(self, f: Frame, names: tuple[str, ...], denoiser) -> mi.TensorXf:
+    def _denoise(self, f: Frame, denoiser) -> mi.TensorXf:
         if self.method == "none":
             return f["color"]
         if self.method == "oidn":
@@ -591,12 +593,10 @@ class IndirectStage(Stage):
     def run(self, index: int, ctx: dict) -> dict:
         gb: Frame = ctx["frame"]
         if self.scale == 1:
-            return {"indirect": self._denoise(self._input(gb, RADIANCE_PT), RADIANCE_PT,
-                                              self.denoiser)}
+            return {"indirect": self._denoise(self._input(gb, RADIANCE_PT), self.denoiser)}
         img = self._upsampled(index, gb, ctx["frame_low"])
         if self.direct_pt:
-            img = img + self._denoise(self._input(gb, DIRECT_PT), DIRECT_PT,
-                                      self.direct_denoiser)
+            img = img + self._denoise(self._input(gb, DIRECT_PT), self.direct_denoiser)
         return {"indirect": img}
 
     def _low_light(self, low: Frame) -> dict:
@@ -604,20 +604,15 @@ class IndirectStage(Stage):
         component, with the albedo that demodulates it (1 where it already is)."""
         h, w = low.height, low.width
         if self.low_denoiser is not None:
-            illum = self.low_denoiser(self._input(low, INDIRECT_PT))  # (h, w, 6)
-            arr = illum.array
-            idx = dr.arange(mi.UInt32, h * w) * 6
+            chs = split(self.low_denoiser(self._input(low, INDIRECT_PT)))  # (h, w, 6)
             ones = dr.ones(mi.TensorXf, (h, w, 3))
-            out = {}
-            for k, c in enumerate(INDIRECT_PT):
-                out[c] = merge([dr.gather(mi.Float, arr, idx + 3 * k + j) for j in range(3)],
-                               h, w)
+            out = {c: merge(chs[3 * k:3 * k + 3], h, w) for k, c in enumerate(INDIRECT_PT)}
             out["albedo_diffuse"] = out["albedo_specular"] = ones
             return out
         out = {"albedo_diffuse": low["albedo_diffuse"],
                "albedo_specular": low["albedo_specular"]}
         for c in INDIRECT_PT:  # none: the raw estimate; oidn: each component alone
-            out[c] = self._denoise(self._input(low, (c,)), (c,), None)
+            out[c] = self._denoise(self._input(low, (c,)), None)
         return out
 
     def _upsampled(self, index: int, gb: Frame, low: Frame) -> mi.TensorXf:
@@ -628,15 +623,13 @@ class IndirectStage(Stage):
         lch.update(self._low_light(low))
         for k in ("emission",) + DIRECT_PT:
             lch[k] = _zeros(low.height, low.width)
-        lo = Frame(channels=lch, camera=low.camera, prev_camera=low.prev_camera,
-                   index=low.index, meta=low.meta)
+        lo = _with_channels(low, lch)
         # the full frame as the upsamplers see it: its G-buffer, no light of its own (the
         # upsampled components are all this part of the layer)
         fch = {k: gb[k] for k in GUIDES if k in gb}
         for k in ("emission",) + RADIANCE_PT:
             fch[k] = _zeros(h, w)
-        full = Frame(channels=fch, camera=gb.camera, prev_camera=gb.prev_camera,
-                     index=gb.index, meta=gb.meta)
+        full = _with_channels(gb, fch)
         wts = None
         if self.upsampler is not None:
             img = self.upsampler(full, lo)

@@ -24,7 +24,7 @@ from ..brdf.ggx import SpecularAlbedoTable
 from ..errors import GlossrtError
 from ..frame import Frame
 from ..jit import no_gc
-from ..scenes import SceneSetup, emitter_kind, stable_emitters, stable_shapes
+from ..scenes import SceneSetup, _registry_id, emitter_kind, stable_emitters, stable_shapes
 from . import integrator as _integrator  # noqa: F401  (registers "glossrt" per variant)
 from .motion import MotionInputs
 from .pathtracer import (
@@ -108,16 +108,12 @@ def emitter_index(setup: SceneSetup) -> list[tuple[int, str, str, int | None]]:
     ``mesh_id`` channel and :attr:`glossrt.lights.scene.PolygonLight.mesh_id` hold), None for
     other emitters."""
     scene = setup.scene
-
-    def rid(ptr_type, obj) -> int:
-        return int(dr.reinterpret_array(mi.UInt32, ptr_type(obj))[0])
-
-    rank = {rid(mi.ShapePtr, s): i + 1 for i, s in enumerate(stable_shapes(scene))}
+    rank = {_registry_id(mi.ShapePtr, s): i + 1 for i, s in enumerate(stable_shapes(scene))}
     out = []
     for k, e in enumerate(stable_emitters(scene)):
         shape = e.get_shape()
         out.append((k, e.id(), emitter_kind(e),
-                    rank.get(rid(mi.ShapePtr, shape)) if shape is not None else None))
+                    rank.get(_registry_id(mi.ShapePtr, shape)) if shape is not None else None))
     return out
 
 
@@ -194,6 +190,9 @@ class Renderer:
         self._primary: EmitterTable | None = None
         self._primary_tables: dict[tuple[int, ...], EmitterTable] = {}
         self._exclude: tuple[int, ...] = ()
+        # ids of the emitters in stable_emitters order (the numbering primary_exclude uses),
+        # ordered once: stable_emitters digests every non-area emitter's parameters
+        self._emitter_ids = tuple(e.id() for e in stable_emitters(setup.scene))
         self.primary_exclude = primary_exclude
         _warm_emitters(setup.scene)
         self.table = SpecularAlbedoTable.load()
@@ -210,8 +209,7 @@ class Renderer:
 
     @primary_exclude.setter
     def primary_exclude(self, exclude: Collection[int]) -> None:
-        n = len(stable_emitters(self.setup.scene))
-        exclude = _check_exclude(exclude, n)
+        exclude = _check_exclude(exclude, len(self._emitter_ids))
         if exclude and exclude not in self._primary_tables:
             self._primary_tables[exclude] = EmitterTable(self.setup.scene, exclude)
         # a table kept per set: going back to an earlier set replays its recording (a new
@@ -396,7 +394,6 @@ class Renderer:
         if self.shapes.any_anisotropic:
             meta["anisotropic"] = True
         if self._exclude:
-            ordered = stable_emitters(self.setup.scene)
             meta["primary_exclude"] = list(self._exclude)
-            meta["primary_exclude_ids"] = [ordered[i].id() for i in self._exclude]
+            meta["primary_exclude_ids"] = [self._emitter_ids[i] for i in self._exclude]
         return Frame(channels=channels, camera=cam, prev_camera=prev, index=frame, meta=meta)
