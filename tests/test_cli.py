@@ -192,9 +192,14 @@ def test_unsupported_plugin_exit_code(tmp_path, capsys):
 
 def test_bench_json(tmp_path, capsys):
     js = tmp_path / "b.json"
+    # the pipeline case at 1/10 of the sizes, without its memory cases
     assert main(["bench", "--json", str(js), "--size", "32x24", "--repeats", "1",
-                 "--warmup", "1", "--min-sample", "0"]) == 0
+                 "--warmup", "1", "--min-sample", "0",
+                 "--case-option", "pipeline_shrink=10", "--case-option", "pipeline_memory=false",
+                 "--case-option", 'pipeline_choices={"bspvt_resolution": 8}']) == 0
     res = json.loads(js.read_text())
+    assert res["case_options"]["pipeline_shrink"] == 10
+    assert "full/polygon-light@64x36" in res["results"]["pipeline"]["cases"]
     r = res["results"]["render-vs-mitsuba-path"]
     assert res["variant"] and res["device"]
     assert r["glossrt_frame_s"] > 0 and r["mitsuba_path_1spp_s"] > 0

@@ -171,7 +171,7 @@ def test_frozen_path_matches_the_traced_one():
     for dist in ("ellipsoidal", "ggx"):
         traced = H.HighlightRenderer(4, dist, "hash", cull=False)
         frozen = H.HighlightRenderer(4, dist, "hash", cull=False, frozen=True)
-        before = H._fast_frozen.n_recordings
+        before = frozen._frozen.n_recordings
         for i in range(3):
             gb = r.render(i)
             lights = polygon_lights(setup, i)
@@ -181,7 +181,7 @@ def test_frozen_path_matches_the_traced_one():
             b = frozen(gb, lights, maps, f0, i)
             assert a.max() > 0.05
             np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5)
-        assert H._fast_frozen.n_recordings - before <= 1
+        assert frozen._frozen.n_recordings - before <= 1
     with pytest.raises(GlossrtError, match="frozen"):
         H.HighlightRenderer(sampling="texture", frozen=True)
 

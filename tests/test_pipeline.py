@@ -412,8 +412,8 @@ def test_specaa_roughness_feeds_ltc_and_points_closer_to_the_supersampled_refere
     from glossrt.pipeline.stages import DirectStage
 
     none, filt = specaa_frames["none"], specaa_frames["avgnormal-eig"]
-    assert filt.meta["pipeline"]["specaa"] == {"method": "avgnormal-eig",
-                                               "path_tracer": "material roughness"}
+    assert filt.meta["pipeline"]["specaa"] == {
+        "method": "avgnormal-eig", "path_tracer": "filtered roughness at the primary hit"}
     material = filt.numpy("roughness_material")
     np.testing.assert_array_equal(material, none.numpy("roughness"))
     gm = _with_roughness(filt, filt["roughness_material"])

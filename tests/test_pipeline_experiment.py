@@ -137,17 +137,57 @@ def test_bench_case_keys():
     from glossrt.report.registry import BENCHMARKS, BenchContext, registered_benchmarks
 
     assert "pipeline" in registered_benchmarks()
-    bench.check_args(names=["pipeline"])
-    ctx = BenchContext(size=TINY, warmup=1, repeats=1, min_sample=0.0,
-                       extra={"pipeline_choices": COARSE})
+    quick = {"pipeline_choices": COARSE, "pipeline_shrink": 10, "pipeline_memory": False}
+    bench.check_args(names=["pipeline"], options=quick)
+    ctx = BenchContext(size=TINY, warmup=1, repeats=1, min_sample=0.0, extra=quick)
     out = BENCHMARKS["pipeline"](ctx)
-    assert set(out["cases"]) == {"schied2017/glossy-cornell", "full/polygon-light"}
+    # the cases side by side, at 1/10 of their sizes
+    assert set(out["cases"]) == {"full/polygon-light@32x18", "full/polygon-light@64x36",
+                                 "schied2017/glossy-cornell@32x18"}
+    assert out["shrink"] == 10 and out["memory"] == {}
     for c in out["cases"].values():
-        for k in ("frame_ms", "fps", "stage_ms_alone", "sum_alone_ms", "stage_ms_in_frame",
-                  "ratio_frame_vs_sum", "target_ratio", "target_fps", "direct"):
+        for k in ("frame_ms", "fps", "fps_untimed", "timing_cost_ms", "stage_ms_alone",
+                  "sum_alone_ms", "stage_ms_in_frame",
+                  "stage_host_ms_in_frame", "ratio_frame_vs_sum", "target_ratio",
+                  "target_fps", "direct", "size"):
             assert k in c, k
         assert set(c["stage_ms_alone"]) >= {"gbuffer", "direct", "indirect", "composite",
                                             "taa"}
+        assert set(c["stage_ms_in_frame"]) == set(c["stage_ms_alone"])
         assert c["frame_ms"] > 0 and c["sum_alone_ms"] > 0
         assert c["fps"] == pytest.approx(1000 / c["frame_ms"])
-    assert "| full / polygon-light" in ep.timing_markdown(out)
+        assert c["target_fps"] is None  # (the targets are for the sizes)
+        assert c["recordings_added"] == 0  # the timed frames replayed
+    md = ep.timing_markdown(out)
+    assert "| full / polygon-light (static copy) | 64x36 |" in md
+
+
+def test_memory_probe_in_a_fresh_process():
+    m = ep.memory_in_subprocess("schied2017", "glossy-cornell", (32, 18), warmup=2, frames=1)
+    assert m["size"] == [32, 18] and m["frames"] == 1
+    # Dr.Jit's peak holds at least the frame's own channels (float32, ~25 of them)
+    assert m["jit_peak_mb"] > 25 * 32 * 18 * 4 / 2**20
+    if m["rss_peak_mb"] is not None:  # Linux
+        assert m["rss_peak_mb"] >= m["rss_before_mb"] > m["jit_peak_mb"]
+    md = ep.timing_markdown({"cases": {}, "memory": {"x": m}})
+    assert "| schied2017 / glossy-cornell (static copy) | 32x18 |" in md
+
+
+@pytest.mark.parametrize("options, match", [
+    (["pipeline_shrink=3"], "pipeline_shrink must be one of 1, 2, 5, 10"),
+    (["pipeline_memory=maybe"], "pipeline_memory must be true or false"),
+    (["pipeline_colour=1"], "unknown case option"),
+    (["pipeline_choices={\"directt\": 1}"], "directt"),
+    (["pipeline_shrink"], "KEY=VALUE"),
+])
+def test_bench_case_options_refused_before_any_work(options, match, capsys):
+    from glossrt import bench
+    from glossrt.cli import main
+
+    with pytest.raises(GlossrtError, match=match):
+        bench.parse_case_options(options)
+    argv = ["bench", "--only", "pipeline"]
+    for o in options:
+        argv += ["--case-option", o]
+    assert main(argv) != 0
+    assert "bench pipeline ..." not in capsys.readouterr().err

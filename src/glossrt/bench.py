@@ -68,13 +68,51 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
     }
 
 
+def case_options() -> dict[str, str]:
+    """Every option a benchmark case takes (``--case-option KEY=VALUE``): name -> help."""
+    from .experiments import pipeline
+
+    return dict(pipeline.BENCH_OPTIONS)
+
+
+def parse_case_options(items: list[str] | None) -> dict:
+    """``KEY=VALUE`` strings as a dict; a VALUE that reads as JSON (a number, true/false, an
+    object) is that value, else the string. Unknown keys and bad values are refused (one
+    GlossrtError line) before any benchmark runs."""
+    import json
+
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise GlossrtError(f"bench: --case-option takes KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(value)
+        except ValueError:
+            out[key] = value
+    check_case_options(out)
+    return out
+
+
+def check_case_options(options: dict) -> None:
+    known = case_options()
+    unknown = sorted(k for k in options if k not in known)
+    if unknown:
+        raise GlossrtError(f"bench: unknown case option(s) {unknown}; available: "
+                           + "; ".join(f"{k}: {v}" for k, v in known.items()))
+    from .experiments import pipeline
+
+    pipeline.check_bench_options(options)
+
+
 def check_args(repeats: int = 9, warmup: int = 3, min_sample: float = MIN_SAMPLE,
-               names: list[str] | None = None) -> None:
+               names: list[str] | None = None, options: dict | None = None) -> None:
     """Refuse, before any benchmark runs, repeats < 1, a negative warm-up or shortest sample,
-    and unknown benchmark names."""
+    unknown benchmark names and unknown or bad case options."""
     unknown = [n for n in names or [] if n not in BENCHMARKS]
     if unknown:
         raise GlossrtError(f"unknown benchmark(s) {unknown}; available: {sorted(BENCHMARKS)}")
+    check_case_options(options or {})
     if repeats < 1:
         raise GlossrtError(f"bench: --repeats must be >= 1, got {repeats}")
     if warmup < 0:
@@ -85,11 +123,14 @@ def check_args(repeats: int = 9, warmup: int = 3, min_sample: float = MIN_SAMPLE
 
 def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warmup: int = 3,
         repeats: int = 9, log: Callable[[str], None] = print,
-        min_sample: float = MIN_SAMPLE) -> dict:
-    """Run the named (default: all) benchmarks and return a JSON-able dict."""
-    check_args(repeats=repeats, warmup=warmup, min_sample=min_sample, names=names)
+        min_sample: float = MIN_SAMPLE, options: dict | None = None) -> dict:
+    """Run the named (default: all) benchmarks and return a JSON-able dict. ``options``:
+    the cases' own options (:func:`case_options`)."""
+    check_args(repeats=repeats, warmup=warmup, min_sample=min_sample, names=names,
+               options=options)
     info = backend.info()
-    ctx = BenchContext(size=size, warmup=warmup, repeats=repeats, min_sample=min_sample)
+    ctx = BenchContext(size=size, warmup=warmup, repeats=repeats, min_sample=min_sample,
+                       extra=dict(options or {}))
     if ctx.turns != repeats:
         log(f"bench: side-by-side ratios take {ctx.turns} repeats (asked for {repeats})")
     results = {}
@@ -104,5 +145,6 @@ def run(names: list[str] | None = None, size: tuple[int, int] = (640, 360), warm
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
         "size": list(size),
         "min_sample_s": min_sample,
+        "case_options": dict(options or {}),
         "results": results,
     }

@@ -309,14 +309,48 @@ def _accumulate(frame_ch: dict, hist: History, p: SVGFParams, w: int, h: int):
     return colors, moments, albedos, length, young, dr.sum(bad)
 
 
+def _level(grid: Grid, gb: GBuffer, frame_ch: dict, c: list, variances, level: int,
+           p: SVGFParams):
+    """A-trous level ``level`` (hole size ``2^level``): SVGF's (Schied 2017, eqs. 1-5, with
+    the variance propagated, sec. 4.3) or Dammertz's. Returns the colours and variances."""
+    step = 1 << level
+    if p.spatial == "svgf":
+        lobes = None
+        if p.weights == "lobe":
+            lobes = (frame_ch["lobe_axis"], frame_ch["lobe_sharpness"],
+                     [bool(s) for s in frame_ch["specular"]], p.beta, p.kappa)
+        c, variances = svgf_level_multi(grid, c, variances, gb, step, p.sigma_z, p.sigma_n,
+                                        p.sigma_l, lobes=lobes)
+        dr.eval(c, variances)  # a kernel boundary per level
+        return c, variances
+    c = dammertz_level_multi(grid, c, gb, step, p.sigma_rt * 2.0**-level, p.sigma_dn,
+                             p.sigma_x)
+    dr.eval(c)
+    return c, variances
+
+
+def _output(frame_ch: dict, c: list, albedos: list, p: SVGFParams) -> list:
+    """The filtered signals remodulated plus emission (or, ``output="illumination"``, the
+    filtered signals themselves)."""
+    if p.output == "illumination":
+        return [ch for k in range(len(c)) for ch in c[k]]
+    out = [mi.Float(e) for e in frame_ch["emission"]]
+    for k in range(len(c)):
+        out = add(out, remodulate(c[k], albedos[k]))
+    return out
+
+
 def _reconstruct(frame_ch: dict, colors, moments, albedos, length, lanes, p: SVGFParams,
                  w: int, h: int):
-    """Stage 2: variance (temporal, or spatial at the pixels in ``lanes``), the a-trous
-    levels, remodulation. Returns the RGB channels and the new history."""
+    """Stage 2: the variance (temporal, or spatial at the pixels in ``lanes``) and the
+    first a-trous level (none if ``p.levels`` is 0). Returns the colours, the variances and,
+    when no level follows, the output channels (else None): :func:`_refine` runs the later
+    levels, each in its own frozen call, because a frozen replay keeps every intermediate
+    array until it returns (measured, Dr.Jit 1.5: a chain of five levels replayed frozen
+    peaked at all five levels' outputs, traced at two), which at 1920x1080 is gigabytes."""
     grid = Grid(w, h)
     gb = _gbuffer(frame_ch)
-    out = [mi.Float(e) for e in frame_ch["emission"]]
-    n_sig = len(colors)
+    variances = None
     if p.spatial == "svgf":
         spatial = spatial_variance_multi(grid, gb, moments, p.sigma_z, p.sigma_n, lanes)
         if p.variance == "spatial":
@@ -326,31 +360,49 @@ def _reconstruct(frame_ch: dict, colors, moments, albedos, length, lanes, p: SVG
             variances = [dr.select(young, v_s, dr.maximum(m[1] - dr.square(m[0]), 0.0))
                          for v_s, m in zip(spatial, moments, strict=True)]
     c = colors
-    feedback = colors
-    for level in range(p.levels):
-        step = 1 << level
-        if p.spatial == "svgf":
-            lobes = None
-            if p.weights == "lobe":
-                lobes = (frame_ch["lobe_axis"], frame_ch["lobe_sharpness"],
-                         [bool(s) for s in frame_ch["specular"]], p.beta, p.kappa)
-            c, variances = svgf_level_multi(grid, c, variances, gb, step, p.sigma_z,
-                                            p.sigma_n, p.sigma_l, lobes=lobes)
-            dr.eval(c, variances)  # a kernel boundary per level
-        else:
-            c = dammertz_level_multi(grid, c, gb, step, p.sigma_rt * 2.0**-level,
-                                     p.sigma_dn, p.sigma_x)
-            dr.eval(c)
-        if level == p.feedback_level:
-            feedback = c
-    if p.output == "illumination":
-        out = [ch for k in range(n_sig) for ch in c[k]]
+    if p.levels > 0:
+        c, variances = _level(grid, gb, frame_ch, c, variances, 0, p)
+    out = _output(frame_ch, c, albedos, p) if p.levels <= 1 else None
+    return c, variances, out
+
+
+def _refine(frame_ch: dict, c, variances, albedos, level: int, p: SVGFParams, w: int,
+            h: int):
+    """A-trous level ``level`` >= 1 (:func:`_level`); the last one also gives the output
+    channels (else None)."""
+    grid = Grid(w, h)
+    gb = _gbuffer(frame_ch)
+    c, variances = _level(grid, gb, frame_ch, c, variances, level, p)
+    out = _output(frame_ch, c, albedos, p) if level == p.levels - 1 else None
+    return c, variances, out
+
+
+def young_lanes(young: mi.Bool, size: int) -> mi.UInt32 | None:
+    """The pixels of mask ``young`` (``size`` pixels) as an evaluated index array whose width
+    ``dr.freeze`` sees as one input layout whatever the count, so that
+    :func:`_reconstruct` replays one recording frame after frame. Measured on Dr.Jit 1.5
+    (tests/test_pipeline_recordings.py): a frozen function records again when an input's
+    width becomes 1 (a scalar) or equal to another input's (the image's ``size``), or when
+    the input is a literal (``dr.zeros``); widths 2 .. size-1 all replay one recording. So:
+
+    * no young pixel: pixels 0 and 1 (their spatial values are computed and not selected);
+    * one: that pixel twice (the same value scattered twice);
+    * every pixel: every pixel plus pixel 0 again (width ``size + 1``);
+    * images under 3 pixels: None (every pixel, a fixed layout)."""
+    if size < 3:
+        return None
+    lanes = dr.compress(young)
+    n = dr.width(lanes)
+    if n == 0:
+        lanes = dr.arange(mi.UInt32, 2)
+    elif n == 1:
+        lanes = dr.gather(mi.UInt32, lanes, dr.zeros(mi.UInt32, 2))
+    elif n == size:
+        lanes = dr.arange(mi.UInt32, size + 1) % size
     else:
-        for k in range(n_sig):
-            out = add(out, remodulate(c[k], albedos[k]))
-    new_hist = History(color=feedback, moments=moments, length=length, normal=gb.normal,
-                       inv_z=gb.inv_z, mesh=gb.mesh)
-    return out, new_hist
+        return lanes
+    dr.make_opaque(lanes)
+    return lanes
 
 
 def _gbuffer(frame_ch: dict) -> GBuffer:
@@ -366,7 +418,8 @@ class SVGF:
     ``svgf(frame) -> mi.TensorXf`` (H, W, 3); ``svgf.reset()`` drops the history. The
     history is also dropped when the frame size changes or at a camera cut (the frame's
     ``prev_camera`` is not the camera of the frame filtered before). ``frozen=True``
-    replays recorded kernels on steady-state frames (``dr.freeze``)."""
+    replays recorded kernels on steady-state frames (``dr.freeze``; :meth:`frozen_functions`
+    lists them)."""
 
     def __init__(self, frozen: bool = True, **params):
         unknown = set(params) - set(SVGFParams.__dataclass_fields__)
@@ -386,12 +439,21 @@ class SVGF:
         if self.params.output not in ("color", "illumination"):
             raise GlossrtError("output must be 'color' or 'illumination'")
         self.frozen = frozen
-        # two frozen stages: the compaction of young-history pixels between them has a
-        # data-dependent size, which a single frozen function would re-record every frame
+        # frozen stages: the compaction of young-history pixels between the first two has a
+        # data-dependent size, which a single frozen function would re-record every frame;
+        # the a-trous levels after the first run one frozen call each (see _reconstruct)
         self._accumulate = dr.freeze(_accumulate) if frozen else _accumulate
         self._reconstruct = dr.freeze(_reconstruct) if frozen else _reconstruct
+        self._refine = [dr.freeze(_refine) if frozen else _refine
+                        for _ in range(1, self.params.levels)]
         self.nonfinite = 0
         self.reset()
+
+    def frozen_functions(self) -> list:
+        """The ``dr.freeze`` functions a frame replays (empty when not frozen)."""
+        if not self.frozen:
+            return []
+        return [self._accumulate, self._reconstruct, *self._refine]
 
     def reset(self) -> None:
         self.history: History | None = None
@@ -470,15 +532,17 @@ class SVGF:
         with no_gc():
             colors, moments, albedos, length, young, bad = self._accumulate(ch, hist, p, w, h)
         # pixels that need the spatial variance estimate, compacted (few in steady state)
-        lanes = None if p.variance == "spatial" else dr.compress(young)
-        if lanes is not None and dr.width(lanes) == 0:
-            # no young pixel: two dummy lanes (pixel 0, whose spatial value is then not
-            # selected) keep the arrays non-empty and away from width 1, which freeze treats
-            # as a different (scalar) configuration
-            lanes = dr.zeros(mi.UInt32, 2)
+        lanes = None if p.variance == "spatial" else young_lanes(young, w * h)
         with no_gc():
-            out, self.history = self._reconstruct(ch, colors, moments, albedos, length, lanes,
+            c, variances, out = self._reconstruct(ch, colors, moments, albedos, length, lanes,
                                                   p, w, h)
+            feedback = c if p.feedback_level == 0 or p.levels == 0 else colors
+            for level, refine in enumerate(self._refine, start=1):
+                c, variances, out = refine(ch, c, variances, albedos, level, p, w, h)
+                if level == p.feedback_level:
+                    feedback = c
+        self.history = History(color=feedback, moments=moments, length=length,
+                               normal=ch["normal"], inv_z=ch["inv_z"], mesh=ch["mesh"])
         self.nonfinite += int(bad[0]) + int(dr.sum(bad_e)[0])
         self._camera = frame.camera
         self.frames += 1

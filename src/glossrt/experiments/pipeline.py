@@ -16,8 +16,10 @@ refuses is kept as a row with the pipeline's own reason), against the converged 
   frames (:func:`glossrt.metrics.flicker`). Without motion the reference is one image, so
   this is Schied et al. 2017's temporal error (:func:`glossrt.metrics.temporal_error`,
   sec. 5.4) of the sequence itself;
-* per-stage milliseconds: the median of each frame's ``meta["pipeline"]["stage_ms"]`` over
-  the frames after the first two (the first records the frozen kernels), on the static copy;
+* per-stage milliseconds: the median of each frame's ``meta["pipeline"]["stage_ms"]`` (the
+  kernel time of each stage, stages not synchronised: :class:`glossrt.timing.StageClock`)
+  over the frames after the first two (the first records the frozen kernels), on the static
+  copy;
 * the floor to beat: the raw 1 spp input, the path tracer's ``color`` (no light removed), and
   the reference scored against itself (0 by construction: a check of the metric path).
 
@@ -26,8 +28,11 @@ choice changed (SVGF's normal weights instead of Tokuyoshi 2015's lobe weights, 
 pixel instead of per vertex, TAA off); the notes state, with numbers, where adding one
 paper's technique makes the composed result worse.
 
-The benchmark case times the steady state (:func:`timing`): the composed frame against the
-sum of its stages run alone, called in turn in one run (:func:`glossrt.timing.round_robin`).
+The benchmark case (:func:`bench_pipeline`) measures issue 25's speed figures in one run:
+the steady-state frame rate of ``full`` and ``schied2017`` at the issue's sizes with
+per-stage kernel milliseconds (:func:`timing`: the composed frame against the sum of its
+stages run alone, called in turn, :func:`glossrt.timing.round_robin`), and the peak memory
+of a steady-state frame at 640x360 and 1920x1080 (:func:`memory`, each in a fresh process).
 """
 
 from __future__ import annotations
@@ -63,9 +68,26 @@ VARIANTS: dict[str, tuple[str, dict]] = {
     "full, taa off": ("full", {"taa": False}),
 }
 INTERACTION_SCENE = "polygon-light"
-#: the benchmark's cases: (preset, scene, issue 25's fps target at 320x180)
-BENCH_CASES = (("schied2017", "glossy-cornell", 30.0), ("full", "polygon-light", 20.0))
+#: the benchmark's frame-rate cases: (preset, scene, size, issue 25's fps target on a 2-core
+#: CPU)
+BENCH_CASES = (("full", "polygon-light", (320, 180), 20.0),
+               ("full", "polygon-light", (640, 360), 8.0),
+               ("schied2017", "glossy-cornell", (320, 180), 30.0))
 TARGET_RATIO = 1.10  # the composed frame against the sum of its stages run alone
+#: the benchmark's memory cases: (preset, scene, size); issue 25: at most 600 MB at 1920x1080
+MEMORY_CASES = (("full", "polygon-light", (640, 360)), ("full", "polygon-light", (1920, 1080)))
+MEMORY_TARGET_MB = 600.0
+#: ``pipeline_shrink`` values: every size of the cases stays even (1/2-resolution indirect)
+SHRINKS = (1, 2, 5, 10)
+#: the benchmark case's options (``glossrt bench --case-option KEY=VALUE``)
+BENCH_OPTIONS = {
+    "pipeline_shrink": "divide every size of the pipeline case by 2, 5 or 10 (a quick run); "
+                       "1 (default): the issue's sizes",
+    "pipeline_memory": "true (default) or false: measure the memory cases (each in a fresh "
+                       "process)",
+    "pipeline_choices": "pipeline options for every case, a JSON object "
+                        "(e.g. {\"bspvt_resolution\": 16})",
+}
 
 
 
@@ -314,10 +336,16 @@ def _evaluated(out: dict) -> None:
 def timing(preset: str, scene: str, size=(320, 180), warmup: int = 3, repeats: int = 9,
            min_sample: float = 0.0, choices: dict | None = None) -> dict:
     """Steady state of ``preset`` on the static copy of ``scene`` (frames differ only in
-    noise, so the temporal histories stay full): the composed frame (``Pipeline.render``)
-    and each stage run alone on the inputs a composed frame gave it (``stage.run`` with the
-    stage's declared inputs), called in turn (:func:`glossrt.timing.round_robin`); the ratio
-    of the frame to the sum of the stages alone is the median of per-repeat ratios."""
+    noise, so the temporal histories stay full): the composed frame (``Pipeline.render``,
+    its stages not synchronised, with per-stage timing: ``fps``; the same frame without
+    per-stage timing: ``fps_untimed``, and ``timing_cost_ms`` the median per-repeat
+    difference) and each stage run alone on the inputs a composed frame gave it
+    (``stage.run`` with the stage's declared inputs, evaluated and synchronised), called
+    in turn (:func:`glossrt.timing.round_robin`); the ratio of the timed frame to the sum of
+    the stages alone is the median of per-repeat ratios. ``stage_ms_in_frame``: the median over
+    the timed frames of each stage's kernel milliseconds inside the composed frame (Dr.Jit's
+    kernel history, :class:`glossrt.timing.StageClock`), ``stage_host_ms_in_frame`` the
+    Python time of each stage's call there."""
     import drjit as dr
 
     from .. import scenes as scn
@@ -336,13 +364,20 @@ def timing(preset: str, scene: str, size=(320, 180), warmup: int = 3, repeats: i
             ctx.update(out)
         ctxs.append((i, ctx))
     dr.sync_thread()
+    recordings = pipe.recordings()
     counter = {"frame": 12}
 
     def frame():
         counter["frame"] += 1
+        pipe.timing = "kernels"
         metas.append(pipe.render(counter["frame"]).meta["pipeline"])
 
-    cases: dict[str, Callable[[], object]] = {"frame": frame}
+    def untimed():  # the same frame without per-stage timing: what the timing costs
+        counter["frame"] += 1
+        pipe.timing = "none"
+        pipe.render(counter["frame"])
+
+    cases: dict[str, Callable[[], object]] = {"frame": frame, "frame_untimed": untimed}
     for name, stage in pipe.stages.items():
         turn = {"k": 0}
 
@@ -352,51 +387,261 @@ def timing(preset: str, scene: str, size=(320, 180), warmup: int = 3, repeats: i
             _evaluated(stage.run(i, {k: ctx[k] for k in stage.inputs}))
 
         cases[name] = alone
+    first = len(metas)
     times = round_robin(cases, warmup, repeats, min_sample)
-    stages = [n for n in cases if n != "frame"]
+    stages = [n for n in cases if not n.startswith("frame")]
     sums = [sum(times[n][r] for n in stages) for r in range(repeats)]
     frame_s = statistics.median(times["frame"])
-    steady = metas[8:]
+    steady = [m for m in metas[first:] if m.get("stage_ms")] or metas[8:]
+
+    def med(key: str) -> dict:
+        return {n: float(statistics.median(m[key][n] for m in steady))
+                for n in steady[0].get(key) or {}}
+
     return {
         "preset": preset, "scene": f"{scene} (static copy)", "size": list(size),
         "direct": pipe.direct_mode,
         "frame_ms": 1000 * frame_s, "fps": 1.0 / frame_s,
+        "fps_untimed": 1.0 / statistics.median(times["frame_untimed"]),
+        "timing_cost_ms": 1000 * statistics.median(
+            a - b for a, b in zip(times["frame"], times["frame_untimed"], strict=True)),
         "stage_ms_alone": {n: 1000 * statistics.median(times[n]) for n in stages},
         "sum_alone_ms": 1000 * statistics.median(sums),
-        "stage_ms_in_frame": {n: float(statistics.median(m["stage_ms"][n] for m in steady))
-                              for n in steady[0]["stage_ms"]},
+        "stage_ms_in_frame": med("stage_ms"),
+        "stage_host_ms_in_frame": med("stage_host_ms"),
+        "kernel_ms_in_frame": float(statistics.median(m.get("kernel_ms", 0.0)
+                                                      for m in steady)),
+        "stage_timing": "kernels (Dr.Jit kernel history, stages not synchronised)",
         "ratio_frame_vs_sum": statistics.median(a / b for a, b in zip(times["frame"], sums,
                                                                        strict=True)),
         "target_ratio": TARGET_RATIO,
+        "recordings_added": pipe.recordings() - recordings,
         "repeats": repeats,
     }
 
 
+def memory(preset: str, scene: str, size, warmup: int = 3, frames: int = 3,
+           choices: dict | None = None) -> dict:
+    """Peak memory of ``frames`` steady-state frames of ``preset`` on the static copy of
+    ``scene`` after ``warmup`` frames (which record the kernels and fill the histories).
+    Run it in a fresh process (:func:`memory_in_subprocess`): earlier work's caches would
+    count. Two measures:
+
+    * ``jit_peak_mb``: Dr.Jit's allocator watermark (``dr.detail.malloc_watermark``) over
+      the steady frames, its cache of freed blocks emptied and its statistics cleared
+      first: the most memory Dr.Jit held at once (on a GPU: device memory), i.e. every live
+      array (the scene's geometry and textures, BSPVT trees, the temporal histories, the
+      frame's channels) plus the frame's transient buffers; not what lives outside Dr.Jit's
+      allocator (the ray-tracing BVH, compiled kernels, Python). Allocations are rounded
+      up by the allocator (measured: a 100 MB array takes 128 MB). ``jit_peak_mb_per_stage``:
+      the same watermark within each stage (everything live when it starts, plus its own
+      buffers; the allocator's cache emptied at its start), over two more frames.
+    * ``rss_peak_mb`` (Linux): the process's peak resident set over the steady frames
+      (``VmHWM`` after resetting it through ``/proc/self/clear_refs``): everything, Python,
+      the libraries and LLVM included, on the CPU backend the Dr.Jit arrays too;
+      ``rss_before_mb`` the resident set when the steady frames start.
+    """
+    import drjit as dr
+
+    from .. import scenes as scn
+    from ..backend import is_gpu
+    from ..pipeline import Pipeline
+
+    pipe = Pipeline(scn.load_static(scene, size=size), preset=preset, progress=False,
+                    **(choices or {}))
+    for i in range(warmup):
+        pipe.render(i)
+    dr.sync_thread()
+    backend = dr.JitBackend.CUDA if is_gpu() else dr.JitBackend.LLVM
+    dr.flush_malloc_cache()
+    dr.detail.malloc_clear_statistics()
+    rss_before = _reset_peak_rss()
+    t0 = time.perf_counter()
+    for i in range(warmup, warmup + frames):
+        pipe.render(i)
+    dr.sync_thread()
+    seconds = (time.perf_counter() - t0) / max(frames, 1)
+    peak = _peak_rss()
+    jit_peak = dr.detail.malloc_watermark(backend) / 2**20
+    # where it peaks: the watermark within each stage (its outputs evaluated inside; the
+    # device synchronised and the allocator's cache emptied first), over two more frames
+    stage_peak = dict.fromkeys(pipe.stages, 0.0)
+    for name, stage in pipe.stages.items():
+        def run(index, ctx, run=stage.run, name=name):
+            dr.sync_thread()
+            dr.flush_malloc_cache()  # (freed blocks kept for reuse count as held)
+            dr.detail.malloc_clear_statistics()
+            out = run(index, ctx)
+            _evaluated(out)
+            stage_peak[name] = max(stage_peak[name],
+                                   dr.detail.malloc_watermark(backend) / 2**20)
+            return out
+
+        stage.run = run
+    for i in range(warmup + frames, warmup + frames + 2):
+        pipe.render(i)
+    return {
+        "preset": preset, "scene": f"{scene} (static copy)", "size": list(size),
+        "direct": pipe.direct_mode, "frames": frames, "frame_s": seconds,
+        "jit_peak_mb": jit_peak, "jit_peak_mb_per_stage": stage_peak,
+        "rss_peak_mb": peak, "rss_before_mb": rss_before,
+        "target_mb": MEMORY_TARGET_MB if tuple(size) == (1920, 1080) else None,
+    }
+
+
+def _status_mb(field: str) -> float | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def _reset_peak_rss() -> float | None:
+    """Reset the process's peak resident set to its current size (Linux ``clear_refs``);
+    returns the current size in MB (None where unsupported)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        return None
+    return _status_mb("VmRSS")
+
+
+def _peak_rss() -> float | None:
+    return _status_mb("VmHWM")
+
+
+def memory_in_subprocess(preset: str, scene: str, size, warmup: int = 3, frames: int = 3,
+                         choices: dict | None = None, timeout: float = 3600.0) -> dict:
+    """:func:`memory` in a fresh Python process on the same device as this one."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from ..backend import is_gpu
+
+    args = json.dumps({"preset": preset, "scene": scene, "size": list(size),
+                       "warmup": warmup, "frames": frames, "choices": choices or {}})
+    code = ("import json, sys; from glossrt.experiments.pipeline import memory; "
+            "a = json.loads(sys.argv[1]); "
+            "print('MEMORY ' + json.dumps(memory(a['preset'], a['scene'], tuple(a['size']), "
+            "a['warmup'], a['frames'], a['choices'])))")
+    env = dict(os.environ, GLOSSRT_DEVICE="gpu" if is_gpu() else "cpu")
+    r = subprocess.run([sys.executable, "-c", code, args], env=env, capture_output=True,
+                       text=True, timeout=timeout)
+    for line in r.stdout.splitlines():
+        if line.startswith("MEMORY "):
+            return json.loads(line[len("MEMORY "):])
+    tail = " | ".join(ln for ln in r.stderr.strip().splitlines()[-3:])
+    raise GlossrtError(f"pipeline memory probe ({preset} on {scene}, {size[0]}x{size[1]}) "
+                       f"failed with exit status {r.returncode}: {tail}")
+
+
 def timing_markdown(t: dict) -> str:
-    lines = ["| preset / scene | direct | frame ms | fps | target fps (320x180) | stages "
-             "alone (ms) | sum alone | frame / sum (target <= 1.10) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| preset / scene | size | direct | frame ms | fps | fps, no per-stage timing | "
+             "target fps (2-core CPU) | stages in the frame, kernel ms (not synchronised) | "
+             "stages alone (ms) | sum alone | frame / sum (target <= 1.10) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in t["cases"].values():
         alone = ", ".join(f"{k} {v:.2f}" for k, v in c["stage_ms_alone"].items())
-        lines.append(f"| {c['preset']} / {c['scene']} | {c['direct']} | {c['frame_ms']:.2f} "
-                     f"| {c['fps']:.1f} | {c['target_fps']:.0f} | {alone} | "
+        inside = ", ".join(f"{k} {v:.2f}" for k, v in c["stage_ms_in_frame"].items())
+        w, h = c["size"]
+        target = f"{c['target_fps']:.0f}" if c.get("target_fps") else "-"
+        lines.append(f"| {c['preset']} / {c['scene']} | {w}x{h} | {c['direct']} | "
+                     f"{c['frame_ms']:.2f} | {c['fps']:.1f} | {c['fps_untimed']:.1f} | "
+                     f"{target} | {inside} | {alone} | "
                      f"{c['sum_alone_ms']:.2f} | {c['ratio_frame_vs_sum']:.3f} |")
+    if t.get("memory"):
+        lines += ["", "| preset / scene | size | Dr.Jit peak (MB) | process peak RSS (MB) | "
+                  "RSS before (MB) | target (MB) |", "|---|---|---|---|---|---|"]
+        for m in t["memory"].values():
+            w, h = m["size"]
+
+            def mb(v):
+                return "-" if v is None else f"{v:.0f}"
+
+            lines.append(f"| {m['preset']} / {m['scene']} | {w}x{h} | {mb(m['jit_peak_mb'])} | "
+                         f"{mb(m['rss_peak_mb'])} | {mb(m['rss_before_mb'])} | "
+                         f"{mb(m['target_mb'])} |")
     return "\n".join(lines)
+
+
+def _option(extra: dict, name: str, default):
+    return extra.get(name, default) if extra else default
+
+
+def check_bench_options(extra: dict) -> None:
+    """Refuse, before any work, a ``pipeline_*`` option of the benchmark case that is
+    unknown or has a bad value (:data:`BENCH_OPTIONS`)."""
+    for k in extra:
+        if k.startswith("pipeline_") and k not in BENCH_OPTIONS:
+            raise GlossrtError(f"unknown bench option {k!r}; the pipeline case takes "
+                               f"{', '.join(sorted(BENCH_OPTIONS))}")
+    shrink = _option(extra, "pipeline_shrink", 1)
+    if isinstance(shrink, bool) or shrink not in SHRINKS:
+        raise GlossrtError(f"pipeline_shrink must be one of {', '.join(map(str, SHRINKS))} "
+                           f"(every size stays even for the 1/2-resolution indirect light), "
+                           f"got {shrink!r}")
+    if not isinstance(_option(extra, "pipeline_memory", True), bool):
+        raise GlossrtError("pipeline_memory must be true or false")
+    choices = _option(extra, "pipeline_choices", None)
+    if choices is not None:
+        if not isinstance(choices, dict):
+            raise GlossrtError("pipeline_choices must be an object of pipeline options, e.g. "
+                               "{\"bspvt_resolution\": 16}")
+        from ..pipeline import config
+
+        config.check_names(choices)
 
 
 @benchmark("pipeline", order=80)
 def bench_pipeline(ctx: BenchContext) -> dict:
-    """Steady-state milliseconds per frame of ``schied2017`` on glossy-cornell and ``full``
-    on polygon-light (static copies) at the bench size, per stage and composed, and the
-    composed frame against the sum of its stages run alone (issue 25: at most 1.1x; fps
-    targets at 320x180: 30 and 20). ``ctx.extra["pipeline_choices"]``: options for every
-    pipeline (e.g. a coarse ``bspvt_resolution``)."""
+    """Issue 25's speed figures in one run, on the static copies of the scenes (their own
+    sizes, not ``--size``):
+
+    * frame rate (:func:`timing`): ``full`` on polygon-light at 320x180 and 640x360,
+      ``schied2017`` on glossy-cornell at 320x180 (:data:`BENCH_CASES`, with the issue's
+      2-core CPU targets), per-stage kernel milliseconds inside the composed frame (stages
+      not synchronised), each stage alone, and the composed frame against the sum of its
+      stages run alone (target <= 1.1);
+    * memory (:func:`memory`, each case in a fresh process): the peak of a steady-state
+      ``full`` frame on polygon-light at 640x360 and 1920x1080 (:data:`MEMORY_CASES`;
+      target: at most 600 MB at 1920x1080).
+
+    Options (``glossrt bench --only pipeline --case-option KEY=VALUE``, or
+    ``ctx.extra``): ``pipeline_shrink`` divides every size by 2, 5 or 10 for a quick run
+    (10: 32x18, 64x36, 192x108); ``pipeline_memory=false`` leaves the memory cases out;
+    ``pipeline_choices`` options for every pipeline (e.g. ``{"bspvt_resolution": 16}``).
+    The full figure: ``glossrt bench --only pipeline --json pipeline.json`` on a quiet
+    machine (the 1920x1080 memory case takes a few minutes on 2 CPU cores)."""
+    extra = ctx.extra or {}
+    check_bench_options(extra)
+    shrink = int(_option(extra, "pipeline_shrink", 1))
+    choices = _option(extra, "pipeline_choices", None)
+
+    def scaled(size):
+        return (size[0] // shrink, size[1] // shrink)
+
     cases = {}
-    for preset, scene, fps in BENCH_CASES:
-        t = timing(preset, scene, size=ctx.size, warmup=ctx.warmup, repeats=ctx.turns,
-                   min_sample=ctx.min_sample, choices=ctx.extra.get("pipeline_choices"))
-        cases[f"{preset}/{scene}"] = {**t, "target_fps": fps}
-    return {"size": list(ctx.size), "cases": cases, "repeats": ctx.turns}
+    for preset, scene, size, fps in BENCH_CASES:
+        t = timing(preset, scene, size=scaled(size), warmup=ctx.warmup, repeats=ctx.turns,
+                   min_sample=ctx.min_sample, choices=choices)
+        w, h = scaled(size)
+        cases[f"{preset}/{scene}@{w}x{h}"] = {**t, "target_fps": fps if shrink == 1 else None}
+    mem = {}
+    if _option(extra, "pipeline_memory", True):
+        for preset, scene, size in MEMORY_CASES:
+            w, h = scaled(size)
+            m = memory_in_subprocess(preset, scene, (w, h), choices=choices)
+            if shrink != 1:
+                m["target_mb"] = None
+            mem[f"{preset}/{scene}@{w}x{h}"] = m
+    return {"shrink": shrink, "cases": cases, "memory": mem, "repeats": ctx.turns}
 
 
 # -- report section and experiment -------------------------------------------------------------

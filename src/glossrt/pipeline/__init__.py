@@ -6,7 +6,7 @@
 >>> pipe.configure(direct="ltc+ratio")   # re-records the changed stage once  # doctest: +SKIP
 >>> rgb8 = pipe.display(frame)      # (H, W, 3) uint8 for viewers     # doctest: +SKIP
 >>> pipe.set_camera(position=(0, 1, 4), target=(0, 0.5, 0))  # explicit pose  # doctest: +SKIP
->>> pipe.set_transform("light", matrix)  # a polygon light or object, rigid  # doctest: +SKIP
+>>> pipe.set_transform("light", matrix)  # a polygon light, object or point light  # doctest: +SKIP
 >>> frame = pipe.render(1)   # posed explicitly, the rest from the animation  # doctest: +SKIP
 
 Posing: a frame is posed by its index (the scene's animation) or explicitly
@@ -28,8 +28,10 @@ Stages (:mod:`glossrt.pipeline.stages`, each with declared input and output chan
 ``gbuffer`` -> ``specaa`` -> ``direct`` -> ``indirect`` -> ``composite`` -> ``taa``
 (-> ``display``). ``specaa`` (option ``specaa=METHOD``, :mod:`glossrt.specaa`; default
 ``none``) replaces the frame's ``roughness`` by the filtered one (the material's kept in
-``roughness_material``), which the analytic direct stage and the lobe weights read; the path
-tracer's primary hit keeps the material roughness (``meta["pipeline"]["specaa"]``).
+``roughness_material``), which the analytic direct stage and the lobe weights read, and
+which the path tracer's primary hit takes too (rough conductors and rough plastics' specular
+lobe; the gbuffer stage traces a G-buffer pass first to filter it:
+``meta["pipeline"]["specaa"]``).
 No double counting, nothing lost: the lights an analytic ``direct`` stage shades (the
 polygon lights, and the point and directional lights) are removed from the path tracer at
 the primary hit only (:class:`glossrt.render.Renderer`'s ``primary_exclude``); they still
@@ -53,6 +55,7 @@ import numpy as np
 
 from ..errors import GlossrtError
 from ..frame import Frame
+from ..timing import StageClock, check_stage_timing
 from . import config
 from .config import OPTIONS, PRESETS, load_toml, parse, resolve
 from .stages import (
@@ -149,10 +152,16 @@ class Pipeline:
     ``bspvt``: a file of prebuilt BSPVT trees (``glossrt bspvt build``, or a
     :class:`glossrt.lights.bspvt.BSPVT`) for ``direct=ltc+bspvt`` (or ``auto``), checked against
     the scene before any work; ``bspvt_cache``: a folder where built trees are kept, keyed by
-    the geometry, and found again by later pipelines."""
+    the geometry, and found again by later pipelines. ``timing``: how ``meta["pipeline"]
+    ["stage_ms"]`` is measured (:data:`glossrt.timing.STAGE_TIMINGS`, :class:`glossrt.timing.
+    StageClock`): ``"kernels"`` (default) the kernel time of each stage from Dr.Jit's kernel
+    history, no stage synchronised; ``"sync"`` the wall time of each stage with the device
+    synchronised after it; ``"none"``. Settable between frames (:attr:`timing`)."""
 
     def __init__(self, setup_or_scene, preset: str = "schied2017", size=None,
-                 progress: bool = True, bspvt=None, bspvt_cache=None, **choices: Any):
+                 progress: bool = True, bspvt=None, bspvt_cache=None,
+                 timing: str = "kernels", **choices: Any):
+        check_stage_timing(timing)
         if preset not in PRESETS:
             preset, file_choices = parse(preset)
             choices = {**file_choices, **choices}
@@ -169,6 +178,7 @@ class Pipeline:
         self.frames = 0
         self._last_pose = None  # the pose of the previous frame rendered
         self.bspvt_trees = None
+        self.timing = timing
         self._apply(self.opts, trees)
 
     # -- configuration ---------------------------------------------------------------------
@@ -304,8 +314,11 @@ class Pipeline:
         prev = self.stages
         stages["specaa"] = (prev["specaa"] if same("specaa") and "specaa" in prev
                             else SpecAAStage(opts["specaa"]))
+        # the path tracer's primary hit takes the filtered roughness (GBufferStage)
+        self._gbuffer.specaa = stages["specaa"]
         if (old is not None and old.get("_direct") == direct and old.get("_trees") is trees
-                and same("bspvt_mode", "bspvt_resolution", "ratio_spp", "highlight_samples")):
+                and same("bspvt_mode", "bspvt_resolution", "ratio_spp", "highlight_samples",
+                         "highlight_probes")):
             stages["direct"] = prev["direct"]
         else:
             stages["direct"] = DirectStage(self.setup, opts, direct, self.progress,
@@ -392,21 +405,31 @@ class Pipeline:
     def set_transform(self, name: str, matrix) -> None:
         """Place shape ``name`` (an object, or a polygon light's shape) by the rigid
         ``matrix`` (4x4, on top of its rest pose, as the animation's paths) in every later
-        frame; None: back to its animation. Moving an occluder (a shape that is not a light)
-        invalidates BSPVT's precomputed visibility: refused under ``direct=ltc+bspvt``
-        (naming the object); ``direct=auto`` (the ``full`` preset) switches to ``ltc+ratio``
-        while it is away from its rest pose. Checked first: a GlossrtError changes
-        nothing."""
+        frame; None: back to its animation. ``name`` may also be a point light's emitter id
+        (the XML ``id``, the scene dict's key; :meth:`glossrt.scenes.SceneSetup.
+        movable_lights`): its position becomes ``matrix`` applied to its rest position, for
+        the analytic direct stage and for the path tracer's deeper bounces alike (the
+        emitter's ``position`` parameter, an input of the frozen frame: no re-recording).
+        Moving an occluder (a shape that is not a light) invalidates BSPVT's precomputed
+        visibility: refused under ``direct=ltc+bspvt`` (naming the object);
+        ``direct=auto`` (the ``full`` preset) switches to ``ltc+ratio`` while it is away
+        from its rest pose. Checked first: a GlossrtError changes nothing."""
         from ..scenes import check_rigid
 
         setup = self.setup
-        if not isinstance(name, str) or name not in setup.shape_index:
-            raise GlossrtError(f"set_transform: scene {setup.name!r} has no shape {name!r}; "
-                               "the shapes that can move are "
-                               f"{', '.join(sorted(setup.movable_shapes())) or 'none'}")
+        lights = setup.movable_lights()
+        if not isinstance(name, str) or (name not in setup.shape_index and name not in lights):
+            raise GlossrtError(f"set_transform: scene {setup.name!r} has no shape {name!r} "
+                               "(nor a point light of that id); the shapes that can move are "
+                               f"{', '.join(sorted(setup.movable_shapes())) or 'none'}; the "
+                               f"point lights {', '.join(lights) or 'none'}")
         m = None
         if matrix is not None:
             m = check_rigid(_matrix(matrix), f"set_transform({name!r})")
+        if name not in setup.shape_index:  # a point light: never an occluder
+            setup.set_light_override(name, m)
+            self._pose_changed()
+            return
         moves = m is not None and not np.array_equal(m, np.eye(4))
         if moves and self.opts["direct"] == "ltc+bspvt" and _is_occluder(setup, name):
             raise GlossrtError(
@@ -418,7 +441,8 @@ class Pipeline:
         self._pose_changed()
 
     def clear_pose(self) -> None:
-        """Back to the animation: no explicit camera, field of view or shape transforms."""
+        """Back to the animation: no explicit camera, field of view, shape transforms or
+        point-light positions."""
         self.setup.clear_overrides()
         self._pose_changed()
 
@@ -427,33 +451,50 @@ class Pipeline:
             self._apply(self.opts)  # full: ltc+bspvt <-> ltc+ratio as occluders move
 
     # -- frames --------------------------------------------------------------------------
+    def frozen(self) -> list:
+        """Every ``dr.freeze`` function a frame of the current stages replays (each stage's
+        :meth:`~glossrt.pipeline.stages.Stage.frozen`, each function once)."""
+        out: dict[int, Any] = {}
+        for stage in self.stages.values():
+            for f in stage.frozen():
+                out.setdefault(id(f), f)
+        return list(out.values())
+
     def recordings(self) -> int:
-        """Recordings made so far by the current stages' frozen functions."""
-        return sum(int(f.n_recordings) for s in self.stages.values() for f in s.frozen())
+        """Recordings made so far by the frozen functions a frame replays (:meth:`frozen`).
+        The polygon lights' shading kernels (LTC, BSPVT) are module-wide frozen functions:
+        their count includes recordings other pipelines made. A steady-state frame adds
+        none: new poses (camera, lights, objects) and frames replay."""
+        return sum(int(f.n_recordings) for f in self.frozen())
 
     def render(self, index: int) -> Frame:
         """Frame ``index`` of the scene's animation: the G-buffer's channels (1 spp, with the
         analytic lights removed at the primary hit), each stage's layer (:data:`LAYERS`) and
         the composed ``color``; ``meta["pipeline"]`` holds the choices and per-stage
-        milliseconds (each stage synchronised for its timing)."""
+        milliseconds (:attr:`timing`: by default the kernel time of each stage from Dr.Jit's
+        kernel history, no stage synchronised; the frame ends evaluated)."""
         ctx: dict[str, Any] = {}
-        ms: dict[str, float] = {}
+        check_stage_timing(self.timing)
+        clock = StageClock(self.timing)
         t_all = time.perf_counter()
         pose = self.setup.pose(index)
         if self._last_pose is not None and not pose.same(self._last_pose):
             self._gbuffer.reset()  # (an accumulation starts anew; no history to drop else)
         # motion vectors point back to the previous frame rendered (None: index - 1)
         self._gbuffer.renderer.previous_pose = self._last_pose
-        for name, stage in self.stages.items():
-            t0 = time.perf_counter()
-            out = stage.run(index, ctx)
-            if set(out) != set(stage.outputs):
-                raise GlossrtError(f"pipeline stage {name} returned {sorted(out)}, declared "
-                                   f"{list(stage.outputs)}")
-            ctx.update(out)
-            dr.eval([v for k, v in out.items() if k != "frame"])
-            dr.sync_thread()
-            ms[name] = 1000.0 * (time.perf_counter() - t0)
+        clock.start()
+        try:
+            for name, stage in self.stages.items():
+                out = stage.run(index, ctx)
+                if set(out) != set(stage.outputs):
+                    raise GlossrtError(f"pipeline stage {name} returned {sorted(out)}, "
+                                       f"declared {list(stage.outputs)}")
+                ctx.update(out)
+                # a kernel boundary (no wait): the stage's own work is launched here
+                dr.eval([v for k, v in out.items() if not k.startswith("frame")])
+                clock.stage_done(name)
+        finally:
+            times = clock.finish()  # waits for the frame's kernels (kernels, sync)
         gb: Frame = ctx["frame"]
         channels = {k: gb[k] for k in gb.names if k != "color"}
         for layer in LAYERS:
@@ -468,14 +509,15 @@ class Pipeline:
             "stages": {n: {"inputs": list(s.inputs), "outputs": list(s.outputs)}
                        for n, s in self.stages.items()},
             "layers": list(LAYERS),
-            "stage_ms": ms,
             "frame_ms": 1000.0 * (time.perf_counter() - t_all),
+            "timing": self.timing,
+            **times,
         }
         meta["pipeline"]["specaa"] = {
             "method": self.opts["specaa"],
-            # Mitsuba's BSDFs take no per-pixel roughness: the 1 spp path-traced layers
-            # (and so the indirect light and path-traced direct light) keep the material's
-            "path_tracer": "material roughness"}
+            # the 1 spp path-traced layers' primary hit (render.pathtracer.PrimaryLobe)
+            "path_tracer": ("material roughness" if self.opts["specaa"] == "none"
+                            else "filtered roughness at the primary hit")}
         note = config.PRESET_NOTES.get(self.preset)
         if note:
             meta["pipeline"]["note"] = note
@@ -485,11 +527,12 @@ class Pipeline:
                 "trees": getattr(trees, "source", "") or "built (cached by geometry)",
                 "resolution": int(trees.resolution), "vertices": int(trees.vertex_count)}
         if self.setup.camera_override is not None or self.setup.fov_override is not None \
-                or self.setup.object_overrides:
+                or self.setup.object_overrides or self.setup.light_overrides:
             meta["pipeline"]["explicit_pose"] = {
                 "camera": self.setup.camera_override is not None,
                 "fov": self.setup.fov_override,
-                "shapes": sorted(self.setup.object_overrides)}
+                "shapes": sorted(self.setup.object_overrides),
+                "point_lights": sorted(self.setup.light_overrides)}
         self._last_pose = pose
         self.frames += 1
         return Frame(channels=channels, camera=gb.camera, prev_camera=gb.prev_camera,

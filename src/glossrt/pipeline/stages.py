@@ -140,7 +140,19 @@ class GBufferStage(Stage):
     alone, bit-identical to a full-depth render's). Its primary rays are jittered by
     :func:`glossrt.denoise.upsampling.jitter_sequence` (recorded in ``meta["jitter"]``,
     where the upsamplers put the samples), a cycle over the ``scale^2`` full-resolution
-    pixel centres of a low-resolution pixel."""
+    pixel centres of a low-resolution pixel.
+
+    ``specaa`` (set by the pipeline: its :class:`SpecAAStage`): when that stage filters,
+    the frame is traced in two passes so that the path tracer's primary hit sees the
+    filtered roughness (issue 25): a G-buffer pass (:meth:`glossrt.render.Renderer.
+    render_gbuffer`, path depth 1), the specaa stage's frozen filter on it
+    (:meth:`SpecAAStage.filter`), then the light traced with that roughness at the primary
+    hit (``Renderer.render(roughness=...)``, an opaque input of the frozen trace: no
+    re-recording across frames or poses). The low-resolution indirect light reads it at the
+    full-resolution pixel centre each low-resolution sample lands on (the jitter cycle), the
+    accumulated reference (``accumulate``) traces with it too. The G-buffer of both passes
+    is the same (pixel-centre primary rays), so the filtered roughness is the current
+    frame's, not a reprojection of the previous one."""
 
     name = "gbuffer"
     outputs = ("frame",)
@@ -169,6 +181,7 @@ class GBufferStage(Stage):
         self.accumulate = bool(opts["accumulate"])
         self.spp = int(opts["spp"])
         self.seed = int(opts["seed"])
+        self.specaa: SpecAAStage | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -181,14 +194,29 @@ class GBufferStage(Stage):
         low = [self.low._trace_frozen] if self.low is not None else []
         return [self.renderer._trace_frozen] + low
 
+    def _filtered_roughness(self, index: int):
+        """The specaa stage's filtered roughness of frame ``index`` from a G-buffer pass
+        (None when no specaa stage filters)."""
+        spec = self.specaa
+        if spec is None or not spec.filters:
+            return None
+        return spec.filter(self.renderer.render_gbuffer(index))
+
     def run(self, index: int, ctx: dict) -> dict:
+        alpha = self._filtered_roughness(index)
         if self.low is not None:
             from ..denoise.upsampling import jitter_sequence
 
             # the motion vectors' previous pose, when the pipeline sets one (explicit posing)
             self.low.previous_pose = getattr(self.renderer, "previous_pose", None)
-            f = self.renderer.render(index)
-            low = self.low.render(index, jitter=jitter_sequence(self.scale, index))
+            f = self.renderer.render(index, roughness=alpha)
+            jit = jitter_sequence(self.scale, index)
+            low_alpha = None
+            if alpha is not None:  # the full-resolution pixel each low sample lands on
+                k = index % (self.scale * self.scale)
+                i, j = k % self.scale, k // self.scale
+                low_alpha = alpha[j::self.scale, i::self.scale]
+            low = self.low.render(index, jitter=jit, roughness=low_alpha)
             # the full frame's light: emission and direct from it, the indirect light from
             # the low-resolution frame (the indirect stage upsamples it)
             f.meta["max_depth"] = low.meta["max_depth"]
@@ -196,13 +224,14 @@ class GBufferStage(Stage):
             f.meta["indirect_scale"] = self.scale
             return {"frame": f, "frame_low": low}
         if not self.accumulate:
-            return {"frame": self.renderer.render(index)}
+            return {"frame": self.renderer.render(index, roughness=alpha)}
         pose = index if self.setup.animated else 0
         if pose != self._pose:
             self.reset()
             self._pose = pose
         f = self.renderer.render_reference(index, self.spp,
-                                           seed=self.seed + 7919 * self._passes)
+                                           seed=self.seed + 7919 * self._passes,
+                                           roughness=alpha)
         self._passes += 1
         names = ("emission",) + RADIANCE_PT + ("color",)
         if self._sum is None:
@@ -244,11 +273,17 @@ class SpecAAStage(Stage):
     later reader of the frame sees: the analytic ``direct`` stage (LTC, BSPVT, ratio,
     highlights, point and directional lights) and the lobe weights of ``svgf-lobe`` and of
     the lobe upsampling (at the full-resolution target pixels; a reduced-resolution
-    ``frame_low`` keeps its material roughness). The material's roughness stays in
-    ``roughness_material``. The path tracer's primary hit does not see the filtered
-    roughness (Mitsuba's BSDFs take no per-pixel roughness here): its layers keep the
-    material's lobes. ``method="none"``: the frame passes through untouched (no
-    ``roughness_material``). Frozen (``dr.freeze``) per pipeline."""
+    ``frame_low`` keeps its material roughness channel). The material's roughness stays in
+    ``roughness_material``.
+
+    The path tracer's primary hit sees the filtered roughness too (environment maps,
+    path-traced direct light, the first bounce of the indirect light): the ``gbuffer``
+    stage runs this stage's :meth:`filter` on a G-buffer pass of the same frame and traces
+    the light with it (:class:`GBufferStage`); rough conductors and rough plastics' specular
+    lobe take it (:class:`glossrt.render.pathtracer.PrimaryLobe`), other BSDFs keep their
+    own. :meth:`run` then reuses that roughness rather than filtering again.
+    ``method="none"``: the frame passes through untouched (no ``roughness_material``).
+    Frozen (``dr.freeze``) per pipeline."""
 
     name = "specaa"
     inputs = ("frame",)
@@ -261,14 +296,22 @@ class SpecAAStage(Stage):
         self.method = parse_method(method)
         self._fn = (dr.freeze(_specaa_kernel, warn_after=16)
                     if self.method.source != "none" else None)
+        self._pending: mi.TensorXf | None = None
+
+    @property
+    def filters(self) -> bool:
+        """Whether this stage filters the roughness (``method`` is not ``none``)."""
+        return self._fn is not None
 
     def frozen(self) -> list:
         return [self._fn] if self._fn is not None else []
 
-    def run(self, index: int, ctx: dict) -> dict:
-        gb: Frame = ctx["frame"]
-        if self._fn is None:
-            return {"frame": gb}
+    def reset(self) -> None:
+        self._pending = None
+
+    def filter(self, gb: Frame) -> mi.TensorXf:
+        """The filtered isotropic alpha (H, W, 1) of the G-buffer ``gb`` (frozen); the next
+        :meth:`run` uses it for its frame (the same G-buffer, traced with it)."""
         from ..lights.shading import f0_tensor, shading_channels
 
         ch = shading_channels(gb)
@@ -277,6 +320,18 @@ class SpecAAStage(Stage):
             alpha = self._fn(ch, opaque(gb.camera.position), self.method,
                              (gb.height, gb.width))
             dr.eval(alpha)
+        self._pending = alpha
+        return alpha
+
+    def run(self, index: int, ctx: dict) -> dict:
+        gb: Frame = ctx["frame"]
+        if self._fn is None:
+            return {"frame": gb}
+        alpha = self._pending
+        self._pending = None
+        if alpha is None or gb.meta.get("primary_roughness") != "override":
+            alpha = self.filter(gb)  # a frame traced without it (the stage used alone)
+            self._pending = None
         channels = dict(gb.channels)
         channels["roughness_material"] = gb["roughness"]
         channels["roughness"] = alpha
@@ -320,7 +375,10 @@ def _points_kernel(ch: dict, cam: list, lights: list, scene, size: tuple[int, in
 
 class PointLights:
     """The scene's point and directional lights shaded analytically, one shadow ray each
-    (frozen per pipeline: the scene is an argument, the lights opaque)."""
+    (frozen per pipeline: the scene is an argument, the lights opaque). The lights are read
+    from the posed scene every frame (:func:`glossrt.lights.analytic.analytic_lights`), so a
+    point light moved by ``Pipeline.set_transform`` (its emitter's ``position`` parameter,
+    which the path tracer reads too) is shaded where it is, with no re-recording."""
 
     def __init__(self, setup):
         self.setup = setup
@@ -419,10 +477,28 @@ class DirectStage(Stage):
 
             self.highlights = HighlightRenderer(samples=int(opts["highlight_samples"]),
                                                 sampling="hash", cull=False, frozen=True)
+        #: the highlights' light maps and what they were built from (:meth:`_highlights`)
+        self._maps = None
+        self._maps_key = None
+        #: light-map builds so far (a frame whose lights and objects hold still builds none)
+        self.map_builds = 0
         self._textures: dict = {}
 
     def frozen(self) -> list:
-        return [self.points._fn] if self.points is not None else []
+        out = [self.points._fn] if self.points is not None else []
+        # the polygon lights' shading kernels (module-wide frozen functions, shared with
+        # every other user of LTC / BSPVT shading in the process)
+        if self.mode in ("ltc", "highlights"):
+            from ..lights.ltc import shade as ltc_shade
+
+            out.append(ltc_shade._shade_frozen)
+        elif self.mode == "ltc+bspvt":
+            from ..lights.bspvt import shade as bspvt_shade
+
+            out.append(bspvt_shade._shade_frozen)
+        if self.highlights is not None:
+            out += [self.highlights._frozen_grid]
+        return out
 
     def run(self, index: int, ctx: dict) -> dict:
         gb: Frame = ctx["frame"]
@@ -471,8 +547,44 @@ class DirectStage(Stage):
         return dr.maximum(total - spec, 0.0)
 
     def _highlights(self, gb: Frame, index: int, polys: list, f0) -> mi.TensorXf:
-        maps = self.highlights.maps(self.setup, index, polys)
-        return self.highlights.shade_tensor(gb, maps, f0, index)
+        """Kimura & Tokoi's highlights (sec. 5.2: the light environment map sampled in the
+        view's mirror directions about microfacet normals drawn from D_s, sec. 4.1, weighted
+        by G = min(1, G_m, G_s), sec. 4.2), through light maps at ``highlight_probes`` probes
+        per object (:func:`glossrt.lights.highlights.envmap.probe_grids`; 1: the paper's one
+        map per object, sec. 3). The maps are world-space (directions from a fixed probe, the
+        lights only): they depend on the lights (vertices, radiance, texture) and on the
+        probes (the objects' bounding boxes), not on the camera, so they are rebuilt only
+        when those change (:func:`highlight_maps_key`). The shading replays one frozen
+        kernel."""
+        from ..lights.highlights.envmap import probe_grids
+
+        grids = probe_grids(self.setup, int(self.opts["highlight_probes"]))
+        key = highlight_maps_key(polys, grids, self.highlights.resolution,
+                                 self.highlights.supersample)
+        if key != self._maps_key:
+            self._maps = self.highlights.grid_maps(self.setup, index, polys, grids=grids)
+            self._maps_key = key
+            self.map_builds += 1
+        return self.highlights.shade_tensor(gb, self._maps, f0, index)
+
+
+def highlight_maps_key(polys: list, grids: dict, resolution: int, supersample: int) -> str:
+    """A digest of what the highlights' light maps depend on: every polygon light's vertices,
+    radiance, sidedness, texture and uv, the probe points per object, the map resolution and
+    supersampling. The camera is not in it (the maps are world-space)."""
+    h = hashlib.sha1(f"highlights-v1 {int(resolution)} {int(supersample)}".encode())
+    for lt in polys:
+        h.update(np.asarray(lt.vertices, np.float64).tobytes())
+        h.update(np.asarray(lt.radiance, np.float64).tobytes())
+        h.update(b"2" if getattr(lt, "two_sided", False) else b"1")
+        tex = getattr(lt, "texture", None)
+        if tex is not None:
+            h.update(np.ascontiguousarray(tex, np.float32).tobytes())
+            h.update(np.asarray(lt.uv, np.float64).tobytes())
+        h.update(b"|")
+    for k in sorted(grids):
+        h.update(f"{k}:".encode() + np.asarray(grids[k].points, np.float64).tobytes())
+    return h.hexdigest()
 
 
 # -- indirect ---------------------------------------------------------------------------------
@@ -563,8 +675,8 @@ class IndirectStage(Stage):
     def frozen(self) -> list:
         out = []
         for d in (self.denoiser, self.low_denoiser, self.direct_denoiser):
-            if d is not None and getattr(d, "frozen", False):
-                out += [d._accumulate, d._reconstruct]
+            if d is not None:
+                out += d.frozen_functions()
         for u in (self.upsampler, getattr(self, "spatial", None)):
             if u is not None and u.frozen:
                 out.append(u._fn)
@@ -727,4 +839,5 @@ def display(image, exposure: float = 0.0, tonemap: str = "filmic") -> np.ndarray
 
 
 __all__ = ["CompositeStage", "DirectStage", "GBufferStage", "IndirectStage", "PointLights",
-           "SpecAAStage", "Stage", "TAAStage", "display", "geometry_key", "scene_trees"]
+           "SpecAAStage", "Stage", "TAAStage", "display", "geometry_key", "highlight_maps_key",
+           "scene_trees"]

@@ -68,13 +68,16 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
 
 
 def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
-           max_depth, jitter, normal_maps, primary):
+           max_depth, jitter, normal_maps, primary, roughness=None, lobe_key=None):
     # ``normal_maps`` (= shapes.any_normal_map, which gbuffer() reads) is only a key of the
     # frozen function: a Python attribute of the ShapeTable is not part of dr.freeze's key.
     # ``primary``: None (one recording) or the primary-hit EmitterTable (another one; a new
     # exclusion set of the same scene replays it with the new table's values)
+    # ``roughness``: None (one recording) or the per-pixel alpha of the primary hit's rough
+    # lobes (another one, replayed with each frame's values); ``lobe_key``
+    # (= shapes.lobe_key, which PrimaryLobe reads) is only a key, like ``normal_maps``
     out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
-                       height, max_depth, jitter, primary)
+                       height, max_depth, jitter, primary, roughness)
     return {k: _flat(v) for k, v in out.items()}
 
 
@@ -244,12 +247,43 @@ class Renderer:
             cur.setdefault(m, np.eye(4))
         return MotionInputs(self._prev_camera(frame), cur, prev_objs, self.n_meshes)
 
+    def _roughness(self, roughness) -> mi.Float | None:
+        """``roughness`` as a flat per-pixel ``mi.Float`` (evaluated), or one clear error."""
+        if roughness is None:
+            return None
+        n = self.width * self.height
+        if isinstance(roughness, mi.TensorXf):
+            if tuple(roughness.shape) not in ((self.height, self.width, 1),
+                                              (self.height, self.width)):
+                raise GlossrtError(f"roughness must be {self.height}x{self.width}(x1) (one "
+                                   f"alpha per pixel), got shape {tuple(roughness.shape)}")
+            flat = mi.Float(roughness.array)
+        elif isinstance(roughness, mi.Float):
+            flat = roughness
+        else:
+            a = np.asarray(roughness, np.float32)
+            if a.size != n or a.ndim not in (2, 3) or a.shape[:2] != (self.height, self.width):
+                raise GlossrtError(f"roughness must be {self.height}x{self.width}(x1) (one "
+                                   f"alpha per pixel), got shape {a.shape}")
+            flat = mi.Float(a.ravel())
+        if dr.width(flat) != n:
+            raise GlossrtError(f"roughness must hold one alpha per pixel ({n}), got "
+                               f"{dr.width(flat)}")
+        dr.eval(flat)
+        return flat
+
     def trace(self, frame: int, pixel: mi.UInt32, seed: mi.UInt32,
               frozen: bool | None = None, jitter: tuple[float, float] = (0.0, 0.0),
-              jitter_limit: float = 0.5) -> dict:
+              jitter_limit: float = 0.5, roughness=None,
+              max_depth: int | None = None) -> dict:
         """Poses ``frame`` and returns every channel (interleaved flat arrays) for the pixel
         indices ``pixel`` with per-lane (or one opaque) seed; primary rays pass through
-        pixel centre + ``jitter`` (pixels, within ``[-jitter_limit, jitter_limit)``)."""
+        pixel centre + ``jitter`` (pixels, within ``[-jitter_limit, jitter_limit)``).
+        ``roughness``: the primary hit's per-pixel alpha (see :meth:`render`), an opaque
+        input of the frozen trace; ``max_depth``: this call's path depth (default the
+        renderer's; 1: G-buffer and emission only)."""
+        roughness = self._roughness(roughness)
+        md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
         self.setup.set_frame(frame)
         frozen = self.frozen if frozen is None else frozen
         fn = self._trace_frozen if frozen else _trace
@@ -261,7 +295,8 @@ class Renderer:
         with no_gc():
             out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
                      self._motion_inputs(frame), pixel, seed, self.width, self.height,
-                     self.max_depth, offset, self.shapes.any_normal_map, self._primary)
+                     md, offset, self.shapes.any_normal_map, self._primary, roughness,
+                     self.shapes.lobe_key if roughness is not None else None)
             dr.eval(out)
         return out
 
@@ -298,28 +333,63 @@ class Renderer:
 
     # -- frames --------------------------------------------------------------------------
     def render(self, frame: int, seed: int | None = None,
-               jitter: tuple[float, float] = (0.0, 0.0), jitter_limit: float = 0.5) -> Frame:
+               jitter: tuple[float, float] = (0.0, 0.0), jitter_limit: float = 0.5,
+               roughness=None) -> Frame:
         """The 1 spp Frame ``frame`` (G-buffer, separated radiance, motion vectors).
         ``jitter``: sub-pixel offset (x, y) of every primary ray from its pixel centre, in
         pixels within [-0.5, 0.5) (e.g. for spatio-temporal upsampling); recorded in
         ``meta["jitter"]``. ``jitter_limit`` widens that range (a Gaussian pixel filter's
-        samples reach into the neighbouring pixels: :func:`glossrt.specaa.reference`)."""
+        samples reach into the neighbouring pixels: :func:`glossrt.specaa.reference`).
+
+        ``roughness``: a microfacet alpha per pixel (``(H, W)`` or ``(H, W, 1)``: a
+        ``mi.TensorXf``, a flat ``mi.Float`` or a NumPy array) that the primary hit's rough
+        lobes take instead of the material's (rough conductors and rough plastics' specular
+        lobe, also inside ``twosided`` and ``normalmap``;
+        :class:`glossrt.render.pathtracer.PrimaryLobe`): next-event estimation, BSDF
+        sampling and the MIS pdfs at path vertex 0; deeper vertices, other BSDFs and pixels
+        with a negative alpha keep the material's. For specular antialiasing (the filtered
+        roughness of :mod:`glossrt.specaa`), so environment maps and path-traced light see
+        it. An opaque input: frames with new values replay the frozen trace. The G-buffer's
+        ``roughness`` stays the material's; ``meta["primary_roughness"]`` says
+        ``"override"``."""
         w, h = self.width, self.height
         t0 = time.perf_counter()
         s = frame_seed(frame, self.seed if seed is None else seed)
         out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
-                         jitter=jitter, jitter_limit=jitter_limit)
+                         jitter=jitter, jitter_limit=jitter_limit, roughness=roughness)
         bad = int(out.pop("nonfinite")[0])
         channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
         f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
         if tuple(jitter) != (0.0, 0.0):
             f.meta["jitter"] = [float(jitter[0]), float(jitter[1])]
+        if roughness is not None:
+            f.meta["primary_roughness"] = "override"
+        return f
+
+    def render_gbuffer(self, frame: int) -> Frame:
+        """The G-buffer of frame ``frame`` alone (path depth 1: every G-buffer channel and
+        the motion vectors exactly as :meth:`render` gives them, the emission seen by the
+        camera, no other light): a cheap first pass whose G-buffer a per-pixel roughness
+        (specular antialiasing) is computed from before :meth:`render` traces the light
+        with it. Frozen like :meth:`render` (its own recording)."""
+        w, h = self.width, self.height
+        t0 = time.perf_counter()
+        s = frame_seed(frame, self.seed)
+        out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
+                         max_depth=1)
+        bad = int(out.pop("nonfinite")[0])
+        channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
+        f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
+        f.meta["max_depth"] = 1
         return f
 
     def render_reference(self, frame: int, spp: int, seed: int | None = None,
-                         progress: Callable[[int, int], None] | None = None) -> Frame:
+                         progress: Callable[[int, int], None] | None = None,
+                         roughness=None) -> Frame:
         """A converged Frame: ``spp`` independent 1 spp estimates per pixel averaged, with the
-        same pixel-centre primary hits (so it differs from :meth:`render` only by noise)."""
+        same pixel-centre primary hits (so it differs from :meth:`render` only by noise).
+        ``roughness``: the primary hit's per-pixel alpha, as :meth:`render`'s."""
+        roughness = self._roughness(roughness)
         if spp < 1:
             raise GlossrtError(f"spp must be >= 1, got {spp}")
         w, h = self.width, self.height
@@ -336,7 +406,7 @@ class Renderer:
             lane = dr.arange(mi.UInt32, n_pix * kk)
             sample = lane % kk + done
             seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
-            out = self.trace(frame, lane // kk, seeds, frozen=False)
+            out = self.trace(frame, lane // kk, seeds, frozen=False, roughness=roughness)
             bad += int(out["nonfinite"][0])
             for name in RADIANCE_OUT:
                 # lanes are pixel-major: pixel p owns lanes p*kk .. p*kk+kk-1
@@ -356,7 +426,10 @@ class Renderer:
         channels = {k_: mi.TensorXf(v / spp, (h, w, 3)) for k_, v in sums.items()}
         channels["color"] = mi.TensorXf(sum(sums[n] for n in RADIANCE_OUT) / spp, (h, w, 3))
         channels.update(gbuf)
-        return self._frame(frame, channels, spp, bad, time.perf_counter() - t0, reference=True)
+        f = self._frame(frame, channels, spp, bad, time.perf_counter() - t0, reference=True)
+        if roughness is not None:
+            f.meta["primary_roughness"] = "override"
+        return f
 
     def render_mitsuba(self, frame: int, spp: int, seed: int = 0,
                        integrator: str = "path") -> mi.TensorXf:

@@ -216,3 +216,88 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
     return Material(kind, has_d, has_s, alpha, alpha_attr, tuple(float(v) for v in f0),
                     _normal_map_kind(bsdf, set(params.keys())),
                     distribution, aniso, fresnel)
+
+
+#: ``LobeOverride.kind``: no per-pixel roughness override (the material's own lobes stay)
+LOBE_NONE = 0
+#: Mitsuba's ``roughconductor``: the whole BSDF is the microfacet lobe
+LOBE_CONDUCTOR = 1
+#: Mitsuba's ``roughplastic``: its specular (dielectric-Fresnel microfacet) lobe is overridden,
+#: its diffuse lobe stays Mitsuba's (see :class:`LobeOverride`)
+LOBE_PLASTIC = 2
+
+_SAMPLE_VISIBLE = re.compile(r"sample_visible\s*=\s*(\d)")
+_SPEC_WEIGHT = re.compile(r"specular_sampling_weight\s*=\s*\[?\s*([0-9.eE+-]+)")
+
+
+@dataclass(frozen=True)
+class LobeOverride:
+    """What the path tracer needs to evaluate, sample and give the pdf of a BSDF's rough lobe
+    with a per-pixel roughness instead of the material's (:func:`lobe_override`; the
+    Dr.Jit side is :class:`glossrt.render.pathtracer.PrimaryLobe`).
+
+    ``kind``: :data:`LOBE_CONDUCTOR` (``roughconductor``) or :data:`LOBE_PLASTIC`
+    (``roughplastic``). ``twosided``: inside a ``twosided`` with one BSDF for both sides
+    (Mitsuba mirrors ``wi`` and ``wo`` to the front); ``normal_map``: inside a ``normalmap``
+    (perturbed frame, ``flip_invalid_normals`` and ``use_shadowing_function`` at Mitsuba's
+    defaults, true, which the plugin does not print). ``spec_weight``: ``roughplastic``'s
+    ``specular_sampling_weight``. The Fresnel term (exact conductor or dielectric, times
+    ``specular_reflectance``) and the distribution come from :func:`describe_bsdf`.
+
+    ``roughplastic``'s diffuse lobe is NOT re-derived for another roughness: Mitsuba scales it
+    by ``t(cos_i) t(cos_o)``, the transmittance of the rough interface tabulated once for the
+    material's alpha (``m_external_transmittance``), and by ``1 / (1 - R_int)`` of that
+    alpha. Those tables are not reachable from Python, so the diffuse lobe stays Mitsuba's
+    own (its eval at the material's alpha): exact for the specular lobe, an approximation
+    for the coating's energy exchange (the diffuse lobe does not lose or gain what the
+    wider or narrower specular lobe gains or loses)."""
+
+    kind: int
+    twosided: bool
+    normal_map: bool
+    spec_weight: float = 1.0
+
+
+def lobe_override(bsdf: mi.BSDF) -> LobeOverride | None:
+    """The :class:`LobeOverride` of ``bsdf``, or None where a per-pixel roughness cannot
+    replace the material's exactly and the material's lobes stay: a BSDF that is not a rough
+    conductor or rough plastic (smooth and diffuse BSDFs, among others), an anisotropic lobe,
+    ``sample_visible = false`` (not reimplemented), a textured Fresnel parameter (``eta``,
+    ``k``, ``specular_reflectance``), a ``twosided`` with two different sides, a
+    ``normalmap`` around a ``twosided``, or any other wrapper."""
+    kind = bsdf.class_name()
+    keys = set(mi.traverse(bsdf).keys())
+    if kind == "TwoSidedBRDF" and any(k.startswith("brdf_1.") for k in keys):
+        return None
+    text = str(bsdf)
+    inner = [c for c in ("RoughConductor[", "RoughPlastic[") if c in text]
+    if len(inner) != 1:
+        return None
+    if kind == "TwoSidedBRDF":
+        nmap = any(k.startswith("brdf_0.normalmap.") for k in keys)
+        twosided, prefix = True, "brdf_0.nested_bsdf." if nmap else "brdf_0."
+    elif kind == "NormalMap":
+        twosided, nmap, prefix = False, True, "nested_bsdf."
+    elif kind == inner[0][:-1]:
+        twosided, nmap, prefix = False, False, ""
+    else:
+        return None
+    own = {k[len(prefix):] for k in keys if k.startswith(prefix)}
+    if any(k.startswith(("brdf_0.", "brdf_1.", "nested_bsdf.")) for k in own):
+        return None  # a deeper wrapper (normalmap around twosided, ...)
+    if "alpha_u.value" in own or "alpha_v.value" in own:
+        return None  # anisotropic
+    m = _SAMPLE_VISIBLE.search(text)
+    if m is None or m.group(1) != "1":
+        return None
+    if any(k.startswith("specular_reflectance.") and k != "specular_reflectance.value"
+           for k in own):
+        return None
+    if inner[0] == "RoughConductor[":
+        if not {"eta.value", "k.value"} <= own:
+            return None
+        return LobeOverride(LOBE_CONDUCTOR, twosided, nmap)
+    if "eta" not in own:
+        return None
+    w = _SPEC_WEIGHT.search(text)
+    return LobeOverride(LOBE_PLASTIC, twosided, nmap, float(w.group(1)) if w else 0.5)

@@ -286,10 +286,248 @@ def _primary_hit_weight(primary: EmitterTable | None, dsk: mi.DirectionSample3f,
     return dr.select(on, em_pdf * scale, em_pdf), active & ~(on & excluded)
 
 
+def _shadow_terminator(n: mi.Vector3f, w: mi.Vector3f) -> mi.Float:
+    """Mitsuba's ``normalmap`` shadowing term (its ``use_shadowing_function``, default on;
+    Conty Estevez, Lecocq, Stein 2019, "A Microfacet-Based Shadowing Function to Solve the
+    Bump Terminator Problem"): ``2 / (1 + sqrt(1 + a2 tan^2(w)))`` with
+    ``a2 = min(tan^2(n) / 8, 1)``; ``n`` the perturbed normal and ``w`` a direction, both in
+    the unperturbed shading frame."""
+    a2 = dr.minimum(0.125 * mi.Frame3f.tan_theta_2(n), 1.0)
+    return 2.0 / (1.0 + dr.sqrt(1.0 + a2 * mi.Frame3f.tan_theta_2(w)))
+
+
+class PrimaryLobe:
+    """The primary hit's rough lobe with a per-pixel roughness ``alpha`` in place of the
+    material's: Mitsuba's ``roughconductor`` and ``roughplastic`` specular lobe re-evaluated
+    (eval, sampling, pdf) from Mitsuba's own pieces with a per-lane alpha
+    (``mi.MicrofacetDistribution``: the material's ``distribution``, Beckmann or GGX, with
+    visible-normal sampling; its separable Smith ``G1(wi) G1(wo)``; ``mi.fresnel_conductor``
+    / ``mi.fresnel`` times ``specular_reflectance``), inside a one-BSDF ``twosided`` and a
+    ``normalmap`` as those plugins evaluate their nested BSDF (mirrored ``wi`` / ``wo``;
+    perturbed frame with ``flip_invalid_normals`` and the shadow-terminator term).
+
+    ``on``: the lanes it applies to: a valid hit, a shape whose BSDF
+    :func:`glossrt.render.materials.lobe_override` accepts, and ``alpha >= 0`` (a negative or
+    NaN alpha keeps the material's). Every other lane (smooth, diffuse or other BSDFs) keeps
+    Mitsuba's BSDF. ``roughplastic``'s diffuse lobe is always Mitsuba's (see
+    :class:`glossrt.render.materials.LobeOverride`); its sampling mixture picks the specular
+    lobe with ``p_s = (1 - t) w / ((1 - t) w + t (1 - w))`` (Mitsuba's form, ``w`` the
+    ``specular_sampling_weight``) with ``t = 1 - F(cos_i)``, the smooth interface's
+    transmittance, instead of Mitsuba's table of the rough interface at the material's alpha:
+    another valid sampling technique, whose pdf the MIS weights use, so the estimate stays
+    unbiased. With the material's own alpha a ``roughconductor`` reproduces Mitsuba's
+    samples, values and pdfs (to float rounding); a ``roughplastic`` its values and its
+    specular pdf, with this mixture.
+
+    ``key``: :attr:`ShapeTable.lobe_key` (which distributions to trace, any normal map)."""
+
+    def __init__(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, shapes, alpha: mi.Float,
+                 active: mi.Bool, key: tuple[bool, bool, bool]):
+        from .materials import LOBE_CONDUCTOR, LOBE_NONE, LOBE_PLASTIC
+
+        self.key = key
+        valid = active & si.is_valid()
+        rid = dr.select(valid, dr.reinterpret_array(mi.UInt32, si.shape), 0)
+        kind = dr.gather(mi.UInt32, shapes.lobe, rid, valid)
+        self.on = valid & (kind != LOBE_NONE) & (alpha >= 0.0)
+        on = self.on
+        self.conductor = kind == LOBE_CONDUCTOR
+        self.plastic = kind == LOBE_PLASTIC
+        # Mitsuba's MicrofacetDistribution clamps alpha below at 1e-4 itself
+        self.alpha = dr.select(on, alpha, 0.5)
+        self.beckmann = dr.gather(mi.Bool, shapes.beckmann, rid, on)
+        self.eta = dr.gather(mi.Color3f, shapes.eta, rid, on)
+        self.k = dr.gather(mi.Color3f, shapes.k, rid, on)
+        self.scale = dr.gather(mi.Color3f, shapes.spec_scale, rid, on)
+        self.weight = dr.gather(mi.Float, shapes.spec_weight, rid, on)
+        twosided = dr.gather(mi.Bool, shapes.lobe_twosided, rid, on)
+        wi = mi.Vector3f(si.wi)
+        # twosided (one BSDF): wi mirrored to the front, wo.z by wi.z's sign
+        self.sign = dr.select(twosided & (wi.z < 0.0), -1.0, 1.0)
+        wi.z = wi.z * self.sign
+        self.mapped = mi.Bool(False)
+        self.n = mi.Vector3f(0.0, 0.0, 1.0)
+        self.frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+        if key[2]:
+            self.mapped = on & dr.gather(mi.Bool, shapes.lobe_normal_map, rid, on)
+            n = dr.fma(mi.Vector3f(bsdf.eval_attribute_3("normalmap", si, self.mapped)),
+                       2.0, -1.0)
+            flip = mi.Frame3f.cos_theta(wi) * dr.dot(wi, n) <= 0.0  # flip_invalid_normals
+            n.x = dr.select(flip, -n.x, n.x)
+            n.y = dr.select(flip, -n.y, n.y)
+            inv = dr.rsqrt(dr.squared_norm(n))
+            n = dr.select((inv > 0.0) & dr.isfinite(inv), n * inv, mi.Vector3f(0, 0, 1))
+            t = dr.fma(-n, n.x, mi.Vector3f(1, 0, 0))  # Gram-Schmidt of (1, 0, 0)
+            inv_t = dr.rsqrt(dr.squared_norm(t))
+            t = dr.select(dr.isfinite(inv_t), t * inv_t, mi.Vector3f(0, 1, 0))
+            n = dr.select(self.mapped, n, mi.Vector3f(0, 0, 1))
+            t = dr.select(self.mapped, t, mi.Vector3f(1, 0, 0))
+            self.n = n
+            self.frame = mi.Frame3f(t, dr.cross(n, t), n)
+        self.wi_base = wi
+        self.wi = dr.select(self.mapped, self.frame.to_local(wi), wi)
+
+    # -- the nested lobe, in its own (perturbed) frame ----------------------------------------
+    def _distributions(self):
+        out = []
+        if self.key[0]:
+            out.append((self.beckmann, mi.MicrofacetDistribution(mi.MicrofacetType.Beckmann,
+                                                                 self.alpha, True)))
+        if self.key[1]:
+            out.append((~self.beckmann, mi.MicrofacetDistribution(mi.MicrofacetType.GGX,
+                                                                  self.alpha, True)))
+        return out
+
+    def _pick(self, fn):
+        """``fn(distribution)`` for each distribution the scene uses, per lane the lane's."""
+        res = None
+        for mask, d in self._distributions():
+            v = fn(d)
+            res = v if res is None else dr.select(mask, v, res)
+        return res
+
+    def _fresnel(self, cos: mi.Float) -> mi.Color3f:
+        cond = mi.Color3f(*(mi.fresnel_conductor(cos, mi.Complex2f(self.eta[c], self.k[c]))
+                            for c in range(3)))
+        diel = mi.Float(mi.fresnel(cos, self.eta[0])[0])
+        return dr.select(self.conductor, cond, mi.Color3f(diel)) * self.scale
+
+    def _p_specular(self) -> mi.Float:
+        """Probability of sampling the specular lobe (1 for a conductor; see the class)."""
+        t = 1.0 - mi.fresnel(mi.Float(self.wi.z), self.eta[0])[0]
+        a = (1.0 - t) * self.weight
+        b = t * (1.0 - self.weight)
+        p = dr.select(a + b > 0.0, a / dr.select(a + b > 0.0, a + b, 1.0), 1.0)
+        return dr.select(self.conductor, 1.0, p)
+
+    def _spec(self, wi: mi.Vector3f, wo: mi.Vector3f) -> tuple[mi.Color3f, mi.Float]:
+        """The nested specular lobe's value (cosine included, as Mitsuba's ``eval``) and its
+        own sampling pdf (visible normals), both 0 outside the upper hemisphere."""
+        ok = (wi.z > 0.0) & (wo.z > 0.0)
+        h = dr.normalize(wo + wi)
+
+        def terms(d):
+            D = d.eval(h)
+            g1_i = d.smith_g1(wi, h)
+            return mi.Vector3f(D, g1_i, d.smith_g1(wo, h))
+
+        dgg = self._pick(terms)
+        f = self._fresnel(dr.dot(wi, h)) * (dgg.x * dgg.y * dgg.z / (4.0 * wi.z))
+        pdf = dgg.x * dgg.y / (4.0 * wi.z)
+        # roughconductor's pdf also requires both directions above the microfacet
+        pdf_ok = ok & (~self.conductor | ((dr.dot(wi, h) > 0.0) & (dr.dot(wo, h) > 0.0)))
+        return dr.select(ok, f, 0.0), dr.select(pdf_ok, pdf, 0.0)
+
+    def _to_lobe(self, wo: mi.Vector3f) -> tuple[mi.Vector3f, mi.Vector3f, mi.Bool]:
+        """``wo`` (local to ``si.sh_frame``) mirrored like ``wi`` (twosided) and in the
+        perturbed frame (normalmap), and whether the normal map keeps it (same side of both
+        frames)."""
+        wb = mi.Vector3f(wo.x, wo.y, wo.z * self.sign)
+        wp = dr.select(self.mapped, self.frame.to_local(wb), wb)
+        keep = ~self.mapped | (mi.Frame3f.cos_theta(wb) * mi.Frame3f.cos_theta(wp) > 0.0)
+        return wb, wp, keep
+
+    def _shadow(self, wb: mi.Vector3f) -> mi.Float:
+        return dr.select(self.mapped, _shadow_terminator(self.n, wb), 1.0)
+
+    # -- what the path tracer calls (directions local to si.sh_frame) --------------------------
+    def eval_pdf(self, wo: mi.Vector3f) -> tuple[mi.Color3f, mi.Float, mi.Float]:
+        """The overridden specular lobe's value at ``wo``, the pdf of the whole BSDF's
+        sampling mixture there (the diffuse lobe's cosine sampling included) and ``p_s``."""
+        wb, wp, keep = self._to_lobe(wo)
+        f, pdf_s = self._spec(self.wi, wp)
+        p_s = self._p_specular()
+        ok = self.on & keep & (self.wi.z > 0.0) & (wp.z > 0.0)
+        pdf = p_s * pdf_s + (1.0 - p_s) * dr.maximum(wp.z, 0.0) * dr.inv_pi
+        f = f * self._shadow(wb)
+        return dr.select(ok, f, 0.0), dr.select(ok, pdf, 0.0), p_s
+
+    def sample(self, sample1: mi.Float,
+               sample2: mi.Point2f) -> tuple[mi.Vector3f, mi.Float, mi.Bool, mi.Color3f]:
+        """One sample of the mixture: direction ``wo`` (local to ``si.sh_frame``), its pdf,
+        whether the diffuse lobe drew it, and for conductors Mitsuba's own sample weight
+        ``F G1(wo) specular_reflectance`` (times the shadow term under a normal map);
+        plastic lanes get their weight from the caller (value over pdf)."""
+        wi = self.wi
+        p_s = self._p_specular()
+        pick_s = self.conductor | (sample1 < p_s)
+
+        def draw(d):
+            m, pm = d.sample(wi, sample2)
+            return mi.Vector4f(m.x, m.y, m.z, pm)
+
+        mp = self._pick(draw)
+        m = mi.Vector3f(mp.x, mp.y, mp.z)
+        wo_s = mi.reflect(wi, m)
+        wo_d = mi.warp.square_to_cosine_hemisphere(sample2)
+        wp = dr.select(pick_s, wo_s, wo_d)
+        ok = self.on & (wi.z > 0.0) & (wp.z > 0.0)
+        # roughconductor's sample: weight G1(wo, m) F(wi.m) and pdf p(m) / (4 wo.m)
+        g1_o = self._pick(lambda d: d.smith_g1(wp, m))
+        w_cond = self._fresnel(dr.dot(wi, m)) * g1_o
+        pdf_cond = mp.w / (4.0 * dr.dot(wp, m))
+        ok_cond = ok & (mp.w != 0.0)
+        _, pdf_mix, _ = self._pdf_nested(wp)
+        pdf = dr.select(self.conductor, dr.select(ok_cond, pdf_cond, 0.0), pdf_mix)
+        # back to the unperturbed frame (normalmap), then un-mirror (twosided)
+        wb = dr.select(self.mapped, self.frame.to_world(wp), wp)
+        keep = ~self.mapped | (mi.Frame3f.cos_theta(wp) * mi.Frame3f.cos_theta(wb) > 0.0)
+        ok &= keep & dr.select(self.conductor, ok_cond, pdf > 0.0)
+        w_cond = w_cond * self._shadow(wb)
+        wo = mi.Vector3f(wb.x, wb.y, wb.z * self.sign)
+        return wo, dr.select(ok, pdf, 0.0), ~pick_s, dr.select(ok, w_cond, 0.0)
+
+    def _pdf_nested(self, wp: mi.Vector3f):
+        _, pdf_s = self._spec(self.wi, wp)
+        p_s = self._p_specular()
+        pdf = p_s * pdf_s + (1.0 - p_s) * dr.maximum(wp.z, 0.0) * dr.inv_pi
+        ok = (self.wi.z > 0.0) & (wp.z > 0.0)
+        return None, dr.select(ok, pdf, 0.0), p_s
+
+
+def _primary_eval(lobe: PrimaryLobe | None, bsdf, ctx_s, ctx_all, si, wo, active):
+    """At the primary hit: the non-diffuse lobes' value and the whole BSDF's sampling pdf at
+    ``wo``: Mitsuba's, or :class:`PrimaryLobe`'s on its lanes."""
+    if lobe is None:
+        return bsdf.eval(ctx_s, si, wo, active), bsdf.pdf(ctx_all, si, wo, active)
+    rest = active & ~lobe.on
+    f_s = mi.Color3f(bsdf.eval(ctx_s, si, wo, rest))
+    pdf = mi.Float(bsdf.pdf(ctx_all, si, wo, rest))
+    f_o, pdf_o, _ = lobe.eval_pdf(wo)
+    return dr.select(lobe.on, f_o, f_s), dr.select(lobe.on, pdf_o, pdf)
+
+
+def _primary_sample(lobe: PrimaryLobe | None, bsdf, ctx_d, ctx_s, ctx_all, si, sample1,
+                    sample2, active):
+    """BSDF sampling at the primary hit: ``(wo local, pdf, delta, weight, diffuse share)``,
+    Mitsuba's or :class:`PrimaryLobe`'s on its lanes (a plastic's weight is its value, the
+    overridden specular lobe plus Mitsuba's diffuse lobe, over the mixture's pdf)."""
+    rest = active if lobe is None else active & ~lobe.on
+    bs, w = bsdf.sample(ctx_all, si, sample1, sample2, rest)
+    share_d = _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, rest)
+    wo, pdf = mi.Vector3f(bs.wo), mi.Float(bs.pdf)
+    delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    weight = mi.Color3f(w)
+    if lobe is None:
+        return wo, pdf, delta, weight, share_d
+    on = lobe.on
+    wo_o, pdf_o, diffuse_o, w_cond = lobe.sample(sample1, sample2)
+    f_d = mi.Color3f(bsdf.eval(ctx_d, si, wo_o, on & lobe.plastic & (pdf_o > 0.0)))
+    f_s, _, _ = lobe.eval_pdf(wo_o)
+    f = f_d + f_s
+    w_plastic = dr.select(pdf_o > 0.0, f / dr.select(pdf_o > 0.0, pdf_o, 1.0), 0.0)
+    w_o = dr.select(lobe.conductor, w_cond, w_plastic)
+    share_o = dr.select(f > 0.0, f_d / dr.select(f > 0.0, f, 1.0),
+                        dr.select(diffuse_o, 1.0, 0.0))
+    return (dr.select(on, wo_o, wo), dr.select(on, pdf_o, pdf), delta & ~on,
+            dr.select(on, w_o, weight), dr.select(on, share_o, share_d))
+
+
 @dr.syntax
 def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
           emitters: EmitterTable | None = None,
-          primary: EmitterTable | None = None) -> ShadeResult:
+          primary: EmitterTable | None = None, alpha0: mi.Float | None = None,
+          shapes: ShapeTable | None = None) -> ShadeResult:
     """Trace one path per lane from ``ray`` and return its separated contributions.
     ``emitters``: the scene's :class:`EmitterTable` (built here when not given; pass it in
     from outside when tracing inside ``dr.freeze``).
@@ -300,7 +538,17 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
     BSDF-sampled ray from vertex 0 that hits an excluded emitter brings nothing, one that
     hits another emitter is MIS-weighted with that table's pdf (:func:`_primary_hit_weight`).
     So ``direct_*`` lacks the excluded emitters' light; ``emission`` (seen by the camera)
-    and every deeper vertex (``indirect_*``) are unchanged, with the same random numbers."""
+    and every deeper vertex (``indirect_*``) are unchanged, with the same random numbers.
+
+    ``alpha0``: a per-lane microfacet alpha for path vertex 0 only (``shapes``: the scene's
+    :class:`ShapeTable`): where the primary hit's BSDF is a rough conductor or rough plastic
+    (:class:`PrimaryLobe` says which), its rough lobe takes ``alpha0`` instead of the
+    material's roughness in the next-event estimation there (value and MIS pdf), in the
+    BSDF sample drawn there (direction, weight, and the pdf the emitter hit from it is
+    MIS-weighted with) and in the lobe split of what follows. A negative alpha keeps the
+    material's; deeper vertices always do. Used by specular antialiasing (Kaplanyan et al.
+    2016's filtered roughness, :mod:`glossrt.specaa`) so that environment maps and
+    path-traced light see the filtered roughness too."""
     if emitters is None:
         emitters = EmitterTable(scene)
     nee0 = emitters if primary is None else primary
@@ -317,25 +565,28 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
     direct_d, direct_s = mi.Color3f(zero), mi.Color3f(zero)
     act0 = valid0 & (max_depth > 1)
 
+    # (a scene without rough conductors or plastics: nothing to override)
+    lobe = (None if alpha0 is None or not any(shapes.lobe_key[:2])
+            else PrimaryLobe(si0, bsdf0, shapes, alpha0, act0, shapes.lobe_key))
+
     # next-event estimation, split by lobe; MIS against the full BSDF's pdf
     ds, em_w = sample_emitter_direction(scene, nee0, si0, sampler.next_2d(), act0)
     wo = si0.to_local(ds.d)
     f_d = bsdf0.eval(ctx_d, si0, wo, act0)
-    f_s = bsdf0.eval(ctx_s, si0, wo, act0)
-    pdf_b = bsdf0.pdf(ctx_all, si0, wo, act0)
+    f_s, pdf_b = _primary_eval(lobe, bsdf0, ctx_s, ctx_all, si0, wo, act0)
     w_em = dr.select(ds.delta, 1.0, _mis(ds.pdf, pdf_b))
     direct_d += dr.select(act0, em_w * f_d * w_em, 0.0)
     direct_s += dr.select(act0, em_w * f_s * w_em, 0.0)
 
     # BSDF sampling at the primary hit decides the lobe of everything further along
-    bs, bsdf_w = bsdf0.sample(ctx_all, si0, sampler.next_1d(), sampler.next_2d(), act0)
-    share_d = _diffuse_share(bsdf0, ctx_d, ctx_s, si0, bs, act0)
+    wo0, pdf0, delta0, bsdf_w, share_d = _primary_sample(
+        lobe, bsdf0, ctx_d, ctx_s, ctx_all, si0, sampler.next_1d(), sampler.next_2d(), act0)
     share_s = 1.0 - share_d
     beta = mi.Spectrum(bsdf_w)
     prev_si = dr.detach(si0)
-    prev_pdf = mi.Float(bs.pdf)
-    prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-    ray_k = si0.spawn_ray(si0.to_world(bs.wo))
+    prev_pdf = mi.Float(pdf0)
+    prev_delta = mi.Bool(delta0)
+    ray_k = si0.spawn_ray(si0.to_world(wo0))
     depth = mi.UInt32(1)
     active = act0 & dr.any(beta != 0.0)
     L_dir = mi.Color3f(zero)  # BSDF-sampled hits of emitters from vertex 0
@@ -415,10 +666,14 @@ class ShapeTable:
         "eta": mi.Color3f,
         "k": mi.Color3f,
         "spec_scale": mi.Color3f,
+        "lobe": mi.UInt32,
+        "lobe_twosided": mi.Bool,
+        "lobe_normal_map": mi.Bool,
+        "spec_weight": mi.Float,
     })
 
     def __init__(self, scene: mi.Scene):
-        from .materials import describe_bsdf
+        from .materials import describe_bsdf, lobe_override
 
         shapes = stable_shapes(scene)
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
@@ -429,6 +684,7 @@ class ShapeTable:
         beckmann = [False] * n
         fres = np.zeros((n, ROW))
         alpha_uv = np.zeros((n, 2))
+        lobe, lobe_ts, lobe_nm, spec_w = [0] * n, [False] * n, [False] * n, [1.0] * n
         self.materials = {}
         for i, (s, rid) in enumerate(zip(shapes, ids, strict=True)):
             m = describe_bsdf(s.bsdf())
@@ -442,6 +698,10 @@ class ShapeTable:
             alpha_uv[rid] = m.anisotropic if m.anisotropic is not None else (m.alpha, m.alpha)
             for c in range(3):
                 f0[c][rid] = m.f0[c]
+            o = lobe_override(s.bsdf())
+            if o is not None:
+                lobe[rid], lobe_ts[rid], lobe_nm[rid], spec_w[rid] = (
+                    o.kind, o.twosided, o.normal_map, o.spec_weight)
         self.index = mi.UInt32(index)
         self.has_diffuse = mi.Bool(has_d)
         self.has_specular = mi.Bool(has_s)
@@ -461,6 +721,20 @@ class ShapeTable:
         self.eta = mi.Color3f(*(fres[:, 1 + c].astype(np.float32) for c in range(3)))
         self.k = mi.Color3f(*(fres[:, 4 + c].astype(np.float32) for c in range(3)))
         self.spec_scale = mi.Color3f(*(fres[:, 7 + c].astype(np.float32) for c in range(3)))
+        #: per shape: whether (and how) a per-pixel roughness replaces the material's at the
+        #: primary hit (:data:`glossrt.render.materials.LOBE_NONE` and friends,
+        #: :class:`PrimaryLobe`), inside a one-BSDF ``twosided``, inside a ``normalmap``, and
+        #: ``roughplastic``'s ``specular_sampling_weight``
+        self.lobe = mi.UInt32(lobe)
+        self.lobe_twosided = mi.Bool(lobe_ts)
+        self.lobe_normal_map = mi.Bool(lobe_nm)
+        self.spec_weight = mi.Float(spec_w)
+        #: which distributions the overridable lobes use, and whether any is normal-mapped
+        #: (Python values: :class:`PrimaryLobe` traces only what the scene needs)
+        self.lobe_key = (
+            any(lobe[r] and beckmann[r] for r in range(n)),
+            any(lobe[r] and not beckmann[r] for r in range(n)),
+            any(lobe[r] and lobe_nm[r] for r in range(n)))
         #: whether any shape is normal-mapped (a Python bool: pass it to gbuffer(), so scenes
         #: without normal maps keep the texture lookup's virtual call out of their kernels)
         self.any_normal_map = any(v != 0 for v in normal_map)
@@ -576,7 +850,8 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  emitters: EmitterTable, table, motion_inputs, pixel: mi.UInt32,
                  seed: mi.UInt32, width: int, height: int, max_depth: int,
                  jitter: mi.Point2f | None = None,
-                 primary: EmitterTable | None = None) -> dict:
+                 primary: EmitterTable | None = None,
+                 roughness: mi.Float | None = None) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
     ``jitter`` (pixels, in [-0.5, 0.5), or wider by ``Renderer.render``'s ``jitter_limit``)
@@ -584,7 +859,10 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     pixel centre (docs/FORMATS.md: where the surface point seen through the pixel centre was
     in the previous frame, what the reprojecting consumers fetch at ``centre + motion``),
     from a primary ray of its own through the centre. ``primary``: the table of
-    :func:`shade`'s next-event estimation at the primary hit (None: ``emitters``)."""
+    :func:`shade`'s next-event estimation at the primary hit (None: ``emitters``).
+    ``roughness``: a microfacet alpha per *pixel* (flat, ``width * height``, read at each
+    lane's ``pixel``) for the rough lobes of the primary hit (:func:`shade`'s ``alpha0``);
+    the G-buffer keeps the material's roughness."""
     from .motion import motion
 
     xc = mi.Float(pixel % width) + 0.5
@@ -595,7 +873,8 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     pos = mi.Point2f(x / width, y / height)
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)
-    r = shade(scene, sampler, ray, max_depth, emitters, primary)
+    alpha0 = None if roughness is None else dr.gather(mi.Float, roughness, pixel)
+    r = shade(scene, sampler, ray, max_depth, emitters, primary, alpha0, shapes)
     out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
     bad = mi.UInt32(0)  # per lane: radiance values that were not finite
     color = dr.zeros(mi.Color3f)

@@ -63,23 +63,27 @@ class Pose:
     ``to_world`` (4x4) and horizontal ``fov`` (degrees), and ``objects``: mesh index (as in
     the ``mesh_id`` channel) -> the rigid transform applied on top of that shape's rest pose
     (shapes not listed are at rest). What motion vectors point back to
-    (:attr:`glossrt.render.Renderer.previous_pose`)."""
+    (:attr:`glossrt.render.Renderer.previous_pose`). ``lights``: point-light id -> the rigid
+    transform applied to its rest position (:meth:`SceneSetup.set_light_override`; invisible
+    to the camera, so no motion vectors, but a moved light is another pose)."""
 
     camera: Matrix
     fov: float
     objects: dict[int, Matrix]
+    lights: dict[str, Matrix] = field(default_factory=dict)
 
     def same(self, other: Pose | None) -> bool:
-        """Whether ``other`` is the same pose (exact values; shapes at identity count as
-        unlisted)."""
+        """Whether ``other`` is the same pose (exact values; shapes and lights at identity
+        count as unlisted)."""
         if other is None or self.fov != other.fov:
             return False
         if not np.array_equal(self.camera, other.camera):
             return False
         eye = np.eye(4)
-        for m in set(self.objects) | set(other.objects):
-            if not np.array_equal(self.objects.get(m, eye), other.objects.get(m, eye)):
-                return False
+        for mine, theirs in ((self.objects, other.objects), (self.lights, other.lights)):
+            for m in set(mine) | set(theirs):
+                if not np.array_equal(mine.get(m, eye), theirs.get(m, eye)):
+                    return False
         return True
 
 
@@ -318,6 +322,10 @@ class SceneSetup:
         self.camera_override: Matrix | None = None
         self.fov_override: float | None = None
         self.object_overrides: dict[str, Matrix] = {}
+        #: point-light id -> rigid transform of its rest position (:meth:`set_light_override`)
+        self.light_overrides: dict[str, Matrix] = {}
+        self._light_rest: dict[str, np.ndarray] = {}  # point-light id -> rest position (3,)
+        self._lights_applied: dict[str, Matrix] = {}  # point-light id -> transform written
         self._pose_version = 0
         self._posed: tuple | None = None  # (frame, pose version) last set by set_frame
         self._applied: dict[str, Matrix] = {}  # shape id -> transform last written
@@ -375,9 +383,10 @@ class SceneSetup:
                 for sid in {**self.object_paths, **self.object_overrides}}
 
     def pose(self, frame: int) -> Pose:
-        """The :class:`Pose` of ``frame`` (camera, field of view, moved shapes)."""
+        """The :class:`Pose` of ``frame`` (camera, field of view, moved shapes and point
+        lights)."""
         return Pose(np.array(self.camera_matrix(frame), dtype=np.float64), self.current_fov,
-                    self.object_transforms(frame))
+                    self.object_transforms(frame), dict(self.light_overrides))
 
     @property
     def animated(self) -> bool:
@@ -391,13 +400,33 @@ class SceneSetup:
         return [sid for sid in self.shape_index
                 if f"{sid}.to_world" in keys or f"{sid}.vertex_positions" in keys]
 
+    def movable_lights(self) -> list[str]:
+        """Ids of the point lights :meth:`set_light_override` can move: ``point`` emitters
+        whose id (the XML ``id``, the scene dict's key) names no shape and no other emitter
+        and has a ``<id>.position`` parameter (``mi.traverse``). Spot lights are not
+        supported by glossrt's renderer (:data:`SUPPORTED_EMITTERS`); directional lights
+        have no position."""
+        keys = set(self.params.keys())
+        ids = [e.id() for e in self.scene.emitters()]
+        return sorted(e.id() for e in self.scene.emitters()
+                      if emitter_kind(e) == "point" and e.id() and ids.count(e.id()) == 1
+                      and e.id() not in self.shape_index and f"{e.id()}.position" in keys)
+
+    def _keep_light_rest(self, eid: str) -> None:
+        if eid not in self._light_rest:
+            self._light_rest[eid] = np.array(self.params[f"{eid}.position"],
+                                             dtype=np.float64).reshape(3)
+
     def prepare_to_move(self) -> None:
-        """Write every movable shape's rest pose once (the next :meth:`set_frame`), so that
-        frozen kernels recorded from then on already take those shapes' placement as
-        evaluated inputs: moving a shape for the first time later replays them (a shape
-        first moved after the recording was measured to record the trace once more)."""
+        """Write every movable shape's rest pose (and point light's rest position) once (the
+        next :meth:`set_frame`), so that frozen kernels recorded from then on already take
+        those shapes' placement as evaluated inputs: moving a shape for the first time later
+        replays them (a shape first moved after the recording was measured to record the
+        trace once more)."""
         for sid in self.movable_shapes():
             self._keep_rest(sid)
+        for eid in self.movable_lights():
+            self._keep_light_rest(eid)
         self._posed = None
 
     def set_camera_override(self, to_world=None, fov: float | None = None) -> None:
@@ -430,13 +459,35 @@ class SceneSetup:
         self.object_overrides[sid] = m
         self._pose_version += 1
 
+    def set_light_override(self, eid: str, matrix) -> None:
+        """Place point light ``eid`` (an id of :meth:`movable_lights`) at ``matrix`` applied
+        to its rest position (4x4, rigid: ``p = R p_rest + t``; the rotation turns the
+        position about the origin, an isotropic light has no orientation) in every frame
+        from now on; None: back to its rest position. Written to the emitter's ``position``
+        parameter (``mi.traverse``), which the path tracer and the analytic direct stage
+        both read. Checked first (:class:`SceneError`; nothing changes then)."""
+        movable = self.movable_lights()
+        if eid not in movable:
+            raise SceneError(f"{self.name}: no point light {eid!r} to move; the point lights "
+                             f"are {', '.join(movable) or 'none'}")
+        if matrix is None:
+            if self.light_overrides.pop(eid, None) is not None:
+                self._pose_version += 1
+            return
+        m = check_rigid(matrix, f"{self.name}: point light {eid!r}")
+        self._keep_light_rest(eid)
+        self.light_overrides[eid] = m
+        self._pose_version += 1
+
     def clear_overrides(self) -> None:
-        """Back to the animation: no explicit camera, field of view or shape transforms."""
+        """Back to the animation: no explicit camera, field of view, shape transforms or
+        light positions."""
         if self.camera_override is None and self.fov_override is None \
-                and not self.object_overrides:
+                and not self.object_overrides and not self.light_overrides:
             return
         self.camera_override = self.fov_override = None
         self.object_overrides = {}
+        self.light_overrides = {}
         self._pose_version += 1
 
     def set_frame(self, frame: int) -> None:
@@ -479,6 +530,17 @@ class SceneSetup:
                         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
                     self.params[f"{sid}.vertex_normals"] = owned_float(n)
             self._applied[sid] = np.array(m, dtype=np.float64)
+            changed = True
+        for eid, rest in self._light_rest.items():  # every point light ever moved
+            m = self.light_overrides.get(eid, np.eye(4))
+            last = self._lights_applied.get(eid)
+            if last is not None and np.array_equal(last, m):
+                continue
+            p = m[:3, :3] @ rest + m[:3, 3]
+            # opaque: a new position replays the frozen kernels that read it
+            self.params[f"{eid}.position"] = mi.Point3f(*(dr.opaque(mi.Float, float(x))
+                                                          for x in p))
+            self._lights_applied[eid] = np.array(m, dtype=np.float64)
             changed = True
         if changed:
             self.params.update()

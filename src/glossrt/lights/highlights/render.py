@@ -235,7 +235,30 @@ def _fast_kernel(ch: dict, cam: list, data, base, has, tables, n_ids: int, n_lev
     return merge([col[0], col[1], col[2]], h, w)
 
 
-_fast_frozen = dr.freeze(_fast_kernel, warn_after=16)
+def _grid_kernel(ch: dict, cam: list, data, grid, tables, n_ids: int, n_levels: int,
+                 texel_count: int, axes: tuple, frame_index, samples: int, distribution: str,
+                 level0: int, size: tuple[int, int]) -> mi.TensorXf:
+    """:func:`_fast_kernel` reading :class:`~glossrt.lights.highlights.envmap.ProbeGridMaps`:
+    each sample's ``L_env(l_k)`` (Kimura & Tokoi, sec. 5.2: the environment map read in the
+    mirror direction of the view about the microfacet normal) blended over the probes around
+    the pixel's surface point."""
+    from .envmap import grid_lookup
+
+    h, w = size
+    sp = ShadingPoints.at_camera(ch, cam)
+    ids = mi.UInt32(split(ch["mesh_id"])[0])
+    ids = dr.select(sp.hit, ids, mi.UInt32(n_ids))
+    p = sp.p
+
+    def env(d, lod):
+        return grid_lookup(data, grid, tables, n_levels, texel_count, n_ids, axes, ids, p, d,
+                           lod)
+
+    pix = dr.arange(mi.UInt32, h * w)
+    col = _estimate(sp, env, pix % w, pix // w, pix, sp.alpha, samples, distribution, "hash",
+                    frame_index, None, level0)
+    col = dr.select(sp.hit, col, 0.0)
+    return merge([col[0], col[1], col[2]], h, w)
 
 
 def spread_angle(alpha: float, distribution: str, q: float = 0.99,
@@ -307,6 +330,9 @@ class HighlightRenderer:
                                "(sampling='hash', or distribution='ggx') and no culling "
                                "(cull=False)")
         self.frozen = bool(frozen)
+        # this renderer's own recordings (counted by the pipeline: DirectStage.frozen)
+        self._frozen = dr.freeze(_fast_kernel, warn_after=16) if frozen else None
+        self._frozen_grid = dr.freeze(_grid_kernel, warn_after=16) if frozen else None
         self._textures: dict = {}
         self.last_stats: dict = {}
 
@@ -321,6 +347,22 @@ class HighlightRenderer:
         lights = polygon_lights(setup, frame_index) if lights is None else lights
         return CubeMapSet.render(lights, probe_points(setup), self.resolution,
                                  supersample=self.supersample)
+
+    def grid_maps(self, setup, frame_index: int, lights: list | None = None,
+                  probes: int | None = None, grids=None):
+        """Light cube maps at a grid of probes per object (:func:`glossrt.lights.highlights.
+        envmap.probe_grids`, ``probes`` along the largest object's longest side; 1: the
+        paper's one map per object), for :meth:`shade_tensor`. The ellipsoidal estimator
+        reads level 0 only: one level, rendered on the device; GGX's filtered importance
+        sampling gets the full chain. ``grids``: precomputed probe grids."""
+        from ..scene import polygon_lights
+        from .envmap import DEFAULT_PROBES, ProbeGridMaps, probe_grids
+
+        lights = polygon_lights(setup, frame_index) if lights is None else lights
+        if grids is None:
+            grids = probe_grids(setup, DEFAULT_PROBES if probes is None else probes)
+        levels = 1 if self.distribution == "ellipsoidal" else None
+        return ProbeGridMaps(lights, grids, self.resolution, levels, self.supersample)
 
     def _texture(self, ratio: float):
         from ...brdf.ellipsoidal import NormalTexture
@@ -344,8 +386,17 @@ class HighlightRenderer:
             raise GlossrtError(f"{frame.where}: highlights need the camera")
         ch = shading_channels(frame)
         ch["f0"] = f0_tensor(frame, f0)
+        if hasattr(maps, "axes"):  # ProbeGridMaps: several probes per object
+            with no_gc():
+                out = self._frozen_grid(
+                    ch, opaque(frame.camera.position), maps.data, maps._grid, maps._tables,
+                    maps._n_ids, maps.n_levels, maps.texel_count, maps.axes,
+                    dr.opaque(mi.UInt32, int(frame_index)), self.samples, self.distribution,
+                    int(maps.resolutions[0]), (frame.height, frame.width))
+                dr.eval(out)
+            return out
         with no_gc():
-            out = _fast_frozen(ch, opaque(frame.camera.position), maps.data, maps._base,
+            out = self._frozen(ch, opaque(frame.camera.position), maps.data, maps._base,
                                maps._has, maps._tables, maps._n_ids, maps.n_levels,
                                dr.opaque(mi.UInt32, int(frame_index)), self.samples,
                                self.distribution, int(maps.resolutions[0]),
