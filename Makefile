@@ -1,6 +1,7 @@
-# glossrt: `make demo` and `make test` do all set-up on a fresh machine.
+# glossrt: `make demo`, `make view` and `make test` do all set-up on a fresh machine.
 # They create .venv (Python 3.11 when available), install glossrt into it, make sure a
-# libLLVM >= 16 is usable (installing Debian's libllvm19 when run as root), then run.
+# libLLVM >= 16 is usable (installing Debian's libllvm19 when run as root; `make test` also
+# Debian's chromium for the viewer's browser tests), then run.
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
@@ -8,7 +9,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.glossrt-installed
 DEMO_OUT ?= demo-out
 
-.PHONY: demo test llvm bench clean-venv
+.PHONY: demo test view llvm chromium bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -21,8 +22,16 @@ $(STAMP): pyproject.toml | $(BIN)/python
 llvm: $(STAMP)
 	@bash scripts/ensure-llvm.sh $(BIN)/python
 
-test: llvm
+chromium:
+	@bash scripts/ensure-chromium.sh
+
+test: llvm chromium
 	bash scripts/run-tests.sh $(BIN)/python
+
+# the live viewer on the built-in polygon-light scene: open the URL it prints; Ctrl-C stops
+VIEW_SCENE ?= polygon-light
+view: llvm
+	$(BIN)/glossrt view $(VIEW_SCENE)
 
 demo: llvm
 	$(BIN)/glossrt demo --out $(DEMO_OUT)

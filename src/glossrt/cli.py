@@ -1,5 +1,5 @@
 """The ``glossrt`` command line: info | render | light | bspvt | ltc-fit | denoise | compare
-| experiment | demo | bench."""
+| experiment | demo | bench | view."""
 
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ EXAMPLES = """examples:
   glossrt compare out/cornell-svgf out/cornell-ref --json metrics.json
   glossrt demo --out demo-out
   glossrt bench --json bench.json --size 640x360
+  glossrt view polygon-light --pipeline full --size 320x180
 """
 
 
@@ -323,7 +324,7 @@ def cmd_render(args) -> int:
             else:
                 f = r.render(i)
                 if args.specaa is not None:
-                    _add_specaa(setup, f, i, args.specaa, tex_cache)
+                    _add_specaa(setup, f, i, args.specaa, tex_cache, r)
                 p.update(k + 1)
             bad += int(f.meta.get("nonfinite_samples", 0))
             f.save(out / frame_filename(i))
@@ -372,10 +373,15 @@ def _render_pipeline(args, size) -> int:
     return 0
 
 
-def _add_specaa(setup, frame, index: int, method: str, textures: dict) -> None:
+def _add_specaa(setup, frame, index: int, method: str, textures: dict,
+                renderer=None) -> None:
     """Channel ``specaa``: the frame's direct light from the scene's point, directional and
     polygon lights with specular antialiasing ``method`` (glossrt.specaa); ``textures``: the
-    prefiltered light textures, kept across frames."""
+    prefiltered light textures, kept across frames. A scene without such lights (lit by an
+    environment map or emitters glossrt does not shade analytically): the 1 spp path-traced
+    direct light (``direct_diffuse + direct_specular``) traced again by ``renderer`` with
+    the filtered roughness at the primary hit (``Renderer.render(roughness=...)``; per-pixel
+    methods only), ``meta["specaa_source"] = "path-traced"``."""
     from . import specaa
     from .lights.analytic import analytic_lights
     from .lights.scene import polygon_lights
@@ -384,8 +390,20 @@ def _add_specaa(setup, frame, index: int, method: str, textures: dict) -> None:
     polys = polygon_lights(setup, index)
     lights = analytic_lights(setup, index)
     if not lights and not polys:
-        raise GlossrtError(f"--specaa: scene {setup.name!r} has no point, directional or "
-                           "polygon lights to shade")
+        from .pipeline.stages import SpecAAStage
+
+        if specaa.parse_method(method).per_light:
+            raise GlossrtError(f"--specaa {method}: scene {setup.name!r} has no point, "
+                               "directional or polygon lights, and this method filters per "
+                               "light; the path-traced light takes a per-pixel method "
+                               "(avgnormal, avgnormal-max, avgnormal-eig, projected)")
+        stage = SpecAAStage(method)
+        alpha = stage.filter(frame) if stage.filters else frame["roughness"]
+        f = renderer.render(index, roughness=alpha)
+        frame["specaa"] = f["direct_diffuse"] + f["direct_specular"]
+        frame.meta["specaa"] = method
+        frame.meta["specaa_source"] = "path-traced"
+        return
     img = specaa.shade_tensor(frame, lights, polys, method, f0_image(setup, frame), frozen=True,
                               textures=textures)
     frame["specaa"] = img
@@ -682,18 +700,38 @@ def cmd_bench(args) -> int:
     from .scenes import parse_size
 
     size = parse_size(args.size)
+    options = bench.parse_case_options(args.case_option)
     bench.check_args(repeats=args.repeats, warmup=args.warmup, min_sample=args.min_sample,
-                     names=args.only or None)
+                     names=args.only or None, options=options)
     _check_memory(size)
     js = _output_file(args.json, "bench --json") if args.json is not None else None
     res = bench.run(args.only or None, size=size, repeats=args.repeats,
                     warmup=args.warmup, log=lambda s: print(s, file=sys.stderr),
-                    min_sample=args.min_sample)
+                    min_sample=args.min_sample, options=options)
     text = json.dumps(res, indent=2)
     if js is not None:
         _write_text(js, text + "\n")
     print(text)
     return 0
+
+
+def cmd_view(args) -> int:
+    """``glossrt view``: the live viewer until Ctrl-C or SIGTERM (glossrt.view)."""
+    from . import scenes
+    from .view import Viewer, serve
+
+    size = scenes.parse_size(args.size)
+    _check_memory(size)
+    v = Viewer(args.scene, pipeline=args.pipeline, size=size, host=args.host, port=args.port,
+               captures=args.captures, bspvt=args.bspvt)
+    print(f"glossrt view: {v.url}  ({args.scene}, {v.pipe.preset}, {size[0]}x{size[1]}; "
+          f"captures into {v.captures}; Ctrl-C stops)", flush=True)
+    serve(v)  # stopped: the render loop ended or was left mid-frame, no capture half-written
+    print("glossrt view: stopped", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    # no interpreter teardown: a frame still recording would hold it, and Dr.Jit's and
+    # Mitsuba's shutdown alone takes about a second on the 2-core VM (the 2 s promise)
+    os._exit(0)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -788,6 +826,9 @@ COMMANDS: tuple[Command, ...] = (
                 _arg("--specaa", default=None, metavar="METHOD",
                      help="also write channel 'specaa': direct light from the scene's point, "
                           "directional and polygon lights with specular antialiasing METHOD "
+                          "(a scene lit only by an environment map or other emitters: the "
+                          "path-traced direct light with the filtered roughness at the "
+                          "primary hit) "
                           "(none, halfvector, halfvector-bbox, avgnormal, avgnormal-max, "
                           "avgnormal-eig, projected), optionally METHOD:kappa=K to clamp the "
                           "added roughness (e.g. avgnormal-eig:kappa=0.18; "
@@ -915,6 +956,23 @@ COMMANDS: tuple[Command, ...] = (
                           "frame to the next)"),
                 _arg("--spp", type=int, default=256, help="reference samples per pixel"),
             )),
+    Command("view", cmd_view, "live viewer: watch and steer the frame pipeline in a browser",
+            "glossrt view polygon-light --pipeline full --size 320x180", (
+                _arg("scene", help="built-in scene name (listed below) or Mitsuba XML path"),
+                _arg("--pipeline", default="full", metavar="PRESET|FILE",
+                     help="a preset (schied2017, okuno-iwasaki, kimura-tokoi, tokuyoshi2015, "
+                          "full, reference) or a TOML pipeline file (default full)"),
+                _arg("--size", default="320x180", help="WxH rendered (default 320x180)"),
+                _arg("--host", default="127.0.0.1",
+                     help="address to serve on (default 127.0.0.1, this machine only; "
+                          "0.0.0.0 serves every network and prints a warning)"),
+                _arg("--port", type=int, default=8080, help="port (default 8080)"),
+                _arg("--captures", default="captures",
+                     help="folder the Capture and Record buttons write EXRs into "
+                          "(default ./captures, made at the first capture)"),
+                _arg("--bspvt", default=None, metavar="FILE",
+                     help="prebuilt BSPVT trees (glossrt bspvt build) for direct=ltc+bspvt"),
+            ), more_help=_builtin_scenes_help),
     Command("bench", cmd_bench, "registered benchmarks (median of repeats), JSON out",
             "glossrt bench --json bench.json --size 640x360", (
                 _arg("--json"),
@@ -926,6 +984,10 @@ COMMANDS: tuple[Command, ...] = (
                      help="time calls shorter than this in back-to-back batches (0: one call "
                           "per sample)"),
                 _arg("--only", nargs="*", help="benchmark names"),
+                _arg("--case-option", action="append", metavar="KEY=VALUE",
+                     help="an option of a benchmark case, repeatable (e.g. pipeline_shrink=10: "
+                          "the pipeline case at 1/10 of its sizes; see glossrt.bench."
+                          "case_options)"),
             )),
 )
 

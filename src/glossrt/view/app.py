@@ -1,0 +1,739 @@
+"""The live viewer: :class:`Viewer` serves a :class:`glossrt.pipeline.Pipeline` to browsers
+through viser (issue 26).
+
+Threads. viser runs its websocket server and calls the GUI and camera callbacks on its own
+threads; those callbacks only post to an :class:`~glossrt.view.inbox.Inbox` (latest value
+wins). One render loop, on its own thread, owns every Dr.Jit call after start-up: at the
+start of each frame it takes what was posted, applies it to the pipeline (a refusal is
+shown in the panel and the previous state kept), renders, and broadcasts the chosen layer
+as a JPEG background image to every connected client. A client that connects gets the
+current camera and image; one that leaves changes nothing.
+
+Ground truth on pause: after :data:`STILL_FRAMES` frames without a change of camera,
+lights, options or animation time, a second pipeline with the ``reference`` preset
+accumulates the converged frame of the same pose, :data:`REFERENCE_SPP` samples per pixel
+per frame, and the panel shows the live image's RMSE and FLIP against it.
+
+Captures go through :meth:`glossrt.frame.Frame.save` (a temporary file renamed into place)
+into the captures folder only; names are made here, never taken from the browser.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+import threading
+import time
+import traceback
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import GlossrtError
+from . import layers
+from .camera import ViewerCamera, from_pipeline, gizmo_matrix, to_pipeline
+from .inbox import Inbox
+
+#: frames without any change before the reference starts accumulating
+STILL_FRAMES = 2
+#: samples per pixel the reference adds per loop iteration, and where it stops
+REFERENCE_SPP = 4
+REFERENCE_MAX_SPP = 4096
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+#: seconds a client's camera reports are ignored after the viewer set its camera, unless it
+#: reports that camera back sooner (see Viewer._send_camera)
+SYNC_SECONDS = 3.0
+
+#: GUI ranges of the numeric pipeline options (slider: min, max, step); others are numbers
+SLIDERS: dict[str, tuple[float, float, float]] = {
+    "exposure": (-8.0, 8.0, 0.1),
+    "taa_alpha": (0.01, 1.0, 0.01),
+    "resample_threshold": (0.0, 1.0, 0.01),
+    "svgf_alpha": (0.01, 1.0, 0.01),
+}
+#: the panel's folders; options not named here go to "Parameters"
+FOLDERS: dict[str, tuple[str, ...]] = {
+    "Stages": ("direct", "indirect", "indirect_scale", "upsampling", "upsampling_weight",
+               "specaa", "taa"),
+    "Display": ("exposure", "tonemap"),
+    "Advanced": ("spp", "accumulate", "seed", "max_depth"),
+}
+
+
+def _check_size(size) -> tuple[int, int]:
+    from ..scenes import check_size, parse_size
+
+    if isinstance(size, str):
+        return parse_size(size)
+    try:
+        w, h = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise GlossrtError(f"size must be WxH or (width, height), got {size!r}") from None
+    return check_size((w, h))
+
+
+def _check_port(port) -> int:
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise GlossrtError(f"port must be an integer in 0..65535, got {port!r}")
+    return port
+
+
+def _free_port(host: str) -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def _check_captures(path) -> Path:
+    """The captures folder: it may not exist yet (made at the first capture), but what is
+    there must be a writable folder, and its parent must exist."""
+    p = Path(os.fspath(path)).expanduser()
+    if p.exists():
+        if not p.is_dir():
+            raise GlossrtError(f"captures: {p} exists and is not a folder")
+        if not os.access(p, os.W_OK):
+            raise GlossrtError(f"captures: folder {p} is not writable")
+    else:
+        parent = p.parent if str(p.parent) else Path(".")
+        if not parent.is_dir():
+            raise GlossrtError(f"captures: the folder above {p} does not exist")
+        if not os.access(parent, os.W_OK):
+            raise GlossrtError(f"captures: cannot create {p} (folder {parent} not writable)")
+    return p
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(str(text)).stem)[:60] or "scene"
+
+
+class Viewer:
+    """A live view of a frame pipeline in the browser. Start with :func:`open`; stop with
+    :meth:`stop` (or use it as a context manager).
+
+    ``scene``: anything :func:`glossrt.scenes.load` takes (a built-in name, an XML path, a
+    Mitsuba scene dict or an ``mi.Scene``). ``pipeline``: a preset or a TOML file
+    (:func:`glossrt.pipeline.parse`), ``choices`` override its options. Everything is checked
+    before the server starts: a :class:`~glossrt.errors.GlossrtError` means nothing was
+    started and nothing written."""
+
+    def __init__(self, scene, pipeline: str = "full", size=(320, 180),
+                 host: str = "127.0.0.1", port: int = 8080, captures="captures",
+                 verbose: bool = True, bspvt=None, **choices: Any):
+        from .. import pipeline as pl
+
+        if not isinstance(host, str) or not host:
+            raise GlossrtError(f"host must be a host name or address, got {host!r}")
+        port = _check_port(port)
+        size = _check_size(size)
+        preset, file_choices = pl.parse(pipeline)
+        choices = {**file_choices, **choices}
+        pl.resolve(preset, **choices)  # names and values, before the scene loads
+        self.captures = _check_captures(captures)
+        self.verbose = verbose
+        from ..scenes import load
+
+        setup = load(scene, size=size)
+        self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
+                                **choices)
+        import drjit as dr
+
+        dr.sync_thread()  # the render loop's thread takes over every Dr.Jit array
+        self.size = tuple(setup.size)
+        self.inbox = Inbox()
+        self._lock = threading.Lock()  # the snapshot the API reads (stats, last images)
+        self._save_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._syncing = False
+        self.index = 0
+        self.playing = False
+        self.layer = "color"
+        self.message = ""
+        self.status = "starting"
+        self.stats: dict[str, Any] = {"frames": 0, "fps": 0.0, "reference_spp": 0}
+        self.last_image: np.ndarray | None = None
+        self.last_frame = None
+        self.captured: list[Path] = []
+        self._record_left = 0
+        self._record_dir: Path | None = None
+        self._reference = None
+        self._ref_color: np.ndarray | None = None
+        self._ref_spp = 0
+        self._still = 0
+        self._sent_camera: ViewerCamera | None = None
+        self._syncing_clients: dict[int, float] = {}
+        self._lights = self._light_rests()
+        self._camera = self._scene_camera()
+        self._start_server(host, port)
+        self._build_gui()
+        self._thread = threading.Thread(target=self._loop, name="glossrt-view", daemon=True)
+        self._thread.start()
+
+    # -- start-up -------------------------------------------------------------------------
+    def _start_server(self, host: str, port: int) -> None:
+        import viser
+
+        if host not in LOOPBACK:
+            warnings.warn(f"glossrt view serves on {host}: anyone who can reach this "
+                          "machine's port can watch and steer the session", stacklevel=3)
+        if port == 0:
+            port = _free_port(host)
+        import contextlib
+        import io
+
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: glossrt prints the URL
+            self.server = viser.ViserServer(host=host, port=port, label="glossrt",
+                                            verbose=False)
+        self.host = host
+        self.port = int(self.server.get_port())
+        up = np.asarray(self.pipe.setup.rest_camera, np.float64)[:3, 1]
+        self.server.scene.set_up_direction(tuple(float(v) for v in up))
+        self.server.on_client_connect(self._on_connect)
+
+    def _scene_camera(self) -> ViewerCamera:
+        s = self.pipe.setup
+        return from_pipeline(s.camera_matrix(0), s.current_fov, self.size,
+                             pivot=s.look_at_point())
+
+    def _light_rests(self) -> dict[str, tuple[np.ndarray, float]]:
+        """The polygon lights that can move: shape id -> (rest centre, size)."""
+        from ..lights.scene import polygon_lights
+
+        setup = self.pipe.setup
+        movable = set(setup.movable_shapes())
+        out = {}
+        for light in polygon_lights(setup, 0):
+            if light.id in movable:
+                v = np.asarray(light.vertices, np.float64)
+                c = v.mean(axis=0)
+                out[light.id] = (c, float(np.max(np.linalg.norm(v - c, axis=1))))
+        return out
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        if host in ("0.0.0.0", "[::]"):
+            host = "127.0.0.1"
+        return f"http://{host}:{self.port}/"
+
+    # -- the panel --------------------------------------------------------------------------
+    def _widget(self, gui, name: str, value: Any):
+        from ..pipeline import OPTIONS
+        from ..specaa import METHODS, parse_method
+
+        kind = OPTIONS[name]
+        if name == "specaa":
+            opts = list(dict.fromkeys(["none"] + [m for m in METHODS
+                                                   if not parse_method(m).per_light]))
+            return gui.add_dropdown("specaa", opts, initial_value=str(value).split(":")[0]
+                                    if str(value).split(":")[0] in opts else "none")
+        if name == "direct":
+            return gui.add_dropdown(name, list(kind), initial_value=str(value))
+        if isinstance(kind, tuple):
+            return gui.add_dropdown(name, [str(v) for v in kind], initial_value=str(value))
+        if kind is bool:
+            return gui.add_checkbox(name, bool(value))
+        if name in SLIDERS:
+            lo, hi, step = SLIDERS[name]
+            return gui.add_slider(name, min=lo, max=hi, step=step,
+                                  initial_value=float(min(max(value, lo), hi)))
+        if kind is int:
+            init = 0 if value is None else int(value)
+            return gui.add_number(name + (" (0: scene's)" if name == "max_depth" else ""),
+                                  init, step=1)
+        return gui.add_number(name, float(value))
+
+    def _build_gui(self) -> None:
+        from ..pipeline import OPTIONS, PRESETS
+
+        gui = self.server.gui
+        self._status_md = gui.add_markdown("**starting**")
+        self._message_md = gui.add_markdown("")
+        self._widgets: dict[str, Any] = {}
+        with gui.add_folder("Pipeline"):
+            self._preset = gui.add_dropdown("preset", list(PRESETS),
+                                            initial_value=self.pipe.preset)
+            self._preset.on_update(self._on_preset)
+        opts = self.pipe.opts
+        placed = {n for names in FOLDERS.values() for n in names}
+        folders = dict(FOLDERS)
+        folders["Parameters"] = tuple(n for n in OPTIONS if n not in placed)
+        for title in ("Stages", "Parameters", "Display", "Advanced"):
+            with gui.add_folder(title, expand_by_default=title != "Advanced"):
+                for name in folders[title]:
+                    if name not in OPTIONS:
+                        continue
+                    w = self._widget(gui, name, opts[name])
+                    self._widgets[name] = w
+                    w.on_update(lambda ev, n=name: self._on_option(n, ev))
+                    if name == "specaa":
+                        self._kappa = gui.add_number("specaa kappa (0: method's)", 0.0,
+                                                     min=0.0, step=0.01)
+                        self._kappa.on_update(lambda ev: self._on_option("specaa", ev))
+                if title == "Display":
+                    self._layer = gui.add_dropdown("layer", layers.names(
+                        ("color", "composite", "direct", "indirect")), initial_value="color")
+                    self._layer.on_update(self._on_layer)
+        with gui.add_folder("Animation"):
+            self._play = gui.add_button("Play / pause")
+            self._play.on_click(lambda ev: self.inbox.act("play"))
+            self._step = gui.add_button("Step")
+            self._step.on_click(lambda ev: self.inbox.act("step"))
+            self._reset_pose = gui.add_button("Reset camera and lights")
+            self._reset_pose.on_click(lambda ev: self.inbox.act("reset_pose"))
+        with gui.add_folder("Capture"):
+            self._capture = gui.add_button("Capture EXR")
+            self._capture.on_click(lambda ev: self.inbox.act("capture"))
+            self._record_n = gui.add_number("frames to record", 8, min=1, max=10000, step=1)
+            self._record = gui.add_button("Record")
+            self._record.on_click(lambda ev: self.inbox.post("record",
+                                                              int(self._record_n.value)))
+        self._stats_md = gui.add_markdown("")
+        self._gizmos = {}
+        for sid, (centre, extent) in self._lights.items():
+            g = self.server.scene.add_transform_controls(
+                f"/lights/{_slug(sid)}", scale=max(0.2, 1.5 * extent),
+                position=tuple(float(v) for v in centre))
+            g.on_update(lambda ev, sid=sid: self._on_gizmo(sid, ev))
+            self._gizmos[sid] = g
+
+    # -- callbacks (viser's threads: post only) ----------------------------------------------
+    def _on_connect(self, client) -> None:
+        self._send_camera(client, self._camera)
+        if self.last_image is not None:
+            client.scene.set_background_image(self.last_image, format="jpeg", jpeg_quality=90)
+        client.camera.on_update(lambda cam, cid=client.client_id: self._on_camera(cid, cam))
+
+    def _send_camera(self, client, cam: ViewerCamera) -> None:
+        """Put ``client``'s camera where the pipeline's is. Until the client reports that
+        camera back (or :data:`SYNC_SECONDS` pass), its camera reports are the intermediate
+        states of this update (its default camera with our up and field of view, ...): they
+        are not the user's and are ignored."""
+        self._sent_camera = cam
+        self._syncing_clients[client.client_id] = time.monotonic() + SYNC_SECONDS
+        with client.atomic():
+            client.camera.fov = cam.fov_y
+            client.camera.up_direction = cam.up
+            client.camera.position = cam.position
+            client.camera.look_at = cam.look_at
+
+    def _on_camera(self, client_id: int, cam) -> None:
+        new = ViewerCamera(tuple(map(float, cam.position)), tuple(map(float, cam.look_at)),
+                           tuple(map(float, cam.up_direction)), float(cam.fov))
+        until = self._syncing_clients.get(client_id)
+        if until is not None:
+            if new.close_to(self._sent_camera, tol=1e-5):
+                self._syncing_clients.pop(client_id, None)  # in sync from now on
+                return
+            if time.monotonic() < until:
+                return
+            self._syncing_clients.pop(client_id, None)
+        if new.close_to(self._camera, tol=1e-5):
+            return  # nothing moved
+        self.inbox.post("camera", new)
+
+    def _on_preset(self, ev) -> None:
+        if not self._syncing:
+            self.inbox.post("preset", self._preset.value)
+
+    def _on_option(self, name: str, ev) -> None:
+        if self._syncing:
+            return
+        w = self._widgets[name]
+        value = w.value
+        from ..pipeline import OPTIONS
+
+        kind = OPTIONS[name]
+        if name == "specaa":
+            k = float(self._kappa.value)
+            value = value if value == "none" or k <= 0 else f"{value}:kappa={k:g}"
+        elif name == "max_depth":
+            value = None if int(value) == 0 else int(value)
+        elif isinstance(kind, tuple):
+            value = next((v for v in kind if str(v) == value), value)
+        elif kind is int:
+            value = int(value)
+        elif kind is float:
+            value = float(value)
+        self.inbox.post(f"option:{name}", value)
+
+    def _on_layer(self, ev) -> None:
+        self.inbox.post("layer", self._layer.value)
+
+    def _on_gizmo(self, sid: str, ev) -> None:
+        g = self._gizmos[sid]
+        self.inbox.post(f"transform:{sid}", (np.array(g.position, np.float64),
+                                             np.array(g.wxyz, np.float64)))
+
+    # -- the API a script or notebook uses (any thread: posts too) -----------------------------
+    def configure(self, **choices: Any) -> None:
+        """Change pipeline options from code, as the panel does (applied at the next
+        frame; a refusal shows in :attr:`message` and keeps the previous state)."""
+        from ..pipeline import config
+
+        config.check_names(choices)
+        for k, v in choices.items():
+            self.inbox.post(f"option:{k}", v)
+
+    def set_camera(self, position, look_at, up=None, fov_y: float | None = None) -> None:
+        """Move the camera as a browser does (``fov_y`` vertical, radians)."""
+        cam = self._camera
+        self.inbox.post("camera", ViewerCamera(
+            tuple(map(float, position)), tuple(map(float, look_at)),
+            tuple(map(float, cam.up if up is None else up)),
+            cam.fov_y if fov_y is None else float(fov_y)))
+
+    def move_light(self, name: str, position, wxyz=(1.0, 0.0, 0.0, 0.0)) -> None:
+        """Move polygon light ``name`` as its gizmo does (``position`` of its centre)."""
+        if name not in self._lights:
+            raise GlossrtError(f"move_light: no movable polygon light {name!r}; the lights are "
+                               f"{', '.join(self._lights) or 'none'}")
+        self.inbox.post(f"transform:{name}", (np.asarray(position, np.float64),
+                                              np.asarray(wxyz, np.float64)))
+
+    def capture(self) -> None:
+        """Write the next frame as one multi-layer EXR into the captures folder."""
+        self.inbox.act("capture")
+
+    def record(self, frames: int) -> None:
+        """Write the next ``frames`` frames into a new folder of the captures folder."""
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+            raise GlossrtError(f"record: frames must be an integer >= 1, got {frames!r}")
+        self.inbox.post("record", frames)
+
+    def wait(self, frames: int = 1, timeout: float = 60.0, until=None) -> bool:
+        """Wait until ``frames`` more frames were rendered (or ``until()`` is true)."""
+        start = self.stats["frames"]
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end and self._thread.is_alive():
+            if (until() if until is not None else self.stats["frames"] >= start + frames):
+                return True
+            time.sleep(0.02)
+        return False
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the render loop and the server within ``timeout`` seconds. A capture being
+        written is finished first (it is written whole or not at all)."""
+        t_end = time.monotonic() + timeout
+        self._stop.set()
+        self.inbox.wake()
+        self._thread.join(max(0.0, t_end - time.monotonic() - 0.3))
+        got = self._save_lock.acquire(timeout=max(0.0, t_end - time.monotonic() - 0.2))
+        try:
+            self.server.stop()
+        finally:
+            if got:
+                self._save_lock.release()
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive() and not self._stop.is_set()
+
+    def __enter__(self) -> Viewer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _repr_html_(self) -> str:  # Jupyter: the live viewer embedded in the output cell
+        return (f'<iframe src="{self.url}" width="100%" height="540" '
+                'style="border:none"></iframe>')
+
+    def show(self, height: int = 540) -> None:
+        """Embed the live viewer in a Jupyter notebook's output (IPython's IFrame)."""
+        try:
+            from IPython.display import IFrame, display
+        except ImportError:
+            print(f"glossrt view: open {self.url}")
+            return
+        display(IFrame(self.url, width="100%", height=height))
+
+    # -- the render loop (its own thread: every Dr.Jit call) ---------------------------------------
+    def _set_status(self, text: str) -> None:
+        self.status = text
+        self._status_md.content = f"**{text}**"
+
+    def _set_message(self, text: str) -> None:
+        self.message = text
+        self._message_md.content = text
+
+    def _sync_widgets(self) -> None:
+        """Show the pipeline's options in the panel (after a refusal or a preset change)."""
+        self._syncing = True
+        try:
+            self._preset.value = self.pipe.preset
+            for name, w in self._widgets.items():
+                v = self.pipe.opts[name]
+                if name == "specaa":
+                    method, _, kappa = str(v).partition(":kappa=")
+                    w.value = method
+                    self._kappa.value = float(kappa) if kappa and kappa != "none" else 0.0
+                elif name == "max_depth":
+                    w.value = 0 if v is None else int(v)
+                elif isinstance(w.value, str):
+                    w.value = str(v)
+                else:
+                    w.value = type(w.value)(v)
+        finally:
+            self._syncing = False
+
+    def _apply(self, values: dict[str, Any], actions) -> bool:
+        """Apply what was posted; True when the pose or the pipeline changed."""
+        from .. import pipeline as pl
+
+        changed = False
+        if "layer" in values:
+            self.layer = values.pop("layer")
+        if "preset" in values:
+            preset = values.pop("preset")
+            try:
+                new = pl.Pipeline(self.pipe.setup, preset=preset, progress=False)
+            except GlossrtError as e:
+                self._set_message(f"refused: {e}")
+            else:
+                self.pipe = new
+                self._set_message(f"preset {preset}")
+                changed = True
+            self._sync_widgets()
+        options = {k.split(":", 1)[1]: v for k, v in values.items() if k.startswith("option:")}
+        if options:
+            try:
+                self.pipe.configure(**options)
+                self._set_message("")
+                changed = True
+            except GlossrtError as e:
+                self._set_message(f"refused: {e}")
+            self._sync_widgets()
+        if "camera" in values:
+            cam = values["camera"]
+            try:
+                self.pipe.set_camera(**to_pipeline(cam, self.size))
+                self._camera = cam
+                changed = True
+            except GlossrtError as e:
+                self._set_message(f"refused: {e}")
+        for key, (pos, wxyz) in ((k, v) for k, v in values.items()
+                                  if k.startswith("transform:")):
+            sid = key.split(":", 1)[1]
+            try:
+                self.pipe.set_transform(sid, gizmo_matrix(pos, wxyz, self._lights[sid][0]))
+                changed = True
+            except GlossrtError as e:
+                self._set_message(f"refused: {e}")
+                g = self._gizmos.get(sid)
+                if g is not None:  # the gizmo back where the light is
+                    g.position = tuple(float(v) for v in self._lights[sid][0])
+                    g.wxyz = (1.0, 0.0, 0.0, 0.0)
+        if actions.get("reset_pose"):
+            self.pipe.clear_pose()
+            self._camera = self._scene_camera()
+            for sid, g in self._gizmos.items():
+                g.position = tuple(float(v) for v in self._lights[sid][0])
+                g.wxyz = (1.0, 0.0, 0.0, 0.0)
+            for client in self.server.get_clients().values():
+                self._send_camera(client, self._camera)
+            changed = True
+        if actions.get("play", 0) % 2:
+            self.playing = not self.playing
+        if actions.get("step"):
+            self.index += actions["step"]
+            changed = True
+        if "record" in values:
+            self._record_left = int(values["record"])
+            self._record_dir = None
+        return changed
+
+    def _reference_step(self, index: int) -> None:
+        from ..pipeline import Pipeline
+
+        if self._reference is None:
+            self._reference = Pipeline(self.pipe.setup, preset="reference", progress=False,
+                                       spp=REFERENCE_SPP, seed=self.pipe.opts["seed"] + 7919,
+                                       max_depth=self.pipe.opts["max_depth"])
+            self._reference.reset()
+        f = self._reference.render(index)
+        self._ref_color = f.numpy("color")
+        self._ref_spp += REFERENCE_SPP
+
+    def _reference_reset(self) -> None:
+        self._ref_color, self._ref_spp, self._still = None, 0, 0
+        if self._reference is not None:
+            self._reference.reset()
+
+    def _errors(self, color: np.ndarray) -> dict[str, float]:
+        from ..metrics import flip, rmse
+
+        if self._ref_color is None:
+            return {}
+        return {"rmse": rmse(color, self._ref_color), "flip": flip(color, self._ref_color)}
+
+    def _image(self, frame) -> np.ndarray:
+        name = self.layer
+        ex, tm = self.pipe.opts["exposure"], self.pipe.opts["tonemap"]
+        if name == "reference":
+            if self._ref_color is None:
+                return np.zeros((self.size[1], self.size[0], 3), np.uint8)
+            return layers.visualise("reference", self._ref_color, ex, tm)
+        if name == "error":
+            if self._ref_color is None:
+                return np.zeros((self.size[1], self.size[0], 3), np.uint8)
+            ref = self._ref_color
+            return layers.error_map(frame.numpy("color"), ref,
+                                    scale=max(float(np.nanmean(ref)), 1e-3))
+        if name not in frame.names:
+            name = "color"
+        return layers.visualise(name, frame.numpy(name), ex, tm)
+
+    def _with_reference(self, frame):
+        """``frame`` plus the viewer's ``reference`` layer (when accumulated) and meta."""
+        from ..frame import Frame
+
+        channels = {k: frame[k] for k in frame.names}
+        if self._ref_color is not None:
+            channels["reference"] = self._ref_color.astype(np.float32)
+        meta = dict(frame.meta)
+        meta["viewer"] = {"layer": self.layer, "reference_spp": self._ref_spp,
+                          **{k: v for k, v in self.stats.items() if k in ("rmse", "flip")}}
+        return Frame(channels=channels, camera=frame.camera, prev_camera=frame.prev_camera,
+                     index=frame.index, meta=meta)
+
+    def _next_capture(self) -> Path:
+        stem = f"{_slug(self.pipe.setup.name)}-{self.pipe.preset}-f{self.index:05d}"
+        k = 0
+        while (self.captures / f"{stem}-{k:03d}.exr").exists():
+            k += 1
+        return self.captures / f"{stem}-{k:03d}.exr"
+
+    def _save(self, frame, path: Path) -> None:
+        with self._save_lock:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._with_reference(frame).save(path)
+        self.captured.append(path)
+
+    def _captures(self, frame, actions) -> None:
+        from ..frame import frame_filename
+
+        for _ in range(actions.get("capture", 0)):
+            path = self._next_capture()
+            self._save(frame, path)
+            self._set_message(f"wrote {path}")
+        if self._record_left > 0:
+            if self._record_dir is None:
+                stamp = time.strftime("%Y%m%d-%H%M%S")
+                k = 0
+                while (self.captures / f"record-{stamp}-{k}").exists():
+                    k += 1
+                self._record_dir = self.captures / f"record-{stamp}-{k}"
+            self._save(frame, self._record_dir / frame_filename(self.index))
+            self._record_left -= 1
+            if self._record_left == 0:
+                self._set_message(f"recorded into {self._record_dir}")
+
+    def _show_stats(self, frame, seconds: float) -> None:
+        p = frame.meta["pipeline"]
+        s = dict(self.stats)
+        s["frames"] += 1
+        fps = 1.0 / max(seconds, 1e-6)
+        s["fps"] = fps if s["frames"] == 1 else 0.8 * s["fps"] + 0.2 * fps
+        s["frame_ms"] = 1000.0 * seconds
+        s["stage_ms"] = dict(p["stage_ms"])
+        s["recordings"] = self.pipe.recordings()
+        s["reference_spp"] = self._ref_spp
+        s.update(self._errors(frame.numpy("color")))
+        if self._ref_color is None:
+            s.pop("rmse", None)
+            s.pop("flip", None)
+        s["index"] = self.index
+        s["direct"] = p["direct"]
+        self.stats = s
+        rows = "\n".join(f"| {k} | {v:.1f} |" for k, v in s["stage_ms"].items())
+        err = (f"RMSE **{s['rmse']:.4g}**, FLIP **{s['flip']:.4g}** against "
+               f"{self._ref_spp} spp" if "rmse" in s else
+               "reference: accumulates when the view stands still")
+        self._stats_md.content = (
+            f"**{s['fps']:.1f} fps** ({s['frame_ms']:.0f} ms), frame {self.index}, "
+            f"{s['frames']} rendered, {s['recordings']} recordings, direct: {p['direct']}\n\n"
+            f"{err}\n\n| stage | ms |\n|---|---|\n{rows}")
+
+    def _loop(self) -> None:
+        failures = 0
+        self._set_status("recording kernels")
+        while not self._stop.is_set():
+            idle = self._still >= STILL_FRAMES and not self.playing
+            values, actions = self.inbox.take(
+                timeout=0.05 if idle and self._ref_spp >= REFERENCE_MAX_SPP else 0.0)
+            if self._stop.is_set():
+                break
+            try:
+                before = self.pipe.recordings()
+                if self._apply(values, actions) or self.playing:
+                    self._reference_reset()
+                    if self.pipe.recordings() == before:
+                        self._set_status("rendering")
+                t0 = time.perf_counter()
+                rec0 = self.pipe.recordings()
+                frame = self.pipe.render(self.index)
+                seconds = time.perf_counter() - t0
+                self._still += 1
+                if self._still > STILL_FRAMES and self._ref_spp < REFERENCE_MAX_SPP:
+                    self._reference_step(self.index)
+                img = self._image(frame)
+                self.last_frame, self.last_image = frame, img
+                self.server.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
+                self._captures(frame, actions)
+                self._show_stats(frame, seconds)
+                recorded = self.pipe.recordings() - rec0
+                self._set_status(f"recorded {recorded} kernel(s)" if recorded else
+                                 ("playing" if self.playing else
+                                  "converging reference" if self._ref_spp else "live"))
+                if self.playing:
+                    self.index += 1
+                failures = 0
+            except Exception as e:  # noqa: BLE001 - shown in the panel, the loop goes on
+                failures += 1
+                traceback.print_exc(file=sys.stderr)
+                self._set_message(f"render failed: {type(e).__name__}: {e}")
+                if failures >= 3:
+                    self._set_status("stopped after 3 failed frames")
+                    return
+                time.sleep(0.5)
+
+
+def open(scene, pipeline: str = "full", size=(320, 180), host: str = "127.0.0.1",
+         port: int = 8080, captures="captures", device: str | None = None,
+         verbose: bool = True, **choices: Any) -> Viewer:
+    """Start a live viewer of ``scene`` through ``pipeline`` and return its handle (see
+    :class:`Viewer`). In a notebook the handle shows itself as the embedded viewer; from a
+    script, open :attr:`Viewer.url`. ``device``: ``cpu``/``gpu`` (None: as chosen before)."""
+    from .. import backend
+
+    if device is not None:
+        backend.use(device)
+    return Viewer(scene, pipeline=pipeline, size=size, host=host, port=port,
+                  captures=captures, verbose=verbose, **choices)
+
+
+def serve(viewer: Viewer) -> None:
+    """Block until Ctrl-C or SIGTERM, then stop ``viewer`` within 2 seconds."""
+    import signal
+
+    done = threading.Event()
+
+    def _handler(signum, frame) -> None:
+        done.set()
+
+    old = {s: signal.signal(s, _handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        while not done.wait(0.1) and viewer._thread.is_alive():
+            pass
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        viewer.stop(timeout=1.8)
+
+
+__all__ = ["Viewer", "open", "serve"]
