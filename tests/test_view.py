@@ -37,6 +37,10 @@ def _settle(v, frames: int = 3) -> None:
 
 def test_frames_stream_and_stats(viewer):
     _settle(viewer)
+    # the layer list follows the frame: the G-buffer's channels besides the composed ones
+    assert {"normal", "depth", "motion", "reference", "error", "direct"} <= set(
+        viewer._layer.options)
+    assert viewer.url in viewer._repr_html_()
     s = viewer.stats
     assert viewer.last_image.shape == (SIZE[1], SIZE[0], 3)
     assert viewer.last_image.dtype == np.uint8 and viewer.last_image.max() > 0
@@ -45,8 +49,12 @@ def test_frames_stream_and_stats(viewer):
 
 
 def test_option_change_applies_and_records_once(viewer):
+    viewer.status_log.clear()
     viewer.configure(direct="ltc")
     assert viewer.wait(until=lambda: viewer.stats.get("direct") == "ltc", timeout=240)
+    log = list(viewer.status_log)
+    assert "recording kernels" in log, log  # shown while the changed stage records
+    assert any(s.startswith("recorded") for s in log), log
     _settle(viewer, 2)
     rec = viewer.pipe.recordings()
     _settle(viewer, 3)
@@ -203,3 +211,14 @@ def test_cli_bad_port_is_one_line(tmp_path):
     assert not (tmp_path / "c").exists()
 
 
+
+
+def test_fov_slider_sets_the_pipeline_field_of_view(viewer):
+    import math
+
+    from glossrt.view.camera import fov_x_degrees
+
+    viewer._fov.value = 30.0  # as the panel's slider does
+    want = fov_x_degrees(math.radians(30.0), SIZE)
+    assert viewer.wait(until=lambda: viewer.pipe.setup.fov_override is not None and
+                       abs(viewer.pipe.setup.fov_override - want) < 1e-9, timeout=120)

@@ -57,7 +57,7 @@ from ..errors import GlossrtError
 from ..frame import Frame
 from ..timing import StageClock, check_stage_timing
 from . import config
-from .config import OPTIONS, PRESETS, load_toml, parse, resolve
+from .config import FILTER_OPTIONS, OPTIONS, PRESETS, load_toml, parse, resolve
 from .stages import (
     CompositeStage,
     DirectStage,
@@ -318,7 +318,7 @@ class Pipeline:
         self._gbuffer.specaa = stages["specaa"]
         if (old is not None and old.get("_direct") == direct and old.get("_trees") is trees
                 and same("bspvt_mode", "bspvt_resolution", "ratio_spp", "highlight_samples",
-                         "highlight_probes")):
+                         "highlight_probes", "highlight_distribution")):
             stages["direct"] = prev["direct"]
         else:
             stages["direct"] = DirectStage(self.setup, opts, direct, self.progress,
@@ -326,7 +326,7 @@ class Pipeline:
         if (old is not None and old.get("_direct") == direct
                 and same("indirect", "indirect_scale", "upsampling", "upsampling_weight",
                          "resample", "resample_threshold", "resample_spp", "max_depth",
-                         "seed")):
+                         "seed", *FILTER_OPTIONS)):
             stages["indirect"] = prev["indirect"]
         else:
             stages["indirect"] = IndirectStage(opts["indirect"], opts, self.setup, exclude)

@@ -31,6 +31,13 @@ BSPVT_MODES = ("vertex", "pixel")
 UPSAMPLING = ("joint-bilateral", "spatio-temporal")
 UPSAMPLING_WEIGHTS = ("normal", "lobe")
 INDIRECT_SCALES = (1, 2, 4)
+#: the highlights' microfacet model: Kimura & Tokoi's ellipsoidal NDF (the paper's) or GGX
+HIGHLIGHT_DISTRIBUTIONS = ("ellipsoidal", "ggx")
+#: the papers' filter parameters (stages.filter_params): SVGF's colour average alpha and
+#: edge-stopping sigmas (Schied et al. 2017, secs. 4.1, 4.4), Tokuyoshi 2015's lobe weight
+#: beta and kappa (sec. 4.2); a change rebuilds the indirect stage
+FILTER_OPTIONS = ("svgf_alpha", "svgf_sigma_z", "svgf_sigma_n", "svgf_sigma_l", "lobe_beta",
+                  "lobe_kappa")
 
 #: option -> (allowed values, or a type) ; "auto" of ``direct`` is resolved per scene
 OPTIONS: dict[str, Any] = {
@@ -52,6 +59,13 @@ OPTIONS: dict[str, Any] = {
     "ratio_spp": int,
     "highlight_samples": int,
     "highlight_probes": int,
+    "highlight_distribution": HIGHLIGHT_DISTRIBUTIONS,
+    "svgf_alpha": float,
+    "svgf_sigma_z": float,
+    "svgf_sigma_n": float,
+    "svgf_sigma_l": float,
+    "lobe_beta": float,
+    "lobe_kappa": float,
     "accumulate": bool,
     "spp": int,
     "seed": int,
@@ -85,6 +99,14 @@ DEFAULTS: dict[str, Any] = {
     # 96x72, 2-core CPU), a still frame builds none; 6 halves the error again for twice the
     # rebuild
     "highlight_probes": 4,
+    "highlight_distribution": "ellipsoidal",
+    # the papers' values (denoise.svgf.SVGFParams, denoise.bilateral.BETA / KAPPA)
+    "svgf_alpha": 0.2,
+    "svgf_sigma_z": 1.0,
+    "svgf_sigma_n": 128.0,
+    "svgf_sigma_l": 4.0,
+    "lobe_beta": 20.0,
+    "lobe_kappa": 100.0,
     "accumulate": False,
     "spp": 1,
     "seed": 0,
@@ -174,6 +196,10 @@ def _check_value(name: str, value: Any) -> Any:
     value = float(value)
     if name == "resample_threshold" and not 0.0 <= value <= 1.0:
         raise GlossrtError(f"pipeline option resample_threshold must lie in [0, 1], got {value}")
+    if name == "svgf_alpha" and not 0.0 < value <= 1.0:
+        raise GlossrtError(f"pipeline option svgf_alpha must lie in (0, 1], got {value}")
+    if name in FILTER_OPTIONS and name != "svgf_alpha" and not value > 0.0:
+        raise GlossrtError(f"pipeline option {name} must be > 0, got {value}")
     if name == "taa_alpha" and not 0.0 < value <= 1.0:
         raise GlossrtError(f"pipeline option taa_alpha must lie in (0, 1], got {value}")
     if value != value or abs(value) == float("inf"):

@@ -475,8 +475,10 @@ class DirectStage(Stage):
         if mode == "highlights":
             from ..lights.highlights import HighlightRenderer
 
-            self.highlights = HighlightRenderer(samples=int(opts["highlight_samples"]),
-                                                sampling="hash", cull=False, frozen=True)
+            self.highlights = HighlightRenderer(
+                samples=int(opts["highlight_samples"]),
+                distribution=opts.get("highlight_distribution", "ellipsoidal"),
+                sampling="hash", cull=False, frozen=True)
         #: the highlights' light maps and what they were built from (:meth:`_highlights`)
         self._maps = None
         self._maps_key = None
@@ -590,6 +592,19 @@ def highlight_maps_key(polys: list, grids: dict, resolution: int, supersample: i
 # -- indirect ---------------------------------------------------------------------------------
 
 
+def filter_params(opts: dict) -> dict:
+    """The SVGF parameters the pipeline's options set (Schied et al. 2017: the colour
+    average's ``alpha``, sec. 4.1; the edge-stopping ``sigma_z``, ``sigma_n``, ``sigma_l``,
+    sec. 4.4, eqs. 3-5) and Tokuyoshi 2015's lobe weight parameters ``beta``, ``kappa``
+    (sec. 4.2; read by ``svgf-lobe`` and the lobe-weighted upsamplers)."""
+    return {"alpha": float(opts.get("svgf_alpha", 0.2)),
+            "sigma_z": float(opts.get("svgf_sigma_z", 1.0)),
+            "sigma_n": float(opts.get("svgf_sigma_n", 128.0)),
+            "sigma_l": float(opts.get("svgf_sigma_l", 4.0)),
+            "beta": float(opts.get("lobe_beta", 20.0)),
+            "kappa": float(opts.get("lobe_kappa", 100.0))}
+
+
 def _denoiser(method: str, **params):
     """The frozen filter of ``method`` (None for ``none`` and ``oidn``)."""
     from ..denoise import SVGF
@@ -641,8 +656,9 @@ class IndirectStage(Stage):
         opts = opts or {}
         self.scale = int(opts.get("indirect_scale", 1))
         self.last_resampled = 0
+        fp = filter_params(opts)
         if self.scale == 1:
-            self.denoiser = _denoiser(method)
+            self.denoiser = _denoiser(method, **fp)
             self.low_denoiser = self.direct_denoiser = self.upsampler = None
             return
         from .. import render
@@ -656,15 +672,18 @@ class IndirectStage(Stage):
         self.mode = opts["upsampling"]
         self.resample = bool(opts["resample"])
         self._resampler = None
-        self.low_denoiser = _denoiser(method, signals="indirect", output="illumination")
+        self.low_denoiser = _denoiser(method, signals="indirect", output="illumination", **fp)
         # the primary hit's path-traced direct light: left to the path tracer for some lights
         self.direct_pt = len(tuple(exclude)) < len(render.emitter_index(setup))
-        self.direct_denoiser = _denoiser(method, signals="direct") if self.direct_pt else None
+        self.direct_denoiser = (_denoiser(method, signals="direct", **fp) if self.direct_pt
+                                else None)
         # frozen (the camera terms and the jitter opaque inputs): steady frames replay
+        lobe = {"beta": fp["beta"], "kappa": fp["kappa"]}
         self.upsampler = (SpatioTemporalUpsampler(weight=self.weight, channels=INDIRECT_PT,
-                                                  frozen=True)
+                                                  frozen=True, **lobe)
                           if self.mode == "spatio-temporal" else None)
-        self.spatial = (Upsampler(weight=self.weight, channels=INDIRECT_PT, frozen=True)
+        self.spatial = (Upsampler(weight=self.weight, channels=INDIRECT_PT, frozen=True,
+                                  **lobe)
                         if self.upsampler is None or self.resample else None)
 
     def reset(self) -> None:

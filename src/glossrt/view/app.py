@@ -20,6 +20,8 @@ into the captures folder only; names are made here, never taken from the browser
 
 from __future__ import annotations
 
+import collections
+import math
 import os
 import re
 import sys
@@ -154,6 +156,9 @@ class Viewer:
         self.layer = "color"
         self.message = ""
         self.status = "starting"
+        #: the last statuses shown (what a person saw: "recording kernels", "live", ...)
+        self.status_log: collections.deque[str] = collections.deque(maxlen=64)
+        self._rebuilt = False
         self.stats: dict[str, Any] = {"frames": 0, "fps": 0.0, "reference_spp": 0}
         self.last_image: np.ndarray | None = None
         self.last_frame = None
@@ -278,6 +283,10 @@ class Viewer:
                     self._layer = gui.add_dropdown("layer", layers.names(
                         ("color", "composite", "direct", "indirect")), initial_value="color")
                     self._layer.on_update(self._on_layer)
+        with gui.add_folder("Camera"):
+            self._fov = gui.add_slider("vertical fov (deg)", min=5.0, max=120.0, step=0.5,
+                                       initial_value=round(math.degrees(self._camera.fov_y), 1))
+            self._fov.on_update(self._on_fov)
         with gui.add_folder("Animation"):
             self._play = gui.add_button("Play / pause")
             self._play.on_click(lambda ev: self.inbox.act("play"))
@@ -334,6 +343,16 @@ class Viewer:
             self._syncing_clients.pop(client_id, None)
         if new.close_to(self._camera, tol=1e-5):
             return  # nothing moved
+        self.inbox.post("camera", new)
+
+    def _on_fov(self, ev) -> None:
+        """The field of view slider: every client's camera and the pipeline's."""
+        if self._syncing:
+            return
+        cam = self._camera
+        new = ViewerCamera(cam.position, cam.look_at, cam.up, math.radians(self._fov.value))
+        for client in self.server.get_clients().values():
+            self._send_camera(client, new)
         self.inbox.post("camera", new)
 
     def _on_preset(self, ev) -> None:
@@ -455,6 +474,7 @@ class Viewer:
     # -- the render loop (its own thread: every Dr.Jit call) ---------------------------------------
     def _set_status(self, text: str) -> None:
         self.status = text
+        self.status_log.append(text)
         self._status_md.content = f"**{text}**"
 
     def _set_message(self, text: str) -> None:
@@ -497,14 +517,14 @@ class Viewer:
             else:
                 self.pipe = new
                 self._set_message(f"preset {preset}")
-                changed = True
+                changed = self._rebuilt = True
             self._sync_widgets()
         options = {k.split(":", 1)[1]: v for k, v in values.items() if k.startswith("option:")}
         if options:
             try:
                 self.pipe.configure(**options)
                 self._set_message("")
-                changed = True
+                changed = self._rebuilt = True
             except GlossrtError as e:
                 self._set_message(f"refused: {e}")
             self._sync_widgets()
@@ -669,11 +689,11 @@ class Viewer:
             if self._stop.is_set():
                 break
             try:
-                before = self.pipe.recordings()
+                self._rebuilt = False
                 if self._apply(values, actions) or self.playing:
                     self._reference_reset()
-                    if self.pipe.recordings() == before:
-                        self._set_status("rendering")
+                if self._rebuilt:  # a rebuilt stage records its kernels on this frame
+                    self._set_status("recording kernels")
                 t0 = time.perf_counter()
                 rec0 = self.pipe.recordings()
                 frame = self.pipe.render(self.index)
@@ -681,6 +701,9 @@ class Viewer:
                 self._still += 1
                 if self._still > STILL_FRAMES and self._ref_spp < REFERENCE_MAX_SPP:
                     self._reference_step(self.index)
+                shown = layers.names(frame.names)
+                if list(self._layer.options) != shown:  # every channel of this pipeline's frame
+                    self._layer.options = shown
                 img = self._image(frame)
                 self.last_frame, self.last_image = frame, img
                 self.server.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
