@@ -140,6 +140,7 @@ def test_capture_and_record_write_whole_multilayer_exrs(viewer):
     assert f.meta["pipeline"]["preset"] == "schied2017" and "viewer" in f.meta
     recs = viewer.captured[n0 + 1:n0 + 3]
     assert recs[0].parent == recs[1].parent and recs[0].parent.parent == viewer.captures
+    assert [p.name for p in recs] == ["frame_0000.exr", "frame_0001.exr"]  # paused: 2 files
     assert not [p for p in viewer.captures.rglob("*") if p.is_file() and p.suffix != ".exr"]
 
 
@@ -178,7 +179,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_cli_serves_warns_off_loopback_and_stops_within_two_seconds(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_cli_serves_warns_off_loopback_and_stops_within_two_seconds(tmp_path, sig):
     port = _free_port()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     p = subprocess.Popen(
@@ -191,7 +193,7 @@ def test_cli_serves_warns_off_loopback_and_stops_within_two_seconds(tmp_path):
         assert f":{port}/" in line, (line, p.stderr.read() if p.poll() is not None else "")
         time.sleep(1.0)  # let it start a frame
         t0 = time.monotonic()
-        p.send_signal(signal.SIGTERM)
+        p.send_signal(sig)
         rc = p.wait(timeout=10)
         assert time.monotonic() - t0 < 2.0 and rc == 0
         err = p.stderr.read()

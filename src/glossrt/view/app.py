@@ -165,6 +165,7 @@ class Viewer:
         self.captured: list[Path] = []
         self._record_left = 0
         self._record_dir: Path | None = None
+        self._record_count = 0
         self._reference = None
         self._ref_color: np.ndarray | None = None
         self._ref_spp = 0
@@ -564,7 +565,7 @@ class Viewer:
             changed = True
         if "record" in values:
             self._record_left = int(values["record"])
-            self._record_dir = None
+            self._record_dir, self._record_count = None, 0
         return changed
 
     def _reference_step(self, index: int) -> None:
@@ -648,7 +649,9 @@ class Viewer:
                 while (self.captures / f"record-{stamp}-{k}").exists():
                     k += 1
                 self._record_dir = self.captures / f"record-{stamp}-{k}"
-            self._save(frame, self._record_dir / frame_filename(self.index))
+            # numbered in recording order (a paused animation repeats its index)
+            self._save(frame, self._record_dir / frame_filename(self._record_count))
+            self._record_count += 1
             self._record_left -= 1
             if self._record_left == 0:
                 self._set_message(f"recorded into {self._record_dir}")
