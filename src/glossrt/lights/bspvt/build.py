@@ -1489,3 +1489,155 @@ def _nm_face(vals, map_id: int, root_id: int, root_ones: int, r: int, clusters: 
             o = int(vals[p].sum())
             members[int(cid2)] = p
             heapq.heappush(heap, (-min(o, len(p) - o), 2 * code + side, int(cid2)))
+
+
+# -- chunked builds (issue 27: work items for a cluster) -------------------------------------
+#
+# A face's tree depends on that face's map alone (module docstring: every split is a function
+# of its cluster, the leaf budget is per face) and the flat arrays store vertices one after
+# the other, each vertex's nodes and leaves contiguous. So the build of vertices ``[a, b)``
+# run on their own gives exactly the rows of the whole build, with node and leaf indices
+# shifted by the nodes and leaves of the vertices before ``a``: :func:`build_vertex_chunk`
+# computes one such item from plain data (a scene by name or XML path, the vertex range, the
+# settings) in any process, and :func:`merge_vertex_chunks` concatenates the items' arrays
+# (byte-identical to :func:`build_trees` of all vertices, whatever the chunking).
+
+#: vertices per work item of a chunked build (:func:`plan_vertex_chunks`): about 8 s of work
+#: at R = 64 on one core and ~0.5 MB of result, so a task's overhead (tens of ms) is noise
+CHUNK_VERTICES = 256
+#: :func:`build_trees` settings a work item carries (plain data)
+CHUNK_SETTINGS = ("angles", "max_leaves", "max_depth", "stalled", "engine", "threads",
+                  "chunk_work")
+_CHUNK_ARRAYS = ("lines", "children", "leaf_value", "roots", "positions", "normals")
+#: per-process cache of loaded scenes for work items: {key: (occluders, positions, normals)}
+_ITEM_SCENES: dict = {}
+
+
+def plan_vertex_chunks(n_vertices: int,
+                       chunk_vertices: int = CHUNK_VERTICES) -> list[tuple[int, int]]:
+    """Vertex ranges ``[(a, b), ...]`` of at most ``chunk_vertices`` covering ``0..n_vertices``
+    in order."""
+    n, k = int(n_vertices), int(chunk_vertices)
+    if k != chunk_vertices or k < 1:
+        raise GlossrtError(f"chunk_vertices must be a positive integer, got {chunk_vertices}")
+    return [(a, min(n, a + k)) for a in range(0, n, k)]
+
+
+def scene_ref(scene) -> str:
+    """A scene reference a work item can carry: a built-in name as it is, an XML file's path
+    made absolute (a worker may run in another folder)."""
+    if not isinstance(scene, (str, os.PathLike)):
+        raise GlossrtError("a chunked BSPVT build needs the scene by built-in name or XML path "
+                           "(each work item loads it itself), not a loaded scene")
+    s = os.fspath(scene)
+    return os.path.abspath(s) if os.path.isfile(s) else s
+
+
+def _item_scene(ref: str) -> tuple:
+    """``(occluders, positions, normals)`` of scene ``ref`` (:func:`glossrt.scenes.load`),
+    cached per process (a worker that gets several items loads the scene once). The key has
+    the variant and, for a file, its modification time."""
+    from ...scenes import load
+
+    key = (ref, mi.variant(), os.stat(ref).st_mtime_ns if os.path.isfile(ref) else None)
+    if key not in _ITEM_SCENES:
+        scene = load(ref).scene
+        pos, nrm, _ = scene_vertices(scene)
+        _ITEM_SCENES.clear()  # one scene at a time: a worker serves one build
+        _ITEM_SCENES[key] = (occluders(scene), pos, nrm)
+    return _ITEM_SCENES[key]
+
+
+def vertex_chunk_items(scene, n_vertices: int, resolution: int, epsilon: float,
+                       method: str, chunk_vertices: int = CHUNK_VERTICES,
+                       **settings) -> list[dict]:
+    """The work items (plain dicts: strings, numbers) of a chunked build of ``scene`` (name
+    or XML path) with ``n_vertices`` vertices; ``settings``: :data:`CHUNK_SETTINGS`. The
+    settings are checked here, before any work."""
+    ref = scene_ref(scene)
+    _check_resolution(resolution)
+    unknown = sorted(set(settings) - set(CHUNK_SETTINGS))
+    if unknown:
+        raise GlossrtError(f"unknown BSPVT build settings {unknown}; chunked builds take "
+                           f"{list(CHUNK_SETTINGS)}")
+    eps = _check_build_args(epsilon, method, settings.get("stalled", "split"),
+                            settings.get("max_leaves"),
+                            settings.get("max_depth", DEFAULT_MAX_DEPTH))
+    if settings.get("engine", "numpy") not in ENGINES:
+        raise GlossrtError(f"unknown engine {settings['engine']!r}; choose one of {ENGINES}")
+    return [{"scene": ref, "start": a, "stop": b, "resolution": int(resolution),
+             "epsilon": eps, "method": method, **settings}
+            for a, b in plan_vertex_chunks(n_vertices, chunk_vertices)]
+
+
+def build_vertex_chunk(item: dict) -> dict:
+    """One work item of a chunked build, computed from plain data in any process: the
+    visibility cube maps (:func:`visibility_cubemaps`, against :func:`occluders`) of
+    vertices ``item["start"]:item["stop"]`` of ``item["scene"]`` and their trees
+    (:func:`build_trees`). Returns plain data: the trees' arrays (vertex-local indices),
+    ``start``/``stop`` and ``info`` (numbers: seconds, counts)."""
+    t0 = time.perf_counter()
+    occ, pos, nrm = _item_scene(item["scene"])
+    a, b = int(item["start"]), int(item["stop"])
+    if not (0 <= a < b <= len(pos)):
+        raise GlossrtError(f"vertex range {a}..{b} outside scene {item['scene']!r} "
+                           f"({len(pos)} vertices)")
+    settings = {k: item[k] for k in CHUNK_SETTINGS if k in item}
+    if settings.get("threads") is None and item.get("engine", "numpy") == "numpy":
+        # a cluster task gets the CPUs it asked for (Ray sets OMP_NUM_THREADS to them)
+        omp = os.environ.get("OMP_NUM_THREADS", "")
+        settings["threads"] = int(omp) if omp.isdigit() and int(omp) > 0 else None
+    vis = visibility_cubemaps(occ, pos[a:b], nrm[a:b], item["resolution"], progress=False)
+    t1 = time.perf_counter()
+    trees = build_trees(vis, item["epsilon"], item["method"], positions=pos[a:b],
+                        normals=nrm[a:b], progress=False, **settings)
+    out = {k: getattr(trees, k) for k in _CHUNK_ARRAYS}
+    info = {k: trees.info[k] for k in ("leaves_over_epsilon", "depth", "stalled_splits")}
+    info.update(visibility_seconds=t1 - t0, tree_seconds=time.perf_counter() - t1)
+    return {"start": a, "stop": b, "resolution": trees.resolution, "epsilon": trees.epsilon,
+            "info": info, **out}
+
+
+def merge_vertex_chunks(results: list[dict], n_vertices: int | None = None,
+                        info: dict | None = None) -> BSPVT:
+    """The trees of all vertices from :func:`build_vertex_chunk` results in any order: sorted
+    by vertex range (which must tile ``0..n_vertices`` without gaps or overlaps), arrays
+    concatenated with node indices shifted by the nodes before each chunk and leaf
+    encodings ``~k`` by the leaves before it. ``info`` is stored with the trees, plus the
+    summed counts and seconds of the items."""
+    res = sorted(results, key=lambda c: int(c["start"]))
+    if not res:
+        raise GlossrtError("no BSPVT chunks to merge")
+    end = 0
+    for c in res:
+        if int(c["start"]) != end or int(c["stop"]) <= end:
+            raise GlossrtError(f"BSPVT chunks do not tile the vertices: chunk "
+                               f"{c['start']}..{c['stop']} after vertex {end}")
+        if (c["resolution"], c["epsilon"]) != (res[0]["resolution"], res[0]["epsilon"]):
+            raise GlossrtError("BSPVT chunks of different resolutions or epsilons")
+        end = int(c["stop"])
+    if n_vertices is not None and end != n_vertices:
+        raise GlossrtError(f"BSPVT chunks cover {end} vertices, expected {n_vertices}")
+    nodes = np.cumsum([0] + [len(c["lines"]) for c in res])
+    leaves = np.cumsum([0] + [len(c["leaf_value"]) for c in res])
+
+    def shifted(a, k):  # node n -> n + nodes[k]; leaf ~l -> ~(l + leaves[k])
+        a = np.asarray(a, np.int64)
+        return np.where(a >= 0, a + nodes[k], a - leaves[k]).astype(np.int32)
+
+    if leaves[-1] >= 2 ** 31 or nodes[-1] >= 2 ** 31:
+        raise GlossrtError("BSPVT too large for int32 indices")
+    merged = dict(info or {})
+    for key in ("leaves_over_epsilon", "stalled_splits"):
+        merged[key] = int(sum(c["info"][key] for c in res))
+    merged["depth"] = int(max(c["info"]["depth"] for c in res))
+    for key in ("visibility_seconds", "tree_seconds"):
+        merged[f"chunk_{key}"] = float(sum(c["info"][key] for c in res))
+    merged["chunks"] = len(res)
+    return BSPVT(lines=np.concatenate([c["lines"] for c in res]),
+                 children=np.concatenate([shifted(c["children"], k) for k, c in enumerate(res)]),
+                 leaf_value=np.concatenate([c["leaf_value"] for c in res]),
+                 roots=np.concatenate([shifted(c["roots"], k) for k, c in enumerate(res)]),
+                 resolution=res[0]["resolution"], epsilon=res[0]["epsilon"],
+                 positions=np.concatenate([c["positions"] for c in res]),
+                 normals=np.concatenate([c["normals"] for c in res]), info=merged)

@@ -17,6 +17,7 @@ as it is now; :func:`shade_bspvt` runs it once per frame.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import drjit as dr
@@ -54,26 +55,46 @@ def _meshes_of(shapes: list) -> list:
     return [s for s in shapes if isinstance(s, mi.Mesh) and not s.is_emitter()]
 
 
-def build_scene_trees(scene: mi.Scene, resolution: int = 64, epsilon: float = 0.0,
-                      method: str = "batched", progress: bool = True, **kwargs):
+def build_scene_trees(scene, resolution: int = 64, epsilon: float = 0.0,
+                      method: str = "batched", progress: bool = True, *, cluster=None,
+                      chunk_vertices: int | None = None, **kwargs):
     """Okuno & Iwasaki's precomputation for ``scene``: visibility cube maps at every vertex
     of its non-emitting meshes against its non-emitting shapes
     (:func:`glossrt.lights.bspvt.build.visibility_cubemaps` on
     :func:`glossrt.lights.bspvt.build.occluders`), then the trees
     (:func:`glossrt.lights.bspvt.build.build_trees`, ``kwargs`` passed on). The returned trees'
-    ``info`` adds the visibility and total seconds (``stats()`` has the tree build's)."""
+    ``info`` adds the visibility and total seconds (``stats()`` has the tree build's).
+
+    ``scene``: a loaded ``mi.Scene``, or a built-in name or XML path. With ``cluster`` (a
+    :func:`glossrt.cluster.map_items` spec) or ``chunk_vertices``, the build runs as work
+    items of ``chunk_vertices`` vertices each
+    (:func:`glossrt.lights.bspvt.build.build_vertex_chunk`, default
+    :data:`glossrt.lights.bspvt.build.CHUNK_VERTICES`) that load the scene themselves (so
+    ``scene`` must be a name or path), on the cluster's workers or one after the other in
+    this process, merged into the same arrays as the one-process build."""
     import time
 
+    from ...scenes import load
+
+    chunked = cluster is not None or chunk_vertices is not None
+    ref = build.scene_ref(scene) if chunked else None
+    if isinstance(scene, (str, os.PathLike)):
+        scene = load(os.fspath(scene)).scene
     pos, nrm, _ = build.scene_vertices(scene)
     if len(pos) == 0:
         raise GlossrtError("the scene has no mesh vertices to precompute visibility at "
                            "(BSPVT needs triangle meshes; analytic shapes only occlude)")
     t0 = time.perf_counter()
-    vis = build.visibility_cubemaps(build.occluders(scene), pos, nrm, resolution,
-                                    progress=progress)
-    t1 = time.perf_counter()
-    trees = build.build_trees(vis, epsilon, method, positions=pos, normals=nrm,
-                              progress=progress, **kwargs)
+    if chunked:
+        trees = _build_chunked(ref, pos, resolution, epsilon, method, progress, cluster,
+                               chunk_vertices or build.CHUNK_VERTICES, kwargs)
+        t1 = t0 + trees.info.get("chunk_visibility_seconds", 0.0)  # summed over the items
+    else:
+        vis = build.visibility_cubemaps(build.occluders(scene), pos, nrm, resolution,
+                                        progress=progress)
+        t1 = time.perf_counter()
+        trees = build.build_trees(vis, epsilon, method, positions=pos, normals=nrm,
+                                  progress=progress, **kwargs)
     t2 = time.perf_counter()
     trees.info.update({"visibility_seconds": t1 - t0, "tree_seconds": t2 - t1,
                        "total_seconds": t2 - t0,
@@ -81,6 +102,55 @@ def build_scene_trees(scene: mi.Scene, resolution: int = 64, epsilon: float = 0.
                        # shading can refuse trees whose occluders have moved since
                        "occluder_bounds": occluder_bounds(scene)})
     return trees
+
+
+def _build_chunked(ref: str, pos: np.ndarray, resolution: int, epsilon: float, method: str,
+                   progress: bool, cluster, chunk_vertices: int, settings: dict):
+    """:func:`build_scene_trees` by vertex chunks (issue 27), through
+    :func:`glossrt.cluster.map_items` (in this process without a cluster); the merged
+    trees' positions are checked against this process's scene (a worker that loaded another
+    file is refused)."""
+    import time
+
+    t0 = time.perf_counter()
+    items = build.vertex_chunk_items(ref, len(pos), resolution, epsilon, method,
+                                     chunk_vertices, **settings)
+    results = _map_items(build.build_vertex_chunk, items, cluster, progress,
+                         f"BSPVT build {resolution}x{resolution}")
+    info = {"method": method, "angles": settings.get("angles", build.DEFAULT_ANGLES)
+            if method == "batched" else None,
+            "max_leaves": settings.get("max_leaves"),
+            "max_depth": int(settings.get("max_depth", build.DEFAULT_MAX_DEPTH)),
+            "stalled": settings.get("stalled", "split"),
+            "engine": settings.get("engine", "numpy") if method == "batched" else None,
+            "chunk_vertices": int(chunk_vertices)}
+    trees = build.merge_vertex_chunks(results, len(pos), info)
+    if not np.array_equal(trees.positions, pos.astype(np.float32)):
+        raise GlossrtError(f"the workers' scene {ref!r} has other vertex positions than this "
+                           "process's (a different file or glossrt version on the cluster?)")
+    trees.info["build_seconds"] = time.perf_counter() - t0
+    return trees
+
+
+def _map_items(fn, items: list, cluster, progress: bool, desc: str) -> list:
+    """``fn`` over ``items`` through :func:`glossrt.cluster.map_items` (weights: vertices
+    per item; one GPU per task on CUDA variants), or in this process in order."""
+    try:
+        from ... import cluster as _cluster
+    except ImportError:  # pragma: no cover - before the cluster module exists
+        if cluster is not None:
+            raise GlossrtError("--cluster needs glossrt.cluster (not installed)") from None
+        from ...progress import Progress
+
+        out = []
+        with Progress(len(items), desc, enabled=progress) as bar:
+            for k, it in enumerate(items):
+                out.append(fn(it))
+                bar.update(k + 1)
+        return out
+    return _cluster.map_items(fn, items, cluster=cluster, desc=desc if progress else "",
+                              weights=[it["stop"] - it["start"] for it in items],
+                              num_gpus=1 if mi.variant().startswith("cuda") else 0)
 
 
 def vertex_beckmann(scene: mi.Scene) -> np.ndarray:

@@ -398,6 +398,28 @@ def _tables(res: list[int], offsets: np.ndarray):
             owned(mi.UInt32, np.asarray(offsets, np.uint32)))
 
 
+def _texel_radiance(lts, o, face, i, j, sub, ss: int, r: int, n_sub: int) -> mi.Color3f:
+    """The light radiance of cube-map texel ``(face, i, j)`` seen from ``o`` (one lane per
+    subsample ``sub`` of its ``ss x ss`` grid, averaged over blocks of ``n_sub`` lanes when
+    ``n_sub > 1``): Kimura & Tokoi, sec. 3, the lights seen from the probe, the nearest wins."""
+    # sample (a, b) of the ss x ss grid of texel (i, j): s = -1 + 2 (i + (a + 1/2)/ss)/R
+    a = mi.Float(sub % ss) + 0.5
+    b = mi.Float(sub // ss) + 0.5
+    s = -1.0 + 2.0 * (mi.Float(i) + a / ss) / r
+    t = -1.0 + 2.0 * (mi.Float(j) + b / ss) / r
+    d = dr.normalize(_dir_dr(face, s, t))
+    best = dr.full(mi.Float, dr.inf, dr.width(d))
+    col = dr.zeros(mi.Color3f, dr.width(d))
+    for lt in lts:
+        dist, y = lt.intersect(o, d)
+        hit = dist < best
+        best = dr.select(hit, dist, best)
+        col = dr.select(hit, lt.emitted(y, d), col)
+    if n_sub > 1:
+        col = mi.Color3f(*(dr.block_sum(col[c], n_sub) for c in range(3))) / n_sub
+    return col
+
+
 def _render_faces(lights: list, probe: np.ndarray, r: int, ss: int) -> np.ndarray:
     """``(6, R, R, 3)`` float64: the radiance of the nearest light per texel sample,
     averaged over the ``ss x ss`` samples of each texel."""
@@ -419,21 +441,7 @@ def _render_faces(lights: list, probe: np.ndarray, r: int, ss: int) -> np.ndarra
         i = texel % r
         j = (texel // r) % r
         face = texel // (r * r) + dr.opaque(mi.UInt32, f0)
-        # sample (a, b) of the ss x ss grid of texel (i, j): s = -1 + 2 (i + (a + 1/2)/ss)/R
-        a = mi.Float(sub % ss) + 0.5
-        b = mi.Float(sub // ss) + 0.5
-        s = -1.0 + 2.0 * (mi.Float(i) + a / ss) / r
-        t = -1.0 + 2.0 * (mi.Float(j) + b / ss) / r
-        d = dr.normalize(_dir_dr(face, s, t))
-        best = dr.full(mi.Float, dr.inf, dr.width(lane))
-        col = dr.zeros(mi.Color3f, dr.width(lane))
-        for lt in lts:  # Kimura & Tokoi, sec. 3: the lights seen from the probe
-            dist, y = lt.intersect(o, d)
-            hit = dist < best
-            best = dr.select(hit, dist, best)
-            col = dr.select(hit, lt.emitted(y, d), col)
-        if n_sub > 1:
-            col = mi.Color3f(*(dr.block_sum(col[c], n_sub) for c in range(3))) / n_sub
+        col = _texel_radiance(lts, o, face, i, j, sub, ss, r, n_sub)
         dr.eval(col)
         vals = np.stack([np.asarray(col[c], dtype=np.float64) for c in range(3)], -1)
         out[f0:f0 + nf] = vals.reshape(nf, r, r, 3)
@@ -827,20 +835,7 @@ def _render_probes_dr(lights: list, points: np.ndarray, r: int, ss: int) -> mi.F
         face = pf % 6
         probe = pf // 6
         o = mi.Point3f(*(dr.gather(mi.Float, pts, 3 * probe + c) for c in range(3)))
-        a = mi.Float(sub % ss) + 0.5
-        b = mi.Float(sub // ss) + 0.5
-        s = -1.0 + 2.0 * (mi.Float(i) + a / ss) / r
-        t = -1.0 + 2.0 * (mi.Float(j) + b / ss) / r
-        d = dr.normalize(_dir_dr(face, s, t))
-        best = dr.full(mi.Float, dr.inf, dr.width(lane))
-        col = dr.zeros(mi.Color3f, dr.width(lane))
-        for lt in lts:  # Kimura & Tokoi, sec. 3: the lights seen from the probe
-            dist, y = lt.intersect(o, d)
-            hit = dist < best
-            best = dr.select(hit, dist, best)
-            col = dr.select(hit, lt.emitted(y, d), col)
-        if n_sub > 1:
-            col = mi.Color3f(*(dr.block_sum(col[c], n_sub) for c in range(3))) / n_sub
+        col = _texel_radiance(lts, o, face, i, j, sub, ss, r, n_sub)
         tx = dr.arange(mi.UInt32, nq * r * r)
         out = dr.gather(mi.UInt32, pair_t, tx // (r * r) + dr.opaque(mi.UInt32, q0)) * (r * r) \
             + tx % (r * r)
