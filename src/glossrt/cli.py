@@ -635,10 +635,17 @@ def cmd_bspvt(args) -> int:
 
     if args.resolution < 1:
         raise GlossrtError(f"--resolution must be >= 1, got {args.resolution}")
+    if args.chunk_vertices is not None and args.chunk_vertices < 1:
+        raise GlossrtError(f"--chunk-vertices must be >= 1, got {args.chunk_vertices}")
     out = _output_file(args.out, "bspvt build --out", keep=tuple(_scene_files(args.scene)))
-    setup = scenes.load(args.scene)
-    trees = build_scene_trees(setup.scene, resolution=args.resolution, epsilon=args.epsilon,
-                              method=args.method, progress=True, engine=args.engine)
+    cluster = _cluster_spec(args)
+    # with a cluster (or --chunk-vertices) the build runs as vertex chunks that load the
+    # scene by name or path themselves: the same trees, byte for byte
+    trees = build_scene_trees(scenes.load(args.scene).scene if cluster is None
+                              and args.chunk_vertices is None else args.scene,
+                              resolution=args.resolution, epsilon=args.epsilon,
+                              method=args.method, progress=True, engine=args.engine,
+                              cluster=cluster, chunk_vertices=args.chunk_vertices)
     trees.save(str(out))
     st = trees.stats()
     st["visibility_seconds"] = trees.info.get("visibility_seconds")
@@ -646,6 +653,12 @@ def cmd_bspvt(args) -> int:
     print(json.dumps(st, indent=2, default=str))
     print(f"wrote {out}")
     return 0
+
+
+def _cluster_spec(args) -> str | None:
+    """``--cluster``, else the environment's ``GLOSSRT_CLUSTER``, else None (this process)."""
+    spec = getattr(args, "cluster", None)
+    return spec if spec is not None else (os.environ.get("GLOSSRT_CLUSTER") or None)
 
 
 def cmd_ltc_fit(args) -> int:
@@ -656,6 +669,8 @@ def cmd_ltc_fit(args) -> int:
     _output_file(args.out, "ltc-fit --out")
     argv = ["--out", args.out, "--distribution", args.distribution, "--metric", args.metric]
     argv += ["--size", str(args.size)] if args.size else []
+    cluster = _cluster_spec(args)  # rows as work items: the same table (fit.fit_table)
+    argv += ["--cluster", cluster] if cluster is not None else []
     return ltc_fit.main(argv)
 
 
@@ -895,6 +910,13 @@ COMMANDS: tuple[Command, ...] = (
                 _arg("--engine", choices=["numpy", "drjit"], default="numpy",
                      help="array engine of the batched search: NumPy threads, or Dr.Jit (the "
                           "device of --device; the same trees)"),
+                _arg("--cluster", default=None, metavar="SPEC",
+                     help="run vertex chunks on a Ray cluster: local[:N], auto or "
+                          "ray://HOST:PORT (default: $GLOSSRT_CLUSTER, else this process); "
+                          "the same trees"),
+                _arg("--chunk-vertices", type=int, default=None, metavar="N",
+                     help="vertices per work item of a chunked build (default 256 with "
+                          "--cluster)"),
             )),
     Command("ltc-fit", cmd_ltc_fit,
             "fit glossrt's LTC table of a microfacet distribution (minutes)",
@@ -906,6 +928,10 @@ COMMANDS: tuple[Command, ...] = (
                           "plugins default to beckmann)"),
                 _arg("--metric", choices=("l1", "l3"), default="l1",
                      help="error the fit minimises (default l1; l3: Heitz et al.'s)"),
+                _arg("--cluster", default=None, metavar="SPEC",
+                     help="fit table rows on a Ray cluster: local[:N], auto or "
+                          "ray://HOST:PORT (default: $GLOSSRT_CLUSTER, else this process); "
+                          "the same table"),
             )),
     Command("denoise", cmd_denoise,
             "denoise an EXR sequence (writes frames with the denoised color)",

@@ -357,6 +357,11 @@ def f0_tensor(frame, f0: np.ndarray | None) -> mi.TensorXf:
     h, w = frame.height, frame.width
     if f0 is None:
         return dr.zeros(mi.TensorXf, (h, w, 3))
+    if isinstance(f0, mi.TensorXf):  # already on the device (the pipeline's direct stage)
+        if tuple(f0.shape) not in ((h, w, 3), (h, w, MATERIAL_ROW)):
+            raise FrameError(f"{frame.where}: F0 tensor has shape {tuple(f0.shape)}, expected "
+                             f"({h}, {w}, 3) or ({h}, {w}, {MATERIAL_ROW})")
+        return f0
     f0 = np.asarray(f0, np.float32)
     c = f0.shape[-1] if f0.ndim == 3 else 3
     if f0.size != h * w * c or c not in (3, MATERIAL_ROW):

@@ -471,6 +471,17 @@ class DirectStage(Stage):
         if mode == "ltc+bspvt":  # prebuilt ``trees`` (checked by the pipeline), else cached
             self.trees = trees if trees is not None else scene_trees(
                 setup.scene, int(opts["bspvt_resolution"]), progress, cache_dir)
+        #: the frame's material image (fresnel_image) on the device, and BSPVT's frozen
+        #: shading of the whole frame (lights.bspvt.scene.FrozenShader)
+        self.materials = None
+        self.bspvt = None
+        if mode != "pathtraced":
+            from ..lights.bspvt.scene import FrozenShader, MaterialImage
+
+            self.materials = MaterialImage(setup.scene)
+            if mode == "ltc+bspvt":
+                self.bspvt = FrozenShader(setup.scene, self.trees, opts["bspvt_mode"],
+                                          materials=self.materials.table)
         self.highlights = None
         if mode == "highlights":
             from ..lights.highlights import HighlightRenderer
@@ -488,16 +499,16 @@ class DirectStage(Stage):
 
     def frozen(self) -> list:
         out = [self.points._fn] if self.points is not None else []
+        if self.materials is not None:
+            out.append(self.materials._fn)
+        if self.bspvt is not None:
+            out += self.bspvt.frozen()
         # the polygon lights' shading kernels (module-wide frozen functions, shared with
         # every other user of LTC / BSPVT shading in the process)
         if self.mode in ("ltc", "highlights"):
             from ..lights.ltc import shade as ltc_shade
 
             out.append(ltc_shade._shade_frozen)
-        elif self.mode == "ltc+bspvt":
-            from ..lights.bspvt import shade as bspvt_shade
-
-            out.append(bspvt_shade._shade_frozen)
         if self.highlights is not None:
             out += [self.highlights._frozen_grid]
         return out
@@ -509,19 +520,15 @@ class DirectStage(Stage):
             return {"direct": _zeros(h, w)}
         from ..lights.analytic import analytic_lights
         from ..lights.scene import polygon_lights
-        from ..lights.shading import fresnel_image
 
         polys = polygon_lights(self.setup, index)
         points = analytic_lights(self.setup, index)
-        f0 = fresnel_image(self.setup, gb)
+        # every pixel's material (lights.shading.fresnel_image), computed on the device
+        f0 = self.materials(gb)
         if self.mode == "ltc":
             out = self._ltc(gb, polys, f0)
         elif self.mode == "ltc+bspvt":
-            from ..lights.bspvt import shade_bspvt
-
-            out = _tensor(shade_bspvt(self.setup.scene, gb, self.trees, polys,
-                                      self.opts["bspvt_mode"], f0=f0, textures=self._textures,
-                                      frozen=True))
+            out = self.bspvt(gb, polys, f0, textures=self._textures)
         elif self.mode == "ltc+ratio":
             from ..lights.ratio import render_ratio
 

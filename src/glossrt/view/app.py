@@ -259,6 +259,7 @@ class Viewer:
         gui = self.server.gui
         self._status_md = gui.add_markdown("**starting**")
         self._message_md = gui.add_markdown("")
+        self._stats_md = gui.add_markdown("")  # fps, stage ms, errors: at the top
         self._widgets: dict[str, Any] = {}
         with gui.add_folder("Pipeline"):
             self._preset = gui.add_dropdown("preset", list(PRESETS),
@@ -302,7 +303,6 @@ class Viewer:
             self._record = gui.add_button("Record")
             self._record.on_click(lambda ev: self.inbox.post("record",
                                                               int(self._record_n.value)))
-        self._stats_md = gui.add_markdown("")
         self._gizmos = {}
         for sid, (centre, extent) in self._lights.items():
             g = self.server.scene.add_transform_controls(

@@ -87,7 +87,8 @@ def build_scene_trees(scene, resolution: int = 64, epsilon: float = 0.0,
     t0 = time.perf_counter()
     if chunked:
         trees = _build_chunked(ref, pos, resolution, epsilon, method, progress, cluster,
-                               chunk_vertices or build.CHUNK_VERTICES, kwargs)
+                               build.CHUNK_VERTICES if chunk_vertices is None
+                               else chunk_vertices, kwargs)
         t1 = t0 + trees.info.get("chunk_visibility_seconds", 0.0)  # summed over the items
     else:
         vis = build.visibility_cubemaps(build.occluders(scene), pos, nrm, resolution,
@@ -521,3 +522,268 @@ def _compare_geometry(scene: mi.Scene, trees, tp: np.ndarray, tn: np.ndarray) ->
             f"from the scene's {np.round(sn[i], 4).tolist()} by {dn[i]:.3g} "
             f"({int((dn > MATCH_NORMAL_TOL).sum())} of {len(dn)} normals differ); rebuild "
             "them with `glossrt bspvt build`")
+
+
+# -- the real-time path: one frozen function per shader -------------------------------------
+
+
+@dataclass
+class MaterialTable:
+    """:func:`glossrt.lights.shading.fresnel_image`'s material rows on the device: per mesh id
+    (0 = background, then :func:`glossrt.scenes.stable_shapes` order) the Fresnel row
+    (``rows``, ``n x ROW`` flat) and the diffuse-scale table (``scales``, ``n x
+    DIFFUSE_SCALE_NODES x 3`` flat); ``count`` the number of ids (an opaque scalar).
+    :func:`material_columns` evaluates them per lane inside frozen functions."""
+
+    rows: mi.Float
+    scales: mi.Float
+    count: mi.UInt32
+
+    @staticmethod
+    def of(scene: mi.Scene) -> MaterialTable:
+        from ...brdf.fresnel import ROW
+        from ...render.materials import DIFFUSE_SCALE_NODES
+        from ...scenes import stable_shapes
+
+        rows, scales = mesh_material_tables(stable_shapes(scene))
+        rows = np.concatenate([np.zeros((1, ROW)), rows])
+        scales = np.concatenate([np.ones((1, DIFFUSE_SCALE_NODES, 3)), scales])
+        return MaterialTable(owned(mi.Float, rows), owned(mi.Float, scales),
+                             dr.opaque(mi.UInt32, len(rows)))
+
+
+def material_columns(table: MaterialTable, ids: mi.UInt32, p: mi.Point3f, n: mi.Vector3f,
+                     cam: mi.Point3f) -> list:
+    """The :data:`MATERIAL_ROW` columns of :func:`glossrt.lights.shading.material_rows_at` per
+    lane, on the device: the Fresnel row of material ``ids`` (clamped to the table) and its
+    diffuse scale at the lane's view cosine towards ``cam`` (``p``, ``n`` unnormalised as
+    the G-buffer holds them), linear in ``sqrt(cos_o)`` between the table's nodes: the same
+    float32 operations as the NumPy version, no host synchronisation."""
+    from ...brdf.fresnel import ROW
+    from ...render.materials import DIFFUSE_SCALE_NODES as NODES
+
+    ids = dr.minimum(ids, table.count - 1)
+    cols = [dr.gather(mi.Float, table.rows, ids * ROW + c) for c in range(ROW)]
+    v = cam - p
+    d = dr.dot(v, n)
+    cos_o = dr.clip(d / dr.maximum(dr.sqrt(dr.dot(v, v)), 1e-12), 0.0, 1.0)
+    x = dr.sqrt(cos_o) * float(NODES - 1)
+    i0 = dr.minimum(mi.UInt32(x), NODES - 2)
+    t = x - mi.Float(i0)
+    base = (ids * NODES + i0) * 3
+    for c in range(3):
+        a = dr.gather(mi.Float, table.scales, base + c)
+        b = dr.gather(mi.Float, table.scales, base + 3 + c)
+        cols.append((1.0 - t) * a + t * b)
+    return cols
+
+
+def _material_kernel(ch: dict, cam: list, table: MaterialTable, size: tuple[int, int]):
+    h, w = size
+    p = mi.Point3f(*split(ch["position"]))
+    n = mi.Vector3f(*split(ch["normal"]))
+    ids = mi.UInt32(dr.maximum(split(ch["mesh_id"])[0], 0.0))
+    return merge(material_columns(table, ids, p, n, mi.Point3f(*cam)), h, w)
+
+
+class MaterialImage:
+    """:func:`glossrt.lights.shading.fresnel_image` of a scene's frames on the device (one
+    frozen kernel, no read-back): an (H, W, 16) ``mi.TensorXf`` every shading function takes
+    as its ``f0``. The scene's materials are read once (:class:`MaterialTable`); call
+    :meth:`refresh` after editing a BSDF."""
+
+    def __init__(self, scene: mi.Scene):
+        self.scene = scene
+        self.table = MaterialTable.of(scene)
+        self._fn = dr.freeze(_material_kernel, warn_after=16)
+
+    def refresh(self) -> None:
+        self.table = MaterialTable.of(self.scene)
+
+    def __call__(self, frame) -> mi.TensorXf:
+        from ...jit import no_gc
+
+        check_frame(frame, ("position", "normal", "mesh_id"))
+        if frame.camera is None:
+            raise FrameError(f"{frame.where}: the material image needs the camera")
+        ch = {k: frame[k] for k in ("position", "normal", "mesh_id")}
+        with no_gc():
+            return self._fn(ch, opaque(frame.camera.position), self.table,
+                            (frame.height, frame.width))
+
+
+@dataclass
+class _Geometry:
+    """What :func:`_triangles` reads of the scene's meshes (frozen-function inputs): per
+    mesh its faces buffer, registry id, face count and first vertex (opaque scalars, so
+    that a recording replays only with this scene's values)."""
+
+    faces: list
+    shape_ids: list
+    face_counts: list
+    offsets: list
+
+
+@dataclass
+class _VertexData:
+    """Per tree vertex (frozen-function inputs): GGX / Beckmann alpha, diffuse reflectance,
+    Schlick F0, Beckmann lanes, and the material id (:class:`MaterialTable`) of its mesh."""
+
+    alpha: mi.Float
+    albedo: mi.Color3f
+    f0: mi.Color3f
+    beckmann: mi.Bool
+    ids: mi.UInt32
+
+
+def _triangles(scene, p: mi.Point3f, hit: mi.Bool, o: mi.Point3f, geo: _Geometry) -> tuple:
+    """:func:`_pixel_triangles`' device part: the triangle each lane's ray from ``o`` to
+    ``p`` hits, its three global vertex indices, barycentrics and validity."""
+    d = p - o
+    dist = dr.norm(d)
+    ray = mi.Ray3f(o, d / dr.maximum(dist, 1e-12))
+    ray.maxt = dist * 1.01 + 1e-4
+    pi = scene.ray_intersect_preliminary(ray, active=hit)
+    shape_id = dr.reinterpret_array(mi.UInt32, pi.shape)
+    width = dr.width(hit)
+    verts = [dr.zeros(mi.UInt32, width) for _ in range(3)]
+    valid = dr.zeros(mi.Bool, width)
+    for faces, sid, count, off in zip(geo.faces, geo.shape_ids, geo.face_counts, geo.offsets,
+                                      strict=True):
+        sel = hit & (shape_id == sid) & (pi.prim_index < count)
+        for j in range(3):
+            v = dr.gather(mi.UInt32, faces, pi.prim_index * 3 + j, sel) + off
+            verts[j] = dr.select(sel, v, verts[j])
+        valid |= sel
+    b1 = dr.select(valid, pi.prim_uv.x, 0.0)
+    b2 = dr.select(valid, pi.prim_uv.y, 0.0)
+    return verts, [dr.select(valid, 1.0 - b1 - b2, 0.0), b1, b2], valid
+
+
+def _frozen_bspvt_kernel(ch: dict, cam: list, scene, geo: _Geometry, vdata: _VertexData,
+                         table: MaterialTable, dev, lights: list, ltc_table, static: tuple):
+    """The whole ``ltc+bspvt`` direct light of a frame (what :class:`FrozenShader` records):
+    the triangle each pixel sees, then per vertex (Okuno & Iwasaki's mode) or per pixel the
+    fused traversal (:func:`glossrt.lights.bspvt.shade._shade_core`), as :func:`shade_bspvt`
+    with ``frozen=True`` computes it. ``static``: (mode, exact materials, (H, W), vertex
+    count, two-sidedness per light), part of the recording's key."""
+    mode, exact, (h, w), nv, two = static
+    cam_p = mi.Point3f(*cam)
+    p = mi.Point3f(*split(ch["position"]))
+    hit = split(ch["mesh_id"])[0] > 0
+    verts, bary, valid = _triangles(scene, p, hit, cam_p, geo)
+    dl = [(world, le, tw, None, None) for (world, le), tw in zip(lights, two, strict=True)]
+    if mode == "vertex":
+        to_cam = cam_p - dev.positions
+        wo = to_cam / dr.maximum(dr.norm(to_cam), 1e-12)
+        vhit = dr.dot(dev.normals, wo) > 0
+        if exact:
+            cols = material_columns(table, vdata.ids, dev.positions, dev.normals, cam_p)
+            from ..shading import FresnelLanes
+
+            fres, f0, scale = FresnelLanes.of_columns(cols)
+            sp = ShadingPoints(dev.positions, dev.normals, wo, vdata.alpha,
+                               vdata.albedo * scale, f0, vhit, vdata.beckmann, fres)
+        else:
+            sp = ShadingPoints(dev.positions, dev.normals, wo, vdata.alpha, vdata.albedo,
+                               vdata.f0, vhit, vdata.beckmann)
+        d, s = shade._shade_core(dev, dl, sp, [dr.arange(mi.UInt32, nv)], [mi.Float(1.0)],
+                                 ltc_table, nv, "fused", direct=True)
+        col = d + s
+        out = dr.zeros(mi.Color3f, h * w)
+        for v, b in zip(verts, bary, strict=True):
+            out += b * dr.gather(mi.Color3f, col, v, valid)
+        out = dr.select(valid, out, 0.0)
+    else:
+        sp = ShadingPoints.at_camera(ch, cam)
+        # lanes without a triangle or with non-finite G-buffer data are not traversed
+        ok = sp.hit & valid & dr.all(dr.isfinite(sp.p)) & dr.all(dr.isfinite(sp.n))
+        up = mi.Vector3f(0.0, 0.0, 1.0)
+        sp = ShadingPoints(dr.select(ok, sp.p, mi.Point3f(0.0)),
+                           dr.select(ok, dr.normalize(sp.n), up), dr.select(ok, sp.wo, up),
+                           sp.alpha, sp.albedo, sp.f0, ok, sp.beckmann, sp.fresnel)
+        d, s = shade._shade_core(dev, dl, sp, verts, bary, ltc_table, h * w, "fused",
+                                 direct=True)
+        out = d + s
+    return merge([out[0], out[1], out[2]], h, w)
+
+
+class FrozenShader:
+    """:func:`shade_bspvt` for the real-time path (the pipeline's ``ltc+bspvt`` direct
+    stage): the whole frame's shading (triangle lookup, per-vertex materials, the fused tree
+    traversal, the barycentric blend) is one frozen function of this shader, recorded once
+    per image size, light count and mode and replayed afterwards: no Python tracing, no host
+    synchronisation, the result left on the device. New camera, light and G-buffer values
+    replay (opaque inputs). The scene's per-vertex materials and mesh tables are read once
+    and again whenever :func:`match_scene`'s check sees edited meshes. Textured lights (the
+    fused traversal takes none) go through :func:`shade_bspvt` traced anew.
+
+    ``f0``: the frame's material image (:class:`MaterialImage`, or a
+    :func:`glossrt.lights.shading.fresnel_image` / F0 tensor); ``exact`` materials at the
+    vertices when it has :data:`MATERIAL_ROW` columns, as :func:`shade_bspvt`."""
+
+    def __init__(self, scene: mi.Scene, trees, mode: str = "vertex",
+                 materials: MaterialTable | None = None):
+        if mode not in MODES:
+            raise GlossrtError(f"unknown BSPVT mode {mode!r}; choose one of {MODES}")
+        self.scene, self.trees, self.mode = scene, trees, mode
+        self._table = materials
+        self._fn = dr.freeze(_frozen_bspvt_kernel, warn_after=16)
+        self._key = None
+        self._geo = self._vdata = None
+
+    def _prepare(self, meshes: list, offsets: np.ndarray) -> None:
+        from ...scenes import _registry_id, stable_shapes
+
+        key = (id(self.scene), tuple(m.vertex_positions_buffer().index for m in meshes))
+        if key == self._key:
+            return
+        self._geo = _Geometry(
+            [m.faces_buffer() for m in meshes],
+            [dr.opaque(mi.UInt32, _registry_id(mi.ShapePtr, m)) for m in meshes],
+            [dr.opaque(mi.UInt32, m.face_count()) for m in meshes],
+            [dr.opaque(mi.UInt32, int(o)) for o in offsets[:-1]])
+        alpha, albedo, vf0 = vertex_materials(self.scene)
+        nv = int(offsets[-1])
+        shapes = stable_shapes(self.scene)
+        # each vertex's material id: its mesh's mesh_id (stable_shapes position + 1)
+        rid = {_registry_id(mi.ShapePtr, s): k for k, s in enumerate(shapes)}
+        ids = np.concatenate([np.full(m.vertex_count(), rid[_registry_id(mi.ShapePtr, m)] + 1)
+                              for m in meshes])
+        beck = vertex_beckmann(self.scene)
+        self._vdata = _VertexData(owned(mi.Float, alpha), shade._dr_vec(mi.Color3f, albedo),
+                                  shade._dr_vec(mi.Color3f, vf0),
+                                  owned(mi.UInt32, beck[:nv]) != 0, owned(mi.UInt32, ids))
+        if self._table is None or self._key is not None:
+            self._table = MaterialTable.of(self.scene)
+        self._key = key
+
+    def frozen(self) -> list:
+        return [self._fn]
+
+    def __call__(self, frame, lights: list, f0=None, textures: dict | None = None
+                 ) -> mi.TensorXf:
+        from ...jit import no_gc
+        from ..ltc.shade import _device_lights, _table, prefiltered
+        from ..shading import f0_tensor, shading_channels
+
+        meshes, offsets = match_scene(self.scene, self.trees)
+        check_frame(frame, NEEDS)
+        refuse_anisotropic(frame, "BSPVT shading")
+        if frame.camera is None:
+            raise FrameError(f"{frame.where}: BSPVT shading needs the camera")
+        cache = {} if textures is None else textures
+        if not lights or any(prefiltered(lt, cache) is not None for lt in lights):
+            img = shade_bspvt(self.scene, frame, self.trees, lights, self.mode, f0=f0,
+                              textures=cache, frozen=True)
+            return mi.TensorXf(img)
+        self._prepare(meshes, offsets)
+        dev = shade.DeviceTrees.of(self.trees)
+        ch = shading_channels(frame)
+        ch["f0"] = f0_tensor(frame, f0)
+        exact = ch["f0"].shape[-1] == MATERIAL_ROW
+        dl, two = _device_lights(lights)
+        static = (self.mode, exact, (frame.height, frame.width), dev.n_vertices, two)
+        with no_gc():
+            return self._fn(ch, opaque(frame.camera.position), self.scene, self._geo,
+                            self._vdata, self._table, dev, dl, _table(), static)

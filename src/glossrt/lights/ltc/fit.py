@@ -218,6 +218,7 @@ __all__ = [
     "fit_cell",
     "lobe_errors",
     "warm_start",
+    "fit_row",
     "fit_table",
     "save_table",
     "main",
@@ -661,15 +662,81 @@ def warm_start(params: np.ndarray, avg_phi: np.ndarray, j: int,
     return np.array([[m11, m22, m13, turned], [m11, m22, m13, a], [m11, m22, 0.0, a]]), False
 
 
+def fit_row(item: dict) -> dict:
+    """Cells ``i = 1 .. size - 1`` of one table row (issue 27: a work item a cluster can run
+    in any process), from plain data: ``alpha`` (the row's roughness), ``cos_o``,
+    ``avg_phi`` and ``moments`` (``norm``, ``fres``, ``dir_x``, ``dir_z``; lists of ``size``
+    floats), ``first`` (the fitted ``(m11, m22, m13, phi)`` of the row's normal-incidence cell
+    ``i = 0``), ``fit_samples``, ``distribution``, ``metric``. Each cell warm-starts from the
+    previous one of the row (:func:`warm_start`, step 4), exactly as :func:`fit_table`'s
+    one-process order does, so the row equals that fit's row bit for bit.
+
+    Returns float64 arrays ``params``, ``minv`` ``(size - 1, 4)``, ``err_l3``, ``err_l1`` and
+    int64 ``nfev`` ``(size - 1,)`` for cells ``1 .. size - 1``, and ``j`` (as given)."""
+    cos_o = np.asarray(item["cos_o"], np.float64)
+    size = len(cos_o)
+    mo = {k: np.asarray(item["moments"][k], np.float64)
+          for k in ("norm", "fres", "dir_x", "dir_z")}
+    avg_phi = np.asarray(item["avg_phi"], np.float64)[None]
+    params = np.zeros((1, size, 4))
+    params[0, 0] = np.asarray(item["first"], np.float64)
+    out = {"params": np.zeros((size - 1, 4)), "minv": np.zeros((size - 1, 4)),
+           "err_l3": np.zeros(size - 1), "err_l1": np.zeros(size - 1),
+           "nfev": np.zeros(size - 1, np.int64)}
+    with no_gc():
+        for i in range(1, size):
+            start, iso = warm_start(params, avg_phi, 0, i)  # (row 0 of a one-row table)
+            cell = fit_cell(float(item["alpha"]), float(cos_o[i]), start, isotropic=iso,
+                            moments={k: float(v[i]) for k, v in mo.items()},
+                            fit_samples=int(item["fit_samples"]),
+                            distribution=item["distribution"], metric=item["metric"])
+            params[0, i] = cell.params
+            out["params"][i - 1] = cell.params
+            out["minv"][i - 1] = cell.coeffs
+            out["err_l3"][i - 1] = cell.err_l3
+            out["err_l1"][i - 1] = cell.err_l1
+            out["nfev"][i - 1] = cell.nfev
+    return {"j": item["j"], **out}
+
+
+def _map_rows(items: list[dict], cluster, progress: bool, desc: str) -> list[dict]:
+    """:func:`fit_row` over ``items`` through :func:`glossrt.cluster.map_items`, or in this
+    process in order."""
+    try:
+        from ... import cluster as _cluster
+    except ImportError:  # pragma: no cover - before the cluster module exists
+        if cluster is not None:
+            raise GlossrtError("--cluster needs glossrt.cluster (not installed)") from None
+        out = []
+        with Progress(len(items), desc, enabled=progress) as bar:
+            for k, it in enumerate(items):
+                out.append(fit_row(it))
+                bar.update(k + 1)
+        return out
+    return _cluster.map_items(fit_row, items, cluster=cluster, desc=desc if progress else "")
+
+
 def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,
               fit_samples: int = FIT_SAMPLES, moment_samples: int = MOMENT_SAMPLES,
-              distribution: str = "ggx", metric: str = "l1") -> dict[str, np.ndarray]:
+              distribution: str = "ggx", metric: str = "l1",
+              cluster=None) -> dict[str, np.ndarray]:
     """Fit the whole ``size x size`` table (module docstring).
+
+    The warm starts (step 4) chain a row's cells from normal incidence to grazing, and the
+    rows only through their normal-incidence cells (``(j, 0)`` starts from ``(j + 1, 0)``).
+    So the fit runs that column first (``size`` one-parameter fits, ~1% of the work), then
+    every row's other cells as an independent work item (:func:`fit_row`): on ``cluster``
+    (a :func:`glossrt.cluster.map_items` spec) or one after the other in this process, the
+    same table bit for bit as fitting the cells in HDHN16's order.
 
     Returns float64 arrays ``minv`` ``(size, size, 4)``, ``params`` ``(size, size, 4)``,
     ``norm``, ``fres``, ``avg_phi``, ``err_l3``, ``err_l1``, ``nfev`` ``(size, size)`` and the
     axes ``r``, ``u``, ``alpha``, ``cos_o`` (``size``), indexed ``[j (roughness), i (view)]``.
     """
+    if metric not in METRICS:
+        raise GlossrtError(f"metric must be one of {METRICS}, got {metric!r}")
+    if str(distribution).lower() not in mf.NAMES:
+        raise GlossrtError(f"distribution must be one of {mf.NAMES}, got {distribution!r}")
     r, u = grid_axes(size)
     alpha, cos_o = node_config(r, u)
     aa, cc = np.meshgrid(alpha, cos_o, indexing="ij")
@@ -683,23 +750,27 @@ def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,
         "err_l1": np.zeros((size, size)),
         "nfev": np.zeros((size, size), dtype=np.int64),
     }
-    with no_gc(), Progress(size * size, f"fitting LTC ({distribution})",
-                           enabled=progress) as bar:
-        done = 0
+    with no_gc():  # the normal-incidence column, from rough to smooth (a chain)
         for j in range(size - 1, -1, -1):
-            for i in range(size):
-                start, iso = warm_start(out["params"], avg_phi, j, i)
-                cell = fit_cell(alpha[j], cos_o[i], start, isotropic=iso,
-                                moments={k: float(v[j, i]) for k, v in mo.items()},
-                                fit_samples=fit_samples, distribution=distribution,
-                                metric=metric)
-                out["minv"][j, i] = cell.coeffs
-                out["params"][j, i] = cell.params
-                out["err_l3"][j, i] = cell.err_l3
-                out["err_l1"][j, i] = cell.err_l1
-                out["nfev"][j, i] = cell.nfev
-                done += 1
-                bar.update(done)
+            start, iso = warm_start(out["params"], avg_phi, j, 0)
+            cell = fit_cell(alpha[j], cos_o[0], start, isotropic=iso,
+                            moments={k: float(v[j, 0]) for k, v in mo.items()},
+                            fit_samples=fit_samples, distribution=distribution, metric=metric)
+            out["minv"][j, 0] = cell.coeffs
+            out["params"][j, 0] = cell.params
+            out["err_l3"][j, 0] = cell.err_l3
+            out["err_l1"][j, 0] = cell.err_l1
+            out["nfev"][j, 0] = cell.nfev
+    items = [{"j": j, "alpha": float(alpha[j]), "cos_o": cos_o.tolist(),
+              "avg_phi": avg_phi[j].tolist(),
+              "moments": {k: v[j].tolist() for k, v in mo.items()},
+              "first": out["params"][j, 0].tolist(), "fit_samples": int(fit_samples),
+              "distribution": distribution, "metric": metric}
+             for j in range(size - 1, -1, -1)]  # rough to smooth, as HDHN16's order
+    for row in _map_rows(items, cluster, progress, f"fitting LTC rows ({distribution})"):
+        j = int(row["j"])
+        for k in ("minv", "params", "err_l3", "err_l1", "nfev"):
+            out[k][j, 1:] = row[k]
     out.update(norm=mo["norm"], fres=mo["fres"], avg_phi=avg_phi, r=r, u=u, alpha=alpha,
                cos_o=cos_o, distribution=distribution, metric=metric)
     return out
@@ -768,6 +839,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="n: n x n stratified samples per strategy in the fit error")
     ap.add_argument("--moment-samples", type=int, default=MOMENT_SAMPLES,
                     help="Hammersley points for norm/fres (power of two)")
+    ap.add_argument("--cluster", default=None, metavar="SPEC",
+                    help="fit the table's rows on a Ray cluster: local[:N], auto or "
+                         "ray://HOST:PORT (default: this process); the same table")
     args = ap.parse_args(argv)
     if args.size < 2:
         ap.error("--size must be at least 2")
@@ -775,7 +849,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     table = fit_table(args.size, progress=args.progress, fit_samples=args.fit_samples,
                       moment_samples=args.moment_samples, distribution=args.distribution,
-                      metric=args.metric)
+                      metric=args.metric, cluster=args.cluster)
     dt = time.perf_counter() - t0
     finite = all(np.all(np.isfinite(table[k])) for k in ("minv", "norm", "fres"))
     if not finite:
