@@ -62,12 +62,12 @@ def test_steady_frames_and_moves_add_no_recording(preset, scene):
           f"{per_function}; direct={pipe.direct_mode}")
     assert pipe.recordings() == steady
     assert f.meta["pipeline"]["explicit_pose"]["shapes"] == ["light"]
-    if preset == "full":  # the polygon light's shading kernels are counted (BSPVT here)
-        from glossrt.lights.bspvt import shade as bspvt_shade
-
+    if preset == "full":  # the polygon light's shading kernels are counted (BSPVT here:
+        # the whole frame's shading, one frozen function of the stage's shader)
         assert pipe.direct_mode == "ltc+bspvt"
-        assert bspvt_shade._shade_frozen in pipe.frozen()
-        assert bspvt_shade._shade_frozen.n_recordings >= 1
+        fn = pipe.stages["direct"].bspvt._fn
+        assert fn in pipe.frozen()
+        assert fn.n_recordings >= 1
 
 
 @pytest.mark.parametrize("direct", ["ltc", "highlights"])
@@ -226,7 +226,7 @@ def test_stage_clock_attributes_real_launches():
 
 def test_pipeline_frame_synchronises_no_stage(monkeypatch):
     pipe = pipeline.Pipeline(scenes.load_static("glossy-cornell", size=(32, 18)),
-                             preset="schied2017", progress=False)
+                             preset="schied2017", progress=False, timing_every=1)
     for k in range(3):
         pipe.render(k)
     calls = []

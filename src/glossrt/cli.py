@@ -294,6 +294,19 @@ def cmd_render(args) -> int:
         if reference:
             raise GlossrtError("--specaa shades 1 spp frames; its supersampled reference is "
                                "`glossrt experiment --which specaa`")
+    blocks = reference and not args.mitsuba
+    if not blocks:
+        for flag, bad in (("--cluster", args.cluster), ("--resume", args.resume),
+                          ("--block-spp", args.block_spp is not None)):
+            if bad:
+                raise GlossrtError(f"{flag} goes with --reference (glossrt's converged "
+                                   "frames, rendered as sample blocks)")
+    if blocks:
+        from . import cluster
+
+        cluster.parse(args.cluster)  # a bad spec fails before any work
+        if args.block_spp is not None and args.block_spp < 1:
+            raise GlossrtError(f"--block-spp must be >= 1, got {args.block_spp}")
     todo = list(range(args.start, args.start + args.frames, args.every))
     _refuse_overwrite([Path(args.out) / frame_filename(i) for i in todo],
                       _scene_files(args.scene), "render --out")
@@ -301,8 +314,10 @@ def cmd_render(args) -> int:
     if size is None:
         _check_memory(setup.size, "the scene's film size")
     r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
-    out = _writable_dir(args.out)
     spp = args.spp if (args.spp > 1 or not reference) else 256
+    if blocks:
+        return _render_reference_blocks(args, setup, r, size, todo, spp)
+    out = _writable_dir(args.out)
     bad = 0
     tex_cache: dict = {}
     desc = f"{'reference ' if reference else ''}{setup.name} {setup.size[0]}x{setup.size[1]}"
@@ -319,8 +334,6 @@ def cmd_render(args) -> int:
                                 "max_depth": r.mitsuba_max_depth,
                                 "max_depth_from": r.max_depth_from})
                 p.update((k + 1) * spp)
-            elif reference:
-                f = r.render_reference(i, spp, progress=lambda d, n, k=k: p.update(k * spp + d))
             else:
                 f = r.render(i)
                 if args.specaa is not None:
@@ -334,6 +347,65 @@ def cmd_render(args) -> int:
         print(f"warning: {bad} non-finite radiance value(s) were replaced by 0 "
               "(counts per frame in the EXR header, meta.nonfinite_samples)", file=sys.stderr)
     return 0
+
+
+def _render_reference_blocks(args, setup, r, size, todo, spp) -> int:
+    """``render --reference``: frames as sample blocks (glossrt.render.blocks) on
+    ``--cluster`` or in this process, bit-identical either way; ``--resume`` skips frames
+    already written for the same request."""
+    from . import cluster
+    from .frame import Frame, frame_filename
+    from .render import blocks
+
+    plan = blocks.block_plan(spp, setup.size[0], setup.size[1], args.block_spp)
+    scene = args.scene
+    if os.path.exists(scene):  # workers start in folders of their own
+        scene = os.path.abspath(scene)
+    job = {"scene": scene, "size": list(size) if size else None, "orbit": args.orbit,
+           "frames": args.frames, "max_depth": args.max_depth, "seed": args.seed}
+    want = {"scene": setup.name, "spp": spp, "seed": args.seed,
+            "max_depth": r.mitsuba_max_depth, "reference": True,
+            "variant": _variant(), "reference_block_spp": plan[0][1]}
+    skip = set()
+    if args.resume:
+        for i in todo:
+            path = Path(args.out) / frame_filename(i)
+            if not path.exists():
+                continue
+            f = Frame.load(path)
+            have = {k: f.meta.get(k) for k in want}
+            diff = [f"{k} {have[k]!r} (asked: {want[k]!r})" for k in want if have[k] != want[k]]
+            if f.size != tuple(setup.size):
+                diff.append(f"size {f.width}x{f.height} (asked: {setup.size[0]}x"
+                            f"{setup.size[1]})")
+            if f.index != i or f.camera != setup.camera(i):
+                diff.append("its camera or frame index")
+            if diff:
+                raise GlossrtError(f"--resume: {path} was rendered for another request: "
+                                   + "; ".join(diff) + " (another --out, or drop --resume)")
+            skip.add(i)
+    left = [i for i in todo if i not in skip]
+    bad = 0
+    desc = f"reference {setup.name} {setup.size[0]}x{setup.size[1]} {spp} spp"
+    with cluster.connect(args.cluster) as c:  # an unreachable cluster fails before --out
+        out = _writable_dir(args.out)
+        for f in blocks.reference_frames(r, job, left, spp, cluster=c or "none",
+                                         block_spp=args.block_spp, desc=desc):
+            bad += int(f.meta.get("nonfinite_samples", 0))
+            f.save(out / frame_filename(f.index))  # whole frames only (atomic)
+    print(f"wrote {len(left)} frame(s) to {out}"
+          + (f" ({len(skip)} complete one(s) kept: --resume)" if skip else ""))
+    _warn_stale(out, [frame_filename(i) for i in todo])
+    if bad:
+        print(f"warning: {bad} non-finite radiance value(s) were replaced by 0 "
+              "(counts per frame in the EXR header, meta.nonfinite_samples)", file=sys.stderr)
+    return 0
+
+
+def _variant() -> str:
+    from . import backend
+
+    return backend.use()
 
 
 def _render_pipeline(args, size) -> int:
@@ -656,9 +728,12 @@ def cmd_bspvt(args) -> int:
 
 
 def _cluster_spec(args) -> str | None:
-    """``--cluster``, else the environment's ``GLOSSRT_CLUSTER``, else None (this process)."""
-    spec = getattr(args, "cluster", None)
-    return spec if spec is not None else (os.environ.get("GLOSSRT_CLUSTER") or None)
+    """``--cluster``, else the environment's ``GLOSSRT_CLUSTER``, checked
+    (:func:`glossrt.cluster.parse`: one clear error for a bad spec); None: this process."""
+    from . import cluster
+
+    spec = cluster.parse(getattr(args, "cluster", None))
+    return None if spec is None else str(spec)
 
 
 def cmd_ltc_fit(args) -> int:
@@ -814,6 +889,11 @@ class Command:
 
 
 _SEED = _arg("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
+_CLUSTER = _arg("--cluster", default=None, metavar="SPEC",
+                help="run the work on Ray: local, local:N (N worker slots on this machine), "
+                     "auto (the cluster `ray start --head` started here) or ray://HOST:PORT; "
+                     "none = in this process (default: env GLOSSRT_CLUSTER, else none). "
+                     "Same results either way")
 
 #: every subcommand, in the order of ``glossrt --help``
 COMMANDS: tuple[Command, ...] = (
@@ -851,6 +931,13 @@ COMMANDS: tuple[Command, ...] = (
                 _arg("--mitsuba", action="store_true",
                      help="anti-aliased reference from Mitsuba's own path integrator "
                           "(color only)"),
+                _CLUSTER,
+                _arg("--resume", action="store_true",
+                     help="--reference: keep the frames already in --out that were rendered "
+                          "for the same request (refused when their header differs)"),
+                _arg("--block-spp", type=int, default=None, metavar="N",
+                     help="--reference: samples per work item (default: about 16 blocks per "
+                          "frame); part of the result's identity, like --seed"),
                 _arg("--pipeline", default=None, metavar="PRESET|FILE",
                      help="composed real-time frames (glossrt.pipeline): a preset "
                           "(schied2017, okuno-iwasaki, kimura-tokoi, tokuyoshi2015, full, "

@@ -163,7 +163,10 @@ class StageClock:
       function replayed with it off records once more the first time it runs with it on
       (and keeps both recordings); reading the history costs about 10 microseconds per
       entry (the entries' IR is copied into Python), 2-4 ms for a pipeline frame of a few
-      hundred entries on the CPU backend.
+      hundred entries on the CPU backend. ``read=False`` (the pipeline's frames between
+      two read ones, ``Pipeline.timing_every``): the history is on while the stages run
+      (the same recordings replay as in a read frame) and cleared unread at :meth:`finish`,
+      which then waits for nothing and returns ``stage_host_ms`` alone.
     * ``"sync"``: the device synchronised after each stage (``dr.sync_thread``), its wall
       time; a synchronisation the real-time path does not make.
     * ``"none"``: no per-stage time.
@@ -173,9 +176,14 @@ class StageClock:
     ``launched``: its JIT kernels, ``replayed``: those replayed by a frozen function) and
     ``kernel_ms`` (every entry of the run, markers excluded)."""
 
-    def __init__(self, mode: str, index_type=None):
+    def __init__(self, mode: str, index_type=None, read: bool = True):
         check_stage_timing(mode)
         self.mode = mode
+        #: ``kernels`` only: read the history at :meth:`finish` (False: the history is on
+        #: while the stages run, as in a read frame, so that frozen functions replay the same
+        #: recording, but no marker is written and the history is cleared unread; only
+        #: ``stage_host_ms`` is returned)
+        self.read = bool(read)
         self.index_type = index_type  # the backend's UInt32 (the marker's type)
         self.names: list[str] = []
         self.host: list[float] = []
@@ -200,7 +208,8 @@ class StageClock:
             if not self._was_on:
                 dr.kernel_history_clear()
                 dr.set_flag(dr.JitFlag.KernelHistory, True)
-            self._mark()
+            if self.read:
+                self._mark()
 
     def stage_done(self, name: str) -> None:
         """After stage ``name`` launched its work (its outputs ``dr.eval``'d)."""
@@ -210,7 +219,7 @@ class StageClock:
             return
         if self.mode == "sync":
             dr.sync_thread()
-        else:
+        elif self.read:
             self._mark()
         t = time.perf_counter()
         self.names.append(name)
@@ -225,6 +234,11 @@ class StageClock:
             return {"stage_ms": {}}
         if self.mode == "sync":
             return {"stage_ms": dict(zip(self.names, self.host, strict=True))}
+        if not self.read:  # nothing waited for, nothing copied into Python
+            if not self._was_on:
+                dr.kernel_history_clear()
+                dr.set_flag(dr.JitFlag.KernelHistory, False)
+            return {"stage_host_ms": dict(zip(self.names, self.host, strict=True))}
         try:
             history = dr.kernel_history()
         finally:

@@ -129,17 +129,21 @@ def previous_position(grid: Grid, motion: Img) -> tuple[mi.Float, mi.Float]:
 
 
 def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
-              moments: list, alpha: float, moments_alpha: float):
+              moments: list, alpha: float, moments_alpha: float, packed: bool = True):
     """Temporal accumulation (Schied 2017, sec. 4.1): bilinear 2x2 reprojection with
     per-tap consistency tests and renormalised weights, a 3x3 fallback, else disocclusion.
-    Returns accumulated colours and moments per signal, and the new history length."""
+    Returns accumulated colours and moments per signal, and the new history length.
+    ``grid`` may list a subset of the pixels (``grid.idx``: a row tile of
+    :mod:`glossrt.denoise.upsampling`); ``packed=False`` reads the history channel by
+    channel (the same values) instead of interleaving it first (an interleaved copy of the
+    whole history per tile would cost more memory than the tile saves)."""
     # everything read from the previous frame, interleaved: one or a few packet gathers
     # per tap (geometry for the tests, history length, then per signal r, g, b, mu1, mu2)
     hist = [prev.mesh, prev.inv_z, prev.normal[0], prev.normal[1], prev.normal[2],
             prev.length]
     for hc, hm in zip(prev.color, prev.moments, strict=True):
         hist += [hc[0], hc[1], hc[2], hm[0], hm[1]]
-    packed = Packed(hist)
+    packed = Packed(hist) if packed else None
     px, py = previous_position(grid, motion)
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
@@ -168,9 +172,10 @@ def reproject(grid: Grid, gb: GBuffer, motion: Img, prev: History, colors: list,
         return weighted_sum([(rx + dx, ry + dy, None) for dy in (-1, 0, 1)
                              for dx in (-1, 0, 1)], lambda q: fetch(hist, q))
 
-    *bil, w_bil = weighted_sum(bilinear, packed.fetch)
+    *bil, w_bil = weighted_sum(bilinear, packed.fetch if packed is not None
+                               else (lambda q: fetch(hist, q)))
     bilinear_ok = w_bil > 1e-2
-    zero = dr.zeros(mi.Float, grid.w * grid.h)
+    zero = dr.zeros(mi.Float, dr.width(grid.idx))
     *fb, w_fb = dr.if_stmt((), ~bilinear_ok, fallback,
                            lambda: tuple(mi.Float(zero) for _ in (*bil, w_bil)))
     success = bilinear_ok | (w_fb > 0)

@@ -95,6 +95,13 @@ ALPHA = 0.2
 WEIGHTS = ("normal", "lobe")
 #: default threshold on the normalised weight sum below which pixels are re-rendered
 THRESHOLD = 0.05
+#: pixels per row tile of :class:`SpatioTemporalUpsampler`, rounded down to whole rows
+#: (see "row tiles" below).
+#: Images up to this size (320x180, 640x360) run untiled; 1920x1080 runs 8 tiles of 136
+#: rows. Measured on 2 CPU cores at 1920x1080, ``full`` on polygon-light (see the report /
+#: docs/PERFORMANCE.md): the transient of the upsampler's frozen call scales with the
+#: tile's pixels (~300 bytes per pixel).
+PIXELS_PER_TILE = 1 << 18
 #: guide weights are floored at this fraction of the spatial weight (the spatial fallback)
 _FLOOR = 1e-6
 
@@ -200,15 +207,34 @@ def _arrays(frame, names) -> dict:
     return {n: frame[n] for n in names if n in frame.names}
 
 
+def _low_taps(low, terms, channels, albedo_of, use_lobe, beta, kappa, approx):
+    """The low-resolution data a tap reads, interleaved (one packet gather per 8 channels):
+    ``(Packed, i_lobe, i_z)`` (:func:`~glossrt.denoise.common.tap_channels`), evaluated."""
+    lgrid = Grid(low.width, low.height)
+    lo = _Guides.of(low, lgrid, use_lobe, kappa, terms.get("view_low"))
+    specular = [c.endswith("specular") for c in channels]
+    # the normal weight is needed unless the lobe weight serves every channel
+    need_normal = not (use_lobe and all(specular))
+    packed, i_lobe, i_z = tap_channels(
+        lo.normal if need_normal else None,
+        [lo.xi[0], lo.xi[1], lo.xi[2], tap_sharpness(lo.lam, beta, approx)] if use_lobe
+        else None, lo.z,
+        # input hygiene: NaN / Inf low-resolution illumination is 0 (never spread by taps)
+        [finite(demodulate(split(low[c]), split(low[albedo_of[c]])))[0] for c in channels])
+    dr.eval(packed.arrays)
+    return packed, i_lobe, i_z
+
+
 def _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, radius, sigma_s,
-                    sigma_n2, beta, kappa, approx, sigma_z2):
-    """Upsampled demodulated illumination per channel (full resolution) and the normalised
-    weight sum per channel (``terms``: :func:`_camera_terms`)."""
+                    sigma_n2, beta, kappa, approx, sigma_z2, grid=None, taps=None):
+    """Upsampled demodulated illumination per channel (full resolution, or the pixels of the
+    row tile ``grid``) and the normalised weight sum per channel (``terms``:
+    :func:`_camera_terms`; ``taps``: :func:`_low_taps`' result when computed already)."""
     f = factor_of(frame, low)
-    grid, lgrid = Grid(frame.width, frame.height), Grid(low.width, low.height)
+    grid = Grid(frame.width, frame.height) if grid is None else grid
+    lgrid = Grid(low.width, low.height)
     jx, jy = terms["jitter"]
     hi = _Guides.of(frame, grid, use_lobe, kappa, terms.get("view"))
-    lo = _Guides.of(low, lgrid, use_lobe, kappa, terms.get("view_low"))
     # position of each full-resolution pixel centre in low-resolution pixel-index units
     u = (mi.Float(grid.x) + 0.5) / f - 0.5 - jx
     v = (mi.Float(grid.y) + 0.5) / f - 0.5 - jy
@@ -217,15 +243,9 @@ def _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, radius, si
     specular = [c.endswith("specular") for c in channels]
     # the normal weight is needed unless the lobe weight serves every channel
     need_normal = not (use_lobe and all(specular))
-    # the low-resolution data a tap reads, interleaved (one packet gather per 8 channels)
     lam_p = tap_sharpness(hi.lam, beta, approx) if use_lobe else None
-    packed, i_lobe, i_z = tap_channels(
-        lo.normal if need_normal else None,
-        [lo.xi[0], lo.xi[1], lo.xi[2], tap_sharpness(lo.lam, beta, approx)] if use_lobe
-        else None, lo.z,
-        # input hygiene: NaN / Inf low-resolution illumination is 0 (never spread by taps)
-        [finite(demodulate(split(low[c]), split(low[albedo_of[c]])))[0] for c in channels])
-    dr.eval(packed.arrays)
+    packed, i_lobe, i_z = (_low_taps(low, terms, channels, albedo_of, use_lobe, beta, kappa,
+                                     approx) if taps is None else taps)
     # window rows per kernel: the default 4x4 window is one kernel for one weight and one
     # channel (the full pixel's guides computed in it); more work per tap is split into
     # smaller kernels (measured: a single kernel for both weights and two channels ran 2x
@@ -280,7 +300,7 @@ def _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, radius, si
 def _compose(frame, channels, albedo_of, illum, hit) -> list:
     """Full-resolution RGB: unlisted components from ``frame`` plus the remodulated
     upsampled ones (background pixels keep ``frame``'s own radiance)."""
-    out = [dr.zeros(mi.Float, frame.width * frame.height) for _ in range(3)]
+    out = [dr.zeros(mi.Float, dr.width(hit)) for _ in range(3)]
     for c in RADIANCE:
         if c not in channels:
             out = [o + r for o, r in zip(out, split(frame[c]), strict=True)]
@@ -412,18 +432,39 @@ class SpatioTemporalUpsampler:
 
     def __init__(self, weight: str = "normal",
                  channels: tuple[str, ...] = ("indirect_diffuse", "indirect_specular"),
-                 alpha: float = ALPHA, frozen: bool = False, **params):
+                 alpha: float = ALPHA, frozen: bool = False,
+                 tile_pixels: int = PIXELS_PER_TILE, **params):
         if not 0.0 < alpha <= 1.0:
             raise GlossrtError(f"SpatioTemporalUpsampler: alpha must be in (0, 1], got {alpha}")
+        if isinstance(tile_pixels, bool) or not isinstance(tile_pixels, int) \
+                or tile_pixels < 1:
+            raise GlossrtError("SpatioTemporalUpsampler: tile_pixels must be a positive "
+                               f"integer, got {tile_pixels!r}")
         self.weight, self.channels, self.alpha = weight, tuple(channels), float(alpha)
         self.params = _params("SpatioTemporalUpsampler", params)
         self.frozen = frozen
+        #: images of more pixels run in row tiles (:data:`PIXELS_PER_TILE`)
+        self.tile_pixels = int(tile_pixels)
         self._fn = dr.freeze(_temporal) if frozen else _temporal
+        self._prepare = dr.freeze(_temporal_prepare) if frozen else _temporal_prepare
+        self._tile = dr.freeze(_temporal_tile) if frozen else _temporal_tile
+        self._zero = None
         self.reset()
 
     @property
     def n_recordings(self) -> int:
-        return int(self._fn.n_recordings) if self.frozen else 0
+        if not self.frozen:
+            return 0
+        return sum(int(f.n_recordings) for f in (self._fn, self._prepare, self._tile))
+
+    def frozen_functions(self) -> list:
+        """The ``dr.freeze`` functions a frame of the last size replays (the untiled one,
+        or the row tiles' two; empty when not frozen)."""
+        if not self.frozen:
+            return []
+        size = self._size or (0, 0)
+        return ([self._prepare, self._tile] if size[0] * size[1] > self.tile_pixels
+                else [self._fn])
 
     def reset(self) -> None:
         """Forget the history (the next frame is the spatial upsample alone)."""
@@ -446,12 +487,53 @@ class SpatioTemporalUpsampler:
                            length=zero[0], normal=zero[1:4], inv_z=zero[0], mesh=zero[0])
         else:
             prev = self._history
-        static = _static(frame, low, channels, albedo_of, use_lobe, self.params, self.alpha)
-        with no_gc():
-            img, self._history = self._fn(_arrays(frame, _FULL), _arrays(low, _FULL),
-                                          _camera_terms(frame, low, use_lobe), prev, static)
+        if size[0] * size[1] > self.tile_pixels:
+            img = self._tiled(frame, low, channels, albedo_of, use_lobe, prev)
+        else:
+            static = _static(frame, low, channels, albedo_of, use_lobe, self.params,
+                             self.alpha)
+            with no_gc():
+                img, self._history = self._fn(_arrays(frame, _FULL), _arrays(low, _FULL),
+                                              _camera_terms(frame, low, use_lobe), prev,
+                                              static)
         self._size = size
         return img
+
+    def _tiled(self, frame, low, channels, albedo_of, use_lobe, prev) -> mi.TensorXf:
+        """One frame in row tiles (the same values as the untiled call; see
+        :data:`PIXELS_PER_TILE`): new full-size buffers for the image and the history, the
+        previous history read as it is."""
+        from .svgf import History
+
+        w, h = frame.width, frame.height
+        n = w * h
+        rows = tile_rows(w, h, self.tile_pixels)
+        static = _static(frame, low, channels, albedo_of, use_lobe, self.params, self.alpha,
+                         rows)
+        if self._zero is None or dr.width(self._zero) != n:
+            # the history's moments: the upsampler keeps none (zeros for reproject's reads)
+            self._zero = dr.zeros(mi.Float, n)
+            dr.make_opaque(self._zero)
+        prev = History(color=prev.color, moments=[[self._zero, self._zero] for _ in channels],
+                       length=prev.length, normal=prev.normal, inv_z=prev.inv_z,
+                       mesh=prev.mesh)
+        fch, lch = _arrays(frame, _FULL), _arrays(low, _FULL)
+        terms = _camera_terms(frame, low, use_lobe)
+        out = {"history": [dr.empty(mi.Float, n) for _ in range(3 * len(channels) + 6)],
+               "image": dr.empty(mi.Float, 3 * n)}
+        dr.eval(out)
+        with no_gc():
+            taps, inv_z = self._prepare(fch, lch, terms, static)
+            for r in tile_starts(h, rows):
+                self._tile(fch, lch, terms, prev, taps, inv_z, out,
+                           dr.opaque(mi.UInt32, r * w), static)
+        del taps, inv_z
+        hist = out["history"]
+        k = 3 * len(channels)
+        self._history = History(color=[hist[3 * j:3 * j + 3] for j in range(len(channels))],
+                                moments=None, length=hist[k], normal=hist[k + 1:k + 4],
+                                inv_z=hist[k + 4], mesh=hist[k + 5])
+        return mi.TensorXf(out["image"], (h, w, 3))
 
 
 def _temporal(fch, lch, terms, prev, static):
@@ -480,3 +562,132 @@ def _temporal(fch, lch, terms, prev, static):
     history = History(color=blended, moments=moments, length=length,
                       normal=gb.normal, inv_z=gb.inv_z, mesh=gb.mesh)
     return merge(_compose(frame, channels, albedo_of, blended, hit), fh, fw), history
+
+
+# -- row tiles of the spatio-temporal upsampler --------------------------------------------
+#
+# A frozen replay (dr.freeze, Dr.Jit 1.5) keeps every intermediate buffer of the recorded
+# function until the call returns (measured: six chained evaluated steps of an 8 MB array
+# held 56 MB replayed, 24 MB traced). The full-resolution upsampler's intermediates (its
+# guides, the per-row sums of eq. 1, the interleaved history, the reprojection) came to
+# ~640 MB at 1920x1080. Large images therefore replay one recording per row tile of
+# ``rows x W`` pixels (the tile's first pixel an opaque input), writing the image and the
+# new history into full-size buffers; the per-frame low-resolution taps and the
+# full-resolution 1/z (whose neighbours the depth gradient reads) are computed once, before
+# the tiles. The last tile is moved up to end at the last row (overlapping the one before:
+# the same pixels get the same values), so every tile has one shape and one recording.
+
+
+
+class _TileGrid(Grid):
+    """The pixels ``offset .. offset + n - 1`` of a W x H image (absolute coordinates:
+    :meth:`Grid.index` and :meth:`Grid.inside` address the whole image)."""
+
+    def __init__(self, w: int, h: int, offset, n: int):  # noqa: D107  (no dataclass init)
+        self.w, self.h = w, h
+        self.idx = offset + dr.arange(mi.UInt32, n)
+        self.x = mi.Int32(self.idx % w)
+        self.y = mi.Int32(self.idx // w)
+
+
+def tile_rows(width: int, height: int, pixels: int = PIXELS_PER_TILE) -> int:
+    """Rows per tile of a ``width x height`` image (``height``: untiled)."""
+    return int(min(height, max(1, pixels // max(width, 1))))
+
+
+def tile_starts(height: int, rows: int) -> list[int]:
+    """First row of each tile; the last tile ends at the last row (equal shapes)."""
+    return [min(r, height - rows) for r in range(0, height, rows)]
+
+
+def _tile_channels(fch: dict, idx: mi.UInt32, rows: int, w: int) -> dict:
+    """The full frame's channels at the tile's pixels, as (rows, W, C) tensors."""
+    from ..images import interleave
+
+    return {k: mi.TensorXf(interleave(split(t, idx)), (rows, w, t.shape[2]))
+            for k, t in fch.items()}
+
+
+def _tile_depth_gradient(grid: Grid, inv_z_full: mi.Float,
+                         inv_z: mi.Float) -> tuple[mi.Float, mi.Float]:
+    """:func:`glossrt.denoise.common.depth_gradient` of the tile's pixels, the neighbours'
+    1/z read from the whole image's (the same arithmetic, so the same values)."""
+    out = []
+    for dx, dy in ((1, 0), (0, 1)):
+        f = dr.gather(mi.Float, inv_z_full, grid.index(grid.x + dx, grid.y + dy)) - inv_z
+        b = inv_z - dr.gather(mi.Float, inv_z_full, grid.index(grid.x - dx, grid.y - dy))
+        f_ok = grid.inside(grid.x + dx, grid.y + dy)
+        b_ok = grid.inside(grid.x - dx, grid.y - dy)
+        use_f = f_ok & (~b_ok | (dr.abs(f) < dr.abs(b)))
+        out.append(dr.select(use_f, f, dr.select(b_ok, b, 0.0)))
+    return out[0], out[1]
+
+
+def _temporal_prepare(fch, lch, terms, static):
+    """Once per frame before the tiles: the low-resolution taps (interleaved arrays) and
+    the full-resolution 1/z of the SVGF G-buffer (:func:`glossrt.denoise.common.gbuffer`)."""
+    from .common import gbuffer
+
+    (fw, fh, lw, lh, channels, albedo_of, use_lobe, p, _alpha, _rows) = static
+    low = _Channels(lch, lw, lh)
+    beta, kappa, approx = p[3], p[4], p[5]
+    packed, _, _ = _low_taps(low, terms, channels, dict(albedo_of), use_lobe, beta, kappa,
+                             approx)
+    inv_z = gbuffer(_Channels(fch, fw, fh), Grid(fw, fh), with_roughness=use_lobe).inv_z
+    dr.eval(inv_z)
+    return list(packed.arrays), inv_z
+
+
+def _packed_taps(arrays: list, channels: tuple, use_lobe: bool) -> tuple:
+    """:func:`_low_taps`' ``(Packed, i_lobe, i_z)`` again from its interleaved ``arrays``
+    (what a frozen function takes as input), with the layout of
+    :func:`~glossrt.denoise.common.tap_channels`."""
+    import sys
+
+    from .common import Packed
+
+    need_normal = not (use_lobe and all(c.endswith("specular") for c in channels))
+    i_lobe = 3 if need_normal else 0
+    i_z = i_lobe + (4 if use_lobe else 0)
+    count = i_z + 1 + 3 * len(channels)
+    packed = Packed.__new__(Packed)
+    packed._xf = sys.modules[mi.Float.__module__].ArrayXf
+    packed._parts = [(8 if min(8, count - k) > 4 else 4, min(8, count - k))
+                     for k in range(0, count, 8)]
+    packed.arrays = list(arrays)
+    return packed, i_lobe, i_z
+
+
+def _temporal_tile(fch, lch, terms, prev, taps, inv_z_full, out, offset, static):
+    """One row tile of :func:`_temporal` (the function :class:`SpatioTemporalUpsampler`
+    freezes for large images): the tile's image and new history scattered into ``out``."""
+    import dataclasses
+
+    from .common import gbuffer
+    from .svgf import reproject
+
+    (fw, fh, lw, lh, channels, albedo_of, use_lobe, p, alpha, rows) = static
+    albedo_of = dict(albedo_of)
+    n = rows * fw
+    grid = _TileGrid(fw, fh, offset, n)
+    frame = _Channels(_tile_channels(fch, grid.idx, rows, fw), fw, fh)
+    low = _Channels(lch, lw, lh)
+    packed, i_lobe, i_z = _packed_taps(taps, channels, use_lobe)
+    illum, _, hit = _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, *p,
+                                    grid=grid, taps=(packed, i_lobe, i_z))
+    gb = gbuffer(frame, grid, with_roughness=use_lobe)
+    inv_z = dr.gather(mi.Float, inv_z_full, grid.idx)
+    dzdx, dzdy = _tile_depth_gradient(grid, inv_z_full, inv_z)
+    gb = dataclasses.replace(gb, inv_z=inv_z, dzdx=dzdx, dzdy=dzdy)
+    moments = [[dr.zeros(mi.Float, n)] * 2 for _ in channels]
+    blended, _, length = reproject(grid, gb, split(frame["motion"]), prev, illum, moments,
+                                   alpha, 1.0, packed=False)
+    blended = [[dr.select(hit, b, 0.0) for b in bl] for bl in blended]
+    length = dr.select(hit, length, 0.0)
+    dr.eval(blended, length)
+    img = _compose(frame, channels, albedo_of, blended, hit)
+    values = [c for bl in blended for c in bl] + [length, *gb.normal, gb.inv_z, gb.mesh]
+    for dst, val in zip(out["history"], values, strict=True):
+        dr.scatter(dst, val, grid.idx)
+    for k in range(3):
+        dr.scatter(out["image"], img[k], grid.idx * 3 + k)

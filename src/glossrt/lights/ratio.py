@@ -331,13 +331,16 @@ class RatioImages:
         return self.unshadowed_diffuse + self.unshadowed_specular
 
 
-def _analytic_terms(frame, lights: list, f0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _analytic_terms(frame, lights: list, f0, textures: dict | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(total, diffuse, specular)`` unshadowed LTC images of ``lights``: the specular term
-    shaded without diffuse albedo, the diffuse term the rest."""
-    total = shade_frame(frame, lights, f0=f0)
+    shaded without diffuse albedo, the diffuse term the rest. ``textures``: the prefiltered
+    light textures, kept between calls (:func:`glossrt.lights.ltc.shade.prefiltered`)."""
+    total = shade_frame(frame, lights, f0=f0, textures=textures)
     no_diffuse = dict(frame.channels)
     no_diffuse["albedo_diffuse"] = np.zeros((frame.height, frame.width, 3), np.float32)
-    a_s = shade_frame(Frame(channels=no_diffuse, camera=frame.camera), lights, f0=f0)
+    a_s = shade_frame(Frame(channels=no_diffuse, camera=frame.camera), lights, f0=f0,
+                      textures=textures)
     return total, np.maximum(total - a_s, 0.0), a_s
 
 
@@ -369,7 +372,8 @@ def _ratios(frame, noisy: dict, split: bool, denoise: bool, filter_params: dict)
 def render_ratio(frame, lights: list, scene=None, spp: int = 1, f0: np.ndarray | None = None,
                  seed: int = 0, denoise: bool = True, split: bool = True,
                  progress: Callable[[int, int], None] | None = None,
-                 per_light: bool = True, **filter_params) -> RatioImages:
+                 per_light: bool = True, textures: dict | None = None,
+                 **filter_params) -> RatioImages:
     """Shadowed direct light of ``frame``'s G-buffer from the polygon ``lights`` by the ratio
     estimator (module docstring): unshadowed LTC (:func:`glossrt.lights.ltc.shade.shade_frame`,
     ``f0`` per pixel as there) times the ratio of shadowed to unshadowed Monte Carlo
@@ -378,8 +382,10 @@ def render_ratio(frame, lights: list, scene=None, spp: int = 1, f0: np.ndarray |
     the same bilateral weights (``denoise``; ``filter_params`` go to
     :func:`glossrt.denoise.bilateral`). ``split``: one ratio per component (diffuse,
     specular; default) or one for their sum. ``per_light``: one ratio per light (default,
-    Heitz, Hill & McGuire 2018) or one shared by all lights. Returns :class:`RatioImages`;
-    the image is ``.image``."""
+    Heitz, Hill & McGuire 2018) or one shared by all lights. ``textures``: a cache
+    {id(light texture): PrefilteredTexture} reused across calls (a textured light's
+    prefiltered mip chain takes ~0.1-0.7 s to build: without it every call builds each one
+    twice per light group). Returns :class:`RatioImages`; the image is ``.image``."""
     spp = _check_spp(spp)
     f0 = _check_f0(frame, f0)
     scene = _scene_of(scene)
@@ -389,9 +395,11 @@ def render_ratio(frame, lights: list, scene=None, spp: int = 1, f0: np.ndarray |
         raise GlossrtError(f"denoiser parameter(s) {', '.join(sorted(filter_params))} given "
                            "with denoise=False")
     # analytic, unshadowed: all lights, then (several lights, one ratio each) light by light
-    total, a_d, a_s = _analytic_terms(frame, lights, f0)
+    cache = {} if textures is None else textures  # one build per texture in this call
+    total, a_d, a_s = _analytic_terms(frame, lights, f0, cache)
     groups = per_light and len(lights) > 1
-    terms = [_analytic_terms(frame, [lt], f0)[1:] for lt in lights] if groups else [(a_d, a_s)]
+    terms = ([_analytic_terms(frame, [lt], f0, cache)[1:] for lt in lights] if groups
+             else [(a_d, a_s)])
     noisy = stochastic_pair(frame, lights, scene, spp, f0, seed, progress, per_light=groups)
     noisy = noisy if groups else [noisy]
     parts = [_ratios(frame, nz, split, denoise, filter_params) for nz in noisy]

@@ -142,6 +142,11 @@ def _matrix(m):
     return to_matrix(m) if hasattr(m, "matrix") else m
 
 
+def _check_every(n) -> None:
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+        raise GlossrtError(f"timing_every must be an integer >= 1, got {n!r}")
+
+
 class Pipeline:
     """A real-time frame pipeline for one scene (module docstring).
 
@@ -156,12 +161,19 @@ class Pipeline:
     ["stage_ms"]`` is measured (:data:`glossrt.timing.STAGE_TIMINGS`, :class:`glossrt.timing.
     StageClock`): ``"kernels"`` (default) the kernel time of each stage from Dr.Jit's kernel
     history, no stage synchronised; ``"sync"`` the wall time of each stage with the device
-    synchronised after it; ``"none"``. Settable between frames (:attr:`timing`)."""
+    synchronised after it; ``"none"``. Settable between frames (:attr:`timing`).
+    ``timing_every`` (``kernels``; default 8): the history is read (which waits for the
+    frame's kernels and copies a few hundred entries into Python, 2-4 ms on 2 CPU cores)
+    every ``timing_every``-th frame and after the stages change; the frames between carry
+    that frame's ``stage_ms``, ``stage_kernels`` and ``kernel_ms``, with its index in
+    ``stage_ms_frame`` (``stage_host_ms`` is every frame's own). 1: every frame."""
 
     def __init__(self, setup_or_scene, preset: str = "schied2017", size=None,
                  progress: bool = True, bspvt=None, bspvt_cache=None,
-                 timing: str = "kernels", **choices: Any):
+                 timing: str = "kernels", timing_every: int = 8, **choices: Any):
         check_stage_timing(timing)
+        self.timing_every = timing_every
+        _check_every(timing_every)
         if preset not in PRESETS:
             preset, file_choices = parse(preset)
             choices = {**file_choices, **choices}
@@ -179,6 +191,9 @@ class Pipeline:
         self._last_pose = None  # the pose of the previous frame rendered
         self.bspvt_trees = None
         self.timing = timing
+        #: the per-stage kernel fields of the last frame whose history was read (``kernels``)
+        self._kernel_times: dict | None = None
+        self._timed = 0  # frames rendered with ``timing="kernels"``
         self._apply(self.opts, trees)
 
     # -- configuration ---------------------------------------------------------------------
@@ -472,10 +487,20 @@ class Pipeline:
         analytic lights removed at the primary hit), each stage's layer (:data:`LAYERS`) and
         the composed ``color``; ``meta["pipeline"]`` holds the choices and per-stage
         milliseconds (:attr:`timing`: by default the kernel time of each stage from Dr.Jit's
-        kernel history, no stage synchronised; the frame ends evaluated)."""
+        kernel history, no stage synchronised, read every :attr:`timing_every`-th frame: the
+        frames between carry the last read frame's, ``stage_ms_frame`` its index; a read frame
+        ends evaluated)."""
         ctx: dict[str, Any] = {}
         check_stage_timing(self.timing)
-        clock = StageClock(self.timing)
+        _check_every(self.timing_every)
+        kernels = self.timing == "kernels"
+        # the kernel history is read every ``timing_every``-th frame (and after a change of
+        # the stages); in between it is on but cleared unread (timing.StageClock)
+        names = tuple(self.stages)
+        read = (not kernels or self._kernel_times is None
+                or self._kernel_times.get("_stages") != names
+                or self._timed % self.timing_every == 0)
+        clock = StageClock(self.timing, read=read)
         t_all = time.perf_counter()
         pose = self.setup.pose(index)
         if self._last_pose is not None and not pose.same(self._last_pose):
@@ -494,7 +519,15 @@ class Pipeline:
                 dr.eval([v for k, v in out.items() if not k.startswith("frame")])
                 clock.stage_done(name)
         finally:
-            times = clock.finish()  # waits for the frame's kernels (kernels, sync)
+            times = clock.finish()  # waits for the frame's kernels (kernels read, sync)
+        if kernels:
+            self._timed += 1
+            if read:
+                self._kernel_times = {k: times.get(k) for k in
+                                      ("stage_ms", "stage_kernels", "kernel_ms")}
+                self._kernel_times.update(_stages=names, stage_ms_frame=index)
+            times.update({k: v for k, v in self._kernel_times.items() if k != "_stages"},
+                         stage_ms_every=self.timing_every)
         gb: Frame = ctx["frame"]
         channels = {k: gb[k] for k in gb.names if k != "color"}
         for layer in LAYERS:

@@ -496,6 +496,9 @@ class DirectStage(Stage):
         #: light-map builds so far (a frame whose lights and objects hold still builds none)
         self.map_builds = 0
         self._textures: dict = {}
+        #: one array per distinct light texture (digest of its texels): the ids that key
+        #: ``_textures`` (:meth:`_stable_textures`)
+        self._stable: dict = {}
 
     def frozen(self) -> list:
         out = [self.points._fn] if self.points is not None else []
@@ -521,7 +524,7 @@ class DirectStage(Stage):
         from ..lights.analytic import analytic_lights
         from ..lights.scene import polygon_lights
 
-        polys = polygon_lights(self.setup, index)
+        polys = self._stable_textures(polygon_lights(self.setup, index))
         points = analytic_lights(self.setup, index)
         # every pixel's material (lights.shading.fresnel_image), computed on the device
         f0 = self.materials(gb)
@@ -533,12 +536,33 @@ class DirectStage(Stage):
             from ..lights.ratio import render_ratio
 
             out = _tensor(render_ratio(gb, polys, self.setup.scene, spp=self.opts["ratio_spp"],
-                                       f0=f0, seed=index).image)
+                                       f0=f0, seed=index, textures=self._textures).image)
         else:  # highlights: Kimura & Tokoi's specular + LTC's diffuse
             out = self._ltc_diffuse(gb, polys, f0) + self._highlights(gb, index, polys, f0)
         if points:
             out = out + self.points(gb, points, f0)
         return {"direct": out}
+
+    def _stable_textures(self, polys: list) -> list:
+        """``polys`` with each light texture replaced by the array this stage already holds
+        for the same texels. ``polygon_lights`` reads a new array every frame, and the
+        prefiltered-texture cache (``self._textures``, :func:`glossrt.lights.ltc.shade.
+        prefiltered`) is keyed by the array's id: without this every frame rebuilt each
+        textured light's mip chain (0.1-0.7 s, and twice per light under ``ltc+ratio``), and
+        a new array that reused a freed one's id could have been shaded with the other's."""
+        for lt in polys:
+            tex = getattr(lt, "texture", None)
+            if tex is None:
+                continue
+            a = np.ascontiguousarray(tex)
+            key = hashlib.sha1(a.tobytes()).hexdigest() + str(a.shape) + str(a.dtype)
+            if key not in self._stable:
+                if len(self._stable) >= 64:  # (both caches start over)
+                    self._stable.clear()
+                    self._textures.clear()
+                self._stable[key] = a
+            lt.texture = self._stable[key]
+        return polys
 
     def _ltc(self, gb: Frame, polys: list, f0) -> mi.TensorXf:
         from ..lights.ltc import shade_tensor
@@ -703,9 +727,11 @@ class IndirectStage(Stage):
         for d in (self.denoiser, self.low_denoiser, self.direct_denoiser):
             if d is not None:
                 out += d.frozen_functions()
-        for u in (self.upsampler, getattr(self, "spatial", None)):
-            if u is not None and u.frozen:
-                out.append(u._fn)
+        if self.upsampler is not None:
+            out += self.upsampler.frozen_functions()  # (its row tiles' functions too)
+        spatial = getattr(self, "spatial", None)
+        if spatial is not None and spatial.frozen:
+            out.append(spatial._fn)
         return out
 
     @staticmethod

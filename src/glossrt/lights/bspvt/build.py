@@ -1584,9 +1584,9 @@ def build_vertex_chunk(item: dict) -> dict:
                            f"({len(pos)} vertices)")
     settings = {k: item[k] for k in CHUNK_SETTINGS if k in item}
     if settings.get("threads") is None and item.get("engine", "numpy") == "numpy":
-        # a cluster task gets the CPUs it asked for (Ray sets OMP_NUM_THREADS to them)
-        omp = os.environ.get("OMP_NUM_THREADS", "")
-        settings["threads"] = int(omp) if omp.isdigit() and int(omp) > 0 else None
+        # as many NumPy threads as Dr.Jit has: on a cluster worker, the CPUs the task got
+        # (glossrt.cluster sets Dr.Jit's thread count so)
+        settings["threads"] = max(1, min(int(dr.thread_count()), MAX_THREADS))
     vis = visibility_cubemaps(occ, pos[a:b], nrm[a:b], item["resolution"], progress=False)
     t1 = time.perf_counter()
     trees = build_trees(vis, item["epsilon"], item["method"], positions=pos[a:b],

@@ -134,24 +134,14 @@ def _build_chunked(ref: str, pos: np.ndarray, resolution: int, epsilon: float, m
 
 
 def _map_items(fn, items: list, cluster, progress: bool, desc: str) -> list:
-    """``fn`` over ``items`` through :func:`glossrt.cluster.map_items` (weights: vertices
-    per item; one GPU per task on CUDA variants), or in this process in order."""
-    try:
-        from ... import cluster as _cluster
-    except ImportError:  # pragma: no cover - before the cluster module exists
-        if cluster is not None:
-            raise GlossrtError("--cluster needs glossrt.cluster (not installed)") from None
-        from ...progress import Progress
+    """``fn`` over ``items`` through :func:`glossrt.cluster.map_items` (progress weights:
+    vertices per item; one GPU per task on CUDA variants); ``cluster=None`` runs them in this
+    process in order (the environment's ``GLOSSRT_CLUSTER`` is the command line's business)."""
+    from ...cluster import map_items
 
-        out = []
-        with Progress(len(items), desc, enabled=progress) as bar:
-            for k, it in enumerate(items):
-                out.append(fn(it))
-                bar.update(k + 1)
-        return out
-    return _cluster.map_items(fn, items, cluster=cluster, desc=desc if progress else "",
-                              weights=[it["stop"] - it["start"] for it in items],
-                              num_gpus=1 if mi.variant().startswith("cuda") else 0)
+    return map_items(fn, items, cluster="none" if cluster is None else cluster, desc=desc,
+                     weights=[it["stop"] - it["start"] for it in items], progress=progress,
+                     num_gpus=1 if mi.variant().startswith("cuda") else 0)
 
 
 def vertex_beckmann(scene: mi.Scene) -> np.ndarray:

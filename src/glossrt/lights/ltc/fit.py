@@ -129,6 +129,10 @@ copied), with one change (step 2: the frame angle is fitted too), per cell:
    the neighbour's ``(m11, m22, m13)`` with ``phi`` = this cell's average direction
    (HDHN16's start); the same with ``m13 = 0``.
 
+   Rows depend on each other only through their normal-incidence cells, so
+   :func:`fit_table` fits that column first and then each row on its own (:func:`fit_row`,
+   a work item for ``glossrt ltc-fit --cluster``): the same table bit for bit.
+
 The npz also keeps the fit parameters (``params`` ``(m11, m22, m13, phi)`` and ``avg_phi``)
 so that any cell can be re-fitted from its neighbours exactly as :func:`fit_table` did
 (tests/test_ltc_fit.py does), and two error measures per cell, both estimated with the fit's
@@ -192,7 +196,6 @@ from ...brdf import microfacet as mf
 from ...brdf.ggx import ALPHA_MIN
 from ...errors import GlossrtError
 from ...jit import no_gc
-from ...progress import Progress
 from .table import (
     COS_O_MIN,
     DEFAULT_SIZE,
@@ -700,20 +703,12 @@ def fit_row(item: dict) -> dict:
 
 
 def _map_rows(items: list[dict], cluster, progress: bool, desc: str) -> list[dict]:
-    """:func:`fit_row` over ``items`` through :func:`glossrt.cluster.map_items`, or in this
-    process in order."""
-    try:
-        from ... import cluster as _cluster
-    except ImportError:  # pragma: no cover - before the cluster module exists
-        if cluster is not None:
-            raise GlossrtError("--cluster needs glossrt.cluster (not installed)") from None
-        out = []
-        with Progress(len(items), desc, enabled=progress) as bar:
-            for k, it in enumerate(items):
-                out.append(fit_row(it))
-                bar.update(k + 1)
-        return out
-    return _cluster.map_items(fit_row, items, cluster=cluster, desc=desc if progress else "")
+    """:func:`fit_row` over ``items`` through :func:`glossrt.cluster.map_items`;
+    ``cluster=None`` runs them in this process in order."""
+    from ...cluster import map_items
+
+    return map_items(fit_row, items, cluster="none" if cluster is None else cluster,
+                     desc=desc, progress=progress)
 
 
 def fit_table(size: int = DEFAULT_SIZE, *, progress: bool = True,

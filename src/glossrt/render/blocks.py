@@ -1,0 +1,181 @@
+"""Converged references as sample blocks: work items for :mod:`glossrt.cluster`.
+
+A reference frame of ``spp`` samples is split into blocks of consecutive sample indices
+(:func:`block_plan`, which depends only on ``spp`` and the image size). Sample ``s`` of pixel
+``p`` is seeded ``tea(s, frame_seed(frame, seed, REFERENCE_SALT))``, the seeds of
+:meth:`Renderer.render_reference`, so a block's samples depend only on the frame's seed and
+the block's index. A block returns its per-pixel mean (accumulated in float64 on the worker,
+NumPy's pairwise sum over a fixed shape); :class:`BlockMerge` merges the blocks of a frame
+by sample-weighted mean in block order, in float64. The result is therefore bit-identical
+whatever the number of workers (none included) and whatever the order in which the blocks
+finish; it differs from :meth:`Renderer.render_reference` only by float32 rounding (that
+one sums the same samples in float32 on the device).
+
+Items and results are plain data (dicts of numbers, strings and NumPy arrays): the scene
+travels as its name or XML path plus the load arguments, and every worker process loads it
+once (:func:`render_reference_block` keeps the last renderer).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+
+from ..backend import mi
+from ..errors import GlossrtError
+from ..frame import Frame
+from . import (
+    COMPONENTS,
+    GBUFFER_OUT,
+    MAX_LANES,
+    RADIANCE_OUT,
+    REFERENCE_SALT,
+    Renderer,
+    frame_seed,
+)
+
+#: blocks per frame :func:`block_plan` aims at when the lane budget allows
+TARGET_BLOCKS = 16
+
+_CACHE: dict = {}
+
+
+def block_plan(spp: int, width: int, height: int,
+               block_spp: int | None = None) -> list[tuple[int, int]]:
+    """``(first sample, sample count)`` of each block of a ``spp`` reference at
+    ``width x height``: blocks of ``block_spp`` samples (default: about
+    :data:`TARGET_BLOCKS` blocks, one device launch of at most :data:`MAX_LANES` lanes
+    each), the last one shorter."""
+    if spp < 1:
+        raise GlossrtError(f"spp must be >= 1, got {spp}")
+    cap = max(1, MAX_LANES // max(width * height, 1))
+    if block_spp is None:
+        block_spp = min(cap, math.ceil(spp / TARGET_BLOCKS))
+    elif block_spp < 1:
+        raise GlossrtError(f"block spp must be >= 1, got {block_spp}")
+    return [(s, min(block_spp, spp - s)) for s in range(0, spp, block_spp)]
+
+
+def _renderer(job: dict) -> Renderer:
+    key = tuple(sorted((k, repr(v)) for k, v in job.items()))
+    if _CACHE.get("key") != key:
+        from .. import scenes
+
+        _CACHE.clear()
+        size = tuple(job["size"]) if job.get("size") else None
+        setup = scenes.load(job["scene"], size=size, orbit=job.get("orbit"),
+                            frames=job.get("frames", 1))
+        _CACHE["renderer"] = Renderer(setup, max_depth=job.get("max_depth"),
+                                      seed=job.get("seed", 0), frozen=False)
+        _CACHE["key"] = key
+    return _CACHE["renderer"]
+
+
+def render_reference_block(item: dict) -> dict:
+    """One block of a reference frame (a work item, see the module). ``item``: ``job`` (the
+    scene: ``scene``, ``size``, ``orbit``, ``frames``, ``max_depth``, ``seed``), ``frame``,
+    ``start`` and ``count`` (its samples). Returns ``count``, ``nonfinite`` (samples
+    replaced by 0), ``mean`` (name -> (H, W, 3) float32 per-pixel mean of each radiance
+    channel) and, for the block of sample 0, ``gbuffer`` (sample 0's G-buffer channels)."""
+    import drjit as dr
+
+    r = _renderer(item["job"])
+    frame, start, count = int(item["frame"]), int(item["start"]), int(item["count"])
+    w, h = r.width, r.height
+    n_pix = w * h
+    base = frame_seed(frame, r.seed, REFERENCE_SALT)
+    k = max(1, min(count, MAX_LANES // max(n_pix, 1)))
+    sums: dict[str, np.ndarray] = {}
+    gbuf: dict[str, np.ndarray] = {}
+    bad = 0
+    done = 0
+    while done < count:
+        kk = min(k, count - done)
+        lane = dr.arange(mi.UInt32, n_pix * kk)
+        sample = lane % kk + (start + done)
+        seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
+        out = r.trace(frame, lane // kk, seeds, frozen=False)
+        bad += int(out["nonfinite"][0])
+        for name in RADIANCE_OUT:  # lanes are pixel-major: pixel p owns lanes p*kk..
+            part = np.array(out[name], dtype=np.float32).reshape(n_pix, kk, 3)
+            s = part.sum(axis=1, dtype=np.float64)
+            sums[name] = sums[name] + s if name in sums else s
+        if start == 0 and not gbuf:
+            for name in GBUFFER_OUT:
+                c = COMPONENTS.get(name, 3)
+                a = np.array(out[name], dtype=np.float32).reshape(n_pix, kk, c)[:, 0]
+                gbuf[name] = np.ascontiguousarray(a.reshape(h, w, c))
+        done += kk
+    res = {"count": count, "nonfinite": bad,
+           "mean": {n: (v / count).astype(np.float32).reshape(h, w, 3) for n, v in sums.items()}}
+    if gbuf:
+        res["gbuffer"] = gbuf
+    return res
+
+
+class BlockMerge:
+    """The blocks of one reference frame, merged in block order (float64)."""
+
+    def __init__(self) -> None:
+        self.sums: dict[str, np.ndarray] = {}
+        self.count = 0
+        self.nonfinite = 0
+        self.gbuffer: dict[str, np.ndarray] = {}
+
+    def add(self, block: dict) -> None:
+        c = int(block["count"])
+        for name, m in block["mean"].items():
+            s = m.astype(np.float64) * c
+            self.sums[name] = self.sums[name] + s if name in self.sums else s
+        self.count += c
+        self.nonfinite += int(block["nonfinite"])
+        self.gbuffer.update(block.get("gbuffer") or {})
+
+    def frame(self, renderer: Renderer, index: int, seconds: float,
+              block_spp: int) -> Frame:
+        """The merged Frame (the header of :meth:`Renderer.render_reference`'s, plus
+        ``meta["reference_block_spp"]``)."""
+        n = self.count
+        channels = {k: (v / n).astype(np.float32) for k, v in self.sums.items()}
+        channels["color"] = (sum(self.sums[k] for k in RADIANCE_OUT) / n).astype(np.float32)
+        channels.update(self.gbuffer)
+        f = renderer._frame(index, {k: mi.TensorXf(v) for k, v in channels.items()}, n,
+                            self.nonfinite, seconds, reference=True)
+        f.meta["reference_block_spp"] = block_spp
+        return f
+
+
+def reference_frames(renderer: Renderer, job: dict, frames: Sequence[int], spp: int,
+                     cluster=None, block_spp: int | None = None, desc: str = "",
+                     stats: list | None = None) -> Iterator[Frame]:
+    """The reference frames ``frames`` of ``spp`` samples, yielded in order as each one's
+    blocks are merged; the blocks run on ``cluster`` (:func:`glossrt.cluster.map_items`;
+    None: env ``GLOSSRT_CLUSTER``, else in this process). ``renderer``: the driver's (frame
+    headers; its scene is ``job``'s, see :func:`render_reference_block`)."""
+    from .. import cluster as _cluster
+
+    plan = block_plan(spp, renderer.width, renderer.height, block_spp)
+    bs = plan[0][1]
+    items = [{"job": job, "frame": int(i), "start": s, "count": c}
+             for i in frames for s, c in plan]
+    # in this process the driver's renderer serves the blocks (no second scene load)
+    _CACHE.clear()
+    _CACHE["key"] = tuple(sorted((k, repr(v)) for k, v in job.items()))
+    _CACHE["renderer"] = renderer
+    merge = BlockMerge()
+    t0 = time.perf_counter()
+    try:
+        for k, block in enumerate(_cluster.imap_items(
+                render_reference_block, items, cluster=cluster, desc=desc,
+                weights=[c for _, c in plan] * len(frames), stats=stats)):
+            merge.add(block)
+            if (k + 1) % len(plan) == 0:
+                yield merge.frame(renderer, int(frames[k // len(plan)]),
+                                  time.perf_counter() - t0, bs)
+                merge = BlockMerge()
+                t0 = time.perf_counter()
+    finally:
+        _CACHE.clear()
