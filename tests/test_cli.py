@@ -196,8 +196,12 @@ def test_bench_json(tmp_path, capsys):
     assert main(["bench", "--json", str(js), "--size", "32x24", "--repeats", "1",
                  "--warmup", "1", "--min-sample", "0",
                  "--case-option", "pipeline_shrink=10", "--case-option", "pipeline_memory=false",
-                 "--case-option", 'pipeline_choices={"bspvt_resolution": 8}']) == 0
+                 "--case-option", 'pipeline_choices={"bspvt_resolution": 8}',
+                 "--case-option", "cluster_spp=8", "--case-option", "cluster_bspvt_resolution=4",
+                 "--case-option", "cluster_workers=[2]"]) == 0
     res = json.loads(js.read_text())
+    c = res["results"]["cluster"]["runs"]["2"]
+    assert c["per_task_ms"] > 0 and c["reference_s"] > 0 and c["bspvt_build_s"] > 0
     assert res["case_options"]["pipeline_shrink"] == 10
     assert "full/polygon-light@64x36" in res["results"]["pipeline"]["cases"]
     r = res["results"]["render-vs-mitsuba-path"]

@@ -111,7 +111,7 @@ def test_dragging_in_the_page_moves_the_pipeline_camera(viewer, page):
     page.mouse.move(300, 400, steps=10)
     page.mouse.up()
     assert viewer.wait(until=lambda: viewer.pipe.setup.camera_override is not None,
-                       timeout=30)
+                       timeout=60)
     moved = np.asarray(viewer.pipe.setup.camera_override)
     assert not np.allclose(moved, viewer.pipe.setup.rest_camera, atol=1e-3)
 
@@ -148,3 +148,17 @@ def test_a_second_tab_watches_and_leaving_changes_nothing(browser, viewer, page)
         time.sleep(0.1)
     assert len(viewer.server.get_clients()) == 1
     assert viewer.wait(3, timeout=60) and viewer.pipe.opts == opts and not errors
+
+
+def test_the_notebook_embedding_connects(browser, viewer, page):
+    # what Jupyter shows for the handle (its _repr_html_: an iframe of the live viewer)
+    host = browser.new_page(viewport=VIEWPORT)
+    n0 = len(viewer.server.get_clients())
+    host.set_content(f"<html><body><h1>notebook</h1>{viewer._repr_html_()}</body></html>")
+    t_end = time.monotonic() + 60
+    while len(viewer.server.get_clients()) <= n0 and time.monotonic() < t_end:
+        host.wait_for_timeout(200)
+    assert len(viewer.server.get_clients()) == n0 + 1
+    frame = host.frame_locator("iframe")
+    frame.get_by_text("glossrt").first.wait_for(timeout=30000)  # the panel, inside the cell
+    host.close()

@@ -68,11 +68,79 @@ def render_vs_mitsuba(ctx: BenchContext) -> dict:
     }
 
 
+def _echo(x):
+    """A trivial work item (the cluster benchmark's per-task overhead)."""
+    return x
+
+
+#: options of the cluster case (``--case-option KEY=VALUE``)
+CLUSTER_OPTIONS = {
+    "cluster_spp": "samples per pixel of the reference timed with 1 and 2 workers (1024)",
+    "cluster_bspvt_resolution": "BSPVT cube-map resolution of the timed build (16)",
+    "cluster_workers": "worker counts compared, e.g. [1, 2] (default)",
+}
+
+
+@benchmark("cluster", order=90)
+def cluster_scaling(ctx: BenchContext) -> dict:
+    """Scale-out on Ray (issue 27): a local Ray cluster with 1, then 2 worker slots, each
+    running (after a warm-up that loads the scene and compiles the kernels in every worker)
+    a glossy-cornell reference of ``cluster_spp`` samples at the bench size as sample blocks
+    (glossrt.render.blocks), and polygon-light's BSPVT build in 256-vertex chunks; plus the
+    per-task overhead of 400 trivial items. Speed-up = time with 1 slot / time with 2."""
+    import time
+
+    from . import cluster, render, scenes
+    from .lights.bspvt.scene import build_scene_trees
+    from .render import blocks
+
+    spp = int(ctx.extra.get("cluster_spp", 1024))
+    res_b = int(ctx.extra.get("cluster_bspvt_resolution", 16))
+    workers = [int(n) for n in ctx.extra.get("cluster_workers", [1, 2])]
+    setup = scenes.load("glossy-cornell", size=ctx.size)
+    r = render.Renderer(setup)
+    job = {"scene": "glossy-cornell", "size": list(ctx.size), "orbit": None, "frames": 1,
+           "max_depth": None, "seed": 0}
+    out: dict = {"scene": "glossy-cornell", "size": list(ctx.size), "spp": spp,
+                 "bspvt_scene": "polygon-light", "bspvt_resolution": res_b, "runs": {}}
+    images = {}
+    for n in workers:
+        t_start = time.perf_counter()
+        with cluster.connect(f"local:{n}") as c:
+            started = time.perf_counter() - t_start
+            t0 = time.perf_counter()
+            cluster.map_items(_echo, list(range(400)), cluster=c, progress=False)
+            per_task = (time.perf_counter() - t0) / 400
+            # warm-up: every worker loads the scene and compiles its kernels once
+            list(blocks.reference_frames(r, job, [0], 16 * n, cluster=c, block_spp=1))
+            t0 = time.perf_counter()
+            f = next(blocks.reference_frames(r, job, [0], spp, cluster=c))
+            t_ref = time.perf_counter() - t0
+            images[n] = f.numpy("color")
+            build_scene_trees("polygon-light", resolution=4, progress=False, cluster=c,
+                              chunk_vertices=4096)  # warm-up
+            t0 = time.perf_counter()
+            build_scene_trees("polygon-light", resolution=res_b, progress=False, cluster=c,
+                              chunk_vertices=256)
+            t_bspvt = time.perf_counter() - t0
+        out["runs"][str(n)] = {"start_s": started, "per_task_ms": 1000.0 * per_task,
+                               "reference_s": t_ref, "bspvt_build_s": t_bspvt}
+    import numpy as np
+
+    if len(workers) >= 2:
+        a, b = (out["runs"][str(n)] for n in workers[:2])
+        out["speedup_reference"] = a["reference_s"] / b["reference_s"]
+        out["speedup_bspvt"] = a["bspvt_build_s"] / b["bspvt_build_s"]
+        out["bit_identical"] = bool(np.array_equal(images[workers[0]], images[workers[1]]))
+    out["target_speedup"] = 1.7
+    return out
+
+
 def case_options() -> dict[str, str]:
     """Every option a benchmark case takes (``--case-option KEY=VALUE``): name -> help."""
     from .experiments import pipeline
 
-    return dict(pipeline.BENCH_OPTIONS)
+    return {**pipeline.BENCH_OPTIONS, **CLUSTER_OPTIONS}
 
 
 def parse_case_options(items: list[str] | None) -> dict:

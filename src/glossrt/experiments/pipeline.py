@@ -370,7 +370,11 @@ def timing(preset: str, scene: str, size=(320, 180), warmup: int = 3, repeats: i
     def frame():
         counter["frame"] += 1
         pipe.timing = "kernels"
-        metas.append(pipe.render(counter["frame"]).meta["pipeline"])
+        meta = pipe.render(counter["frame"]).meta["pipeline"]
+        # stage times only from frames that read the kernel history themselves (the
+        # others repeat the last reading: Pipeline timing_every)
+        if meta.get("stage_ms_frame", counter["frame"]) == counter["frame"]:
+            metas.append(meta)
 
     def untimed():  # the same frame without per-stage timing: what the timing costs
         counter["frame"] += 1

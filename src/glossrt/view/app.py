@@ -47,7 +47,7 @@ REFERENCE_MAX_SPP = 4096
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 #: seconds a client's camera reports are ignored after the viewer set its camera, unless it
 #: reports that camera back sooner (see Viewer._send_camera)
-SYNC_SECONDS = 3.0
+SYNC_SECONDS = 10.0
 
 #: GUI ranges of the numeric pipeline options (slider: min, max, step); others are numbers
 SLIDERS: dict[str, tuple[float, float, float]] = {
