@@ -210,7 +210,8 @@ def _sequence(setup, preset: str, choices: dict, frames: int) -> dict:
     from ..pipeline import LAYERS, Pipeline
 
     try:
-        pipe = Pipeline(setup, preset=preset, progress=False, **choices)
+        # every frame reads its own stage times (the default reads every 8th frame)
+        pipe = Pipeline(setup, preset=preset, progress=False, timing_every=1, **choices)
     except GlossrtError as e:
         return {"skipped": str(e)}
     colours, ms = [], []
