@@ -574,9 +574,16 @@ def cmd_experiment(args) -> int:
     if args.published is not None:
         _refuse_inputs_inside(args.out, [args.published], (".md", ".json", ".png", ".html"),
                               "experiment --out")
-    out = _writable_dir(args.out)
+    from . import cluster
+
+    spec = cluster.parse(args.cluster)  # a bad spec (or env GLOSSRT_CLUSTER) fails here
     run = {name: fn for name, _, fn in _experiments()}[args.which]
-    return run(out, size, args)
+    # one Ray connection for the whole run; an unreachable cluster fails before --out exists.
+    # The run reads it as args.cluster (glossrt.report.registry.experiment_cluster)
+    with cluster.connect(spec) as c:
+        out = _writable_dir(args.out)
+        args.cluster = c
+        return run(out, size, args)
 
 
 def cmd_light(args) -> int:
@@ -1047,6 +1054,11 @@ COMMANDS: tuple[Command, ...] = (
                 _arg("--published", default=None,
                      help="ltc: path to ltc_code's fit/results/ltc.js (Heitz et al.'s table, "
                           "not shipped) to score it the same way as glossrt's"),
+                _arg("--cluster", default=None, metavar="SPEC",
+                     help="render the converged references (denoisers, lobes, pipeline) as "
+                          "sample blocks and build the BSPVT trees (bspvt) by vertex chunks "
+                          "on Ray: local[:N], auto or ray://HOST:PORT; none = in this "
+                          "process as without it (default: env GLOSSRT_CLUSTER, else none)"),
             )),
     Command("compare", cmd_compare, "metrics of frames against references, per frame and mean",
             "glossrt compare out/cornell out/cornell-ref --json metrics.json", (

@@ -27,10 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import GlossrtError
 from ..report import DemoContext, Report, register_section
 from ..report.registry import (
     BenchContext,
     benchmark,
+    experiment_cluster,
     finish_experiment,
     markdown_table,
     register_experiment,
@@ -51,6 +53,27 @@ def _setup(alpha: float, size, density=DENSITIES["default"]):
     spec = polygon_light_scene(alpha, teapot_n=density[0], floor_n=density[1],
                                sphere_n=density[2])
     return scenes.from_spec(f"polygon-light-a{alpha:g}", spec, size=size)
+
+
+#: the built-in scene with the default density's geometry (the alpha changes materials only)
+_DEFAULT_SCENE = "polygon-light"
+
+
+def _trees(setup, resolution: int, epsilon: float, cluster=None):
+    """BSPVT trees of the default-density ``polygon-light`` ``setup``: in this process
+    (``cluster`` None), or by vertex chunks on ``cluster`` (issue 27: the chunk items load the
+    built-in :data:`_DEFAULT_SCENE` by name, whose vertices are checked to be ``setup``'s;
+    the same trees as the one-process build)."""
+    from ..lights.bspvt import build_scene_trees, scene_vertices
+
+    if cluster is None:
+        return build_scene_trees(setup.scene, resolution, epsilon, progress=False)
+    trees = build_scene_trees(_DEFAULT_SCENE, resolution, epsilon, progress=False,
+                              cluster=cluster)
+    if not np.array_equal(trees.positions, scene_vertices(setup.scene)[0].astype(np.float32)):
+        raise GlossrtError(f"{_DEFAULT_SCENE!r} does not have {setup.name}'s vertices: "
+                           "its trees cannot be built on a cluster by name")
+    return trees
 
 
 def _timed(fn):
@@ -117,12 +140,13 @@ class ShadowResults:
 
 def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
            epsilon: float = 0.0, ref_spp: int = 1024, ratio_spp: int = 4,
-           progress: Callable[[str], None] | None = None) -> ShadowResults:
+           progress: Callable[[str], None] | None = None, cluster=None) -> ShadowResults:
     """BSPVT, ratio estimator and unshadowed LTC against shadowed Monte Carlo (module
     docstring), ``frames`` of the moving light; trees built once per alpha (visibility does
-    not depend on the material: built once, shared)."""
+    not depend on the material: built once, shared). ``cluster``: the trees are built by
+    vertex chunks there (:func:`_trees`); None: in this process, as before."""
     from .. import render
-    from ..lights.bspvt import build_scene_trees, shade_bspvt
+    from ..lights.bspvt import shade_bspvt
     from ..lights.ltc import shade_frame
     from ..lights.mc import render_mc
     from ..lights.ratio import render_ratio
@@ -136,7 +160,7 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
         setup = _setup(a, size)
         if trees is None:
             say(f"building trees (R = {resolution}) ...")
-            trees = build_scene_trees(setup.scene, resolution, epsilon, progress=False)
+            trees = _trees(setup, resolution, epsilon, cluster)
         r = render.Renderer(setup)
         for fi in frames:
             say(f"alpha {a:g}, frame {fi}: references ({ref_spp} spp) and methods")
@@ -176,7 +200,10 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
 
 def table1(densities: dict | None = None, resolution: int = 64, epsilon: float = 0.0,
            progress: Callable[[str], None] | None = None) -> list[dict]:
-    """The paper's Table 1 for ``polygon-light`` at each density (module docstring)."""
+    """The paper's Table 1 for ``polygon-light`` at each density (module docstring). Always
+    built in this process, also under ``glossrt experiment --cluster``: the table is one
+    machine's precomputation time per vertex, and the coarse and fine meshes have no
+    built-in name a cluster's workers could load them by."""
     from ..lights.bspvt import build_scene_trees
 
     say = progress or (lambda _m: None)
@@ -315,7 +342,8 @@ def run_experiment(out, size, args) -> int:
     """Okuno & Iwasaki measurements (RESULTS.md): shadow error per alpha and light position
     for BSPVT per vertex / per pixel, the ratio estimator and unshadowed LTC, and Table 1."""
     spp, resolution = args.spp, args.resolution
-    res = images(size=size, ref_spp=spp, resolution=resolution, progress=print)
+    res = images(size=size, ref_spp=spp, resolution=resolution, progress=print,
+                 cluster=experiment_cluster(args))
     res.montage(out / "bspvt_images.png")
     rows = table1(resolution=resolution, progress=print)
     md = (f"## shadows vs Monte Carlo ({size[0]}x{size[1]}, {spp} spp, R = {resolution})\n\n"

@@ -52,6 +52,7 @@ from ..report import DemoContext, Report, register_section
 from ..report.registry import (
     BenchContext,
     benchmark,
+    experiment_cluster,
     finish_experiment,
     markdown_table,
     register_experiment,
@@ -92,9 +93,11 @@ SHARP_ALPHA, ROUGH_ALPHA = 0.02, 0.5
 # helpers
 
 
-def _render(scene: str, size: tuple[int, int], ref_spp: int):
-    """(setup, 1 spp frame 0, reference frame 0, seconds)."""
+def _render(scene: str, size: tuple[int, int], ref_spp: int, cluster=None):
+    """(setup, 1 spp frame 0, reference frame 0, seconds); the reference rendered on
+    ``cluster`` (:func:`glossrt.render.blocks.references`: None, in this process)."""
     from .. import render, scenes
+    from ..render import blocks
 
     if ref_spp < 1:
         raise GlossrtError(f"ref_spp must be >= 1, got {ref_spp}")
@@ -102,7 +105,8 @@ def _render(scene: str, size: tuple[int, int], ref_spp: int):
     setup = scenes.load(scene, size=tuple(size))
     r = render.Renderer(setup)
     frame = r.render(0)
-    ref = r.render_reference(0, spp=int(ref_spp))
+    ref = blocks.references(r, blocks.reference_job(scene, size), [0], int(ref_spp), cluster,
+                            desc=f"reference {scene} {ref_spp} spp")[0]
     return setup, frame, ref, time.perf_counter() - t0
 
 
@@ -217,16 +221,17 @@ def _filter_all(frame, target, t_render: float, methods: list, kw: dict, progres
 
 def fig4(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
          filter_kwargs: Mapping[str, Any] | None = None,
-         progress: Progress | None = None) -> Fig4Result:
+         progress: Progress | None = None, cluster=None) -> Fig4Result:
     """Tokuyoshi 2015, sec. 5.1 / fig. 4: denoise the ``indirect_specular`` of
     ``roughness-map`` frame 0 (``size`` = (W, H)) with the normal-aware, the screen-kernel and
     the lobe-aware weights at the paper's parameters (beta 20, kappa 100, sigma_n^2 0.01;
     glossrt's sigma_s 2, radius 6, k_s 1) and measure the MSE against a ``ref_spp`` reference.
 
     ``filter_kwargs``: extra :func:`~glossrt.denoise.bilateral` arguments for all three
-    filters (e.g. ``{"ndf_sharpness": 4.0}``). ``progress(done, total)`` after each filter."""
+    filters (e.g. ``{"ndf_sharpness": 4.0}``). ``progress(done, total)`` after each filter.
+    ``cluster``: where the reference is rendered (:func:`glossrt.render.blocks.references`)."""
     kw = dict(filter_kwargs or {})
-    setup, frame, ref, t_render = _render("roughness-map", size, ref_spp)
+    setup, frame, ref, t_render = _render("roughness-map", size, ref_spp, cluster)
     target = ref.numpy(CHANNEL)
     alpha = frame.numpy("roughness")[..., 0]
     hit = frame.numpy("mesh_id")[..., 0] > 0
@@ -315,15 +320,16 @@ class Fig5Result:
 
 def fig5(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
          filter_kwargs: Mapping[str, Any] | None = None,
-         progress: Progress | None = None) -> Fig5Result:
+         progress: Progress | None = None, cluster=None) -> Fig5Result:
     """Tokuyoshi 2015, sec. 5.1 / fig. 5: filter ``glossy-spheres`` frame 0 with one
     parameter set (the paper's: beta 20, kappa 100, sigma_n^2 0.01; glossrt's screen kernel)
     and measure the ``indirect_specular`` MSE on each sphere (Phong exponent 1000, 100, 10).
 
     ``filter_kwargs``: extra :func:`~glossrt.denoise.bilateral` arguments for every filter.
-    ``progress(done, total)`` after each filter."""
+    ``progress(done, total)`` after each filter. ``cluster``: where the reference is
+    rendered (:func:`glossrt.render.blocks.references`)."""
     kw = dict(filter_kwargs or {})
-    setup, frame, ref, t_render = _render("glossy-spheres", size, ref_spp)
+    setup, frame, ref, t_render = _render("glossy-spheres", size, ref_spp, cluster)
     spheres, masks = _spheres(setup, frame)
     target = ref.numpy(CHANNEL)
     methods = [m for m in FIG5_METHODS if m != "input"]
@@ -471,14 +477,15 @@ class Fig6Result:
 def fig6(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
          betas: Sequence[float] | np.ndarray = DEFAULT_BETAS,
          filter_kwargs: Mapping[str, Any] | None = None,
-         progress: Progress | None = None) -> Fig6Result:
+         progress: Progress | None = None, cluster=None) -> Fig6Result:
     """Tokuyoshi 2015, sec. 5.2 / fig. 6: on ``glossy-spheres`` frame 0, the MSE of each
     sphere's ``indirect_specular`` for the lobe weight at every ``beta`` in ``betas`` and for
     the normal weight at every ``1 / sigma_n^2`` in ``betas`` (the same values; end of sec.
     4.2: ``G(n_i, n_j, 1 / sigma_n^2)`` is the lobe weight of a diffuse lobe). The other
     parameters are the paper's (kappa 100) and glossrt's (sigma_s 2, radius 6), or
     ``filter_kwargs``. The scene is rendered once; ``progress(done, total)`` after each
-    filter run."""
+    filter run. ``cluster``: where the reference is rendered
+    (:func:`glossrt.render.blocks.references`)."""
     params = np.asarray(betas, dtype=np.float64).ravel()
     if params.size < 1 or not np.all(np.isfinite(params)) or np.any(params <= 0):
         raise GlossrtError("fig6: betas must be positive finite values (at least one)")
@@ -486,7 +493,7 @@ def fig6(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
     for swept in ("beta", "sigma_n2"):
         if swept in kw:
             raise GlossrtError(f"fig6: {swept!r} is swept; do not pass it in filter_kwargs")
-    setup, frame, ref, t_render = _render("glossy-spheres", size, ref_spp)
+    setup, frame, ref, t_render = _render("glossy-spheres", size, ref_spp, cluster)
     spheres, masks = _spheres(setup, frame)
     target = ref.numpy(CHANNEL)
     curves = {m: np.zeros((len(spheres), params.size)) for m in ("normal", "lobe")}
@@ -592,7 +599,7 @@ def bench_lobe_weights(ctx: BenchContext) -> dict:
                      "--spp)", order=20)
 def run_experiment(out, size, args) -> int:
     """Tokuyoshi 2015 figs. 4-6 analogues and the upsampling measurements (RESULTS.md)."""
-    spp = args.spp
+    spp, cluster = args.spp, experiment_cluster(args)
     if size[0] % 4 or size[1] % 4:
         raise GlossrtError(f"--size must be a multiple of 4 in both axes for the 1/4 "
                            f"upsampling, got {size[0]}x{size[1]}")
@@ -601,14 +608,14 @@ def run_experiment(out, size, args) -> int:
                       ("fig. 5 analogue (glossy-spheres)", fig5),
                       ("fig. 6 analogue (glossy-spheres)", fig6)):
         print(f"{title} ...", flush=True)
-        res = fn(size=size, ref_spp=spp)
+        res = fn(size=size, ref_spp=spp, cluster=cluster)
         parts.append(f"## {title}\n\n{res.markdown()}")
         if fn is fig6:
             res.plot(str(out / "fig6.png"))
     print("upsampling ...", flush=True)
-    up = ue.upsampling(size=size, ref_spp=spp, low_spp=spp)
+    up = ue.upsampling(size=size, ref_spp=spp, low_spp=spp, cluster=cluster)
     parts.append(f"## upsampling (roughness-map)\n\n{up.markdown()}")
     print("spatio-temporal upsampling ...", flush=True)
-    st = ue.spatio_temporal(size=size, ref_spp=spp)
+    st = ue.spatio_temporal(size=size, ref_spp=spp, cluster=cluster)
     parts.append(f"## spatio-temporal upsampling (glossy-cornell)\n\n{st.markdown()}")
     return finish_experiment(out, "lobes", "\n\n".join(parts), "fig6.png")

@@ -51,6 +51,7 @@ from ..report import DemoContext, Report, register_section
 from ..report.registry import (
     BenchContext,
     benchmark,
+    experiment_cluster,
     finish_experiment,
     markdown_table,
     register_experiment,
@@ -259,13 +260,15 @@ def check_args(size, spp: int, frames: int, scenes=SCENES, presets=PRESETS) -> N
 
 def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, presets=PRESETS,
              variants: bool = True, static: bool = True, choices: dict | None = None,
-             progress: Callable[[str], None] | None = None) -> PipelineResults:
+             progress: Callable[[str], None] | None = None, cluster=None) -> PipelineResults:
     """Every preset on every scene against the converged reference (module docstring).
     ``choices``: pipeline options applied to every run (e.g. a coarse ``bspvt_resolution``
     in tests); ``variants``: also the :data:`VARIANTS` rows on :data:`INTERACTION_SCENE`;
-    ``static``: also the runs without motion."""
+    ``static``: also the runs without motion. ``cluster``: where the references are
+    rendered (:func:`glossrt.render.blocks.references`: None, in this process as before)."""
     from .. import render
     from .. import scenes as scn
+    from ..render import blocks
 
     scenes, presets = tuple(scenes), tuple(presets)
     check_args(size, spp, frames, scenes, presets)
@@ -282,8 +285,11 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
                      else scn.load_static(scene, size=size))
             rend = render.Renderer(setup)
             say(f"{scene} ({'with' if motion else 'without'} motion): references, {spp} spp")
-            refs = [rend.render_reference(i, spp).numpy("color")
-                    for i in (range(frames) if motion else range(1))]
+            job = (blocks.reference_job(scene, size, frames=frames) if motion
+                   else blocks.reference_job(scene, size, static=True))
+            refs = [f.numpy("color") for f in blocks.references(
+                rend, job, range(frames) if motion else range(1), spp, cluster,
+                desc=f"references {scene} {spp} spp")]
             refs = refs if motion else refs * frames
             raw = [rend.render(i).numpy("color") for i in range(frames)]
             base = {"scene": scene, "motion": motion}
@@ -683,7 +689,7 @@ def run_experiment(out, size, args) -> int:
     pipeline.json and one montage per scene (pipeline_SCENE.png)."""
     check_args(size, args.spp, args.frames)
     res = evaluate(size=size, spp=args.spp, frames=args.frames,
-                   progress=lambda m: print(m, flush=True))
+                   progress=lambda m: print(m, flush=True), cluster=experiment_cluster(args))
     for scene in res.scenes:
         res.montage(out / f"pipeline_{scene}.png", scene)
     w, h = size

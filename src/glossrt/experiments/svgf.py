@@ -16,7 +16,12 @@ import numpy as np
 
 from .. import metrics
 from ..report import DemoContext, Report, register_section
-from ..report.registry import BenchContext, benchmark, register_experiment
+from ..report.registry import (
+    BenchContext,
+    benchmark,
+    experiment_cluster,
+    register_experiment,
+)
 from ..timing import paired_ratio, round_robin, steady_median, timed_eval
 
 DEFAULT_METHODS = ("svgf", "svgf-lobe", "svgf-spatial-variance", "atrous", "atrous-temporal",
@@ -89,9 +94,13 @@ def _run_sequence(method: str, frames: list) -> tuple[list, list[float]]:
 
 def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: int = 512,
               static_frames: int = 40, methods=DEFAULT_METHODS, scene: str = "glossy-cornell",
-              progress=None, sequence=None, references=None) -> DenoiserResults:
-    """Run the comparison; ``sequence``/``references`` may be passed in (e.g. by the demo)."""
+              progress=None, sequence=None, references=None,
+              cluster=None) -> DenoiserResults:
+    """Run the comparison; ``sequence``/``references`` may be passed in (e.g. by the demo).
+    ``cluster``: where the references are rendered (:func:`glossrt.render.blocks.references`:
+    None, in this process as before; else as sample blocks on that cluster)."""
     from .. import render, scenes
+    from ..render import blocks
 
     res = DenoiserResults(size=tuple(size), frames=frames, ref_spp=ref_spp,
                           methods=list(methods))
@@ -99,7 +108,9 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
         setup = scenes.load(scene, size=size, frames=frames)
         r = render.Renderer(setup)
         sequence = [r.render(i) for i in range(frames)]
-        references = [r.render_reference(i, ref_spp) for i in range(0, frames, ref_every)]
+        references = blocks.references(
+            r, blocks.reference_job(scene, size, frames=frames), range(0, frames, ref_every),
+            ref_spp, cluster, desc=f"references {scene} {ref_spp} spp")
     refs = {f.index: f for f in references}
     rs = render.Renderer(scenes.load_static(scene, size=size))
     static = [rs.render(i) for i in range(static_frames)]
@@ -222,7 +233,8 @@ def run_experiment(out, size, args) -> int:
     --frames, --ref-every, --spp and --static-frames; writes denoisers.md / .json and a
     report page."""
     res = denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
-                    ref_spp=args.spp, static_frames=args.static_frames)
+                    ref_spp=args.spp, static_frames=args.static_frames,
+                    cluster=experiment_cluster(args))
     md = res.markdown()
     (out / "denoisers.md").write_text(md + "\n")
     (out / "denoisers.json").write_text(json.dumps({

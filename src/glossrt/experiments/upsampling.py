@@ -60,12 +60,16 @@ class UpsamplingResults:
 def upsampling(size: tuple[int, int] = (192, 144), ref_spp: int = 256, low_spp: int = 256,
                factors: tuple[int, ...] = (2, 4), threshold: float = 0.05,
                resample_spp: int | None = None, scene: str = "roughness-map",
-               progress: Callable[[str], None] | None = None) -> UpsamplingResults:
+               progress: Callable[[str], None] | None = None,
+               cluster=None) -> UpsamplingResults:
     """Error (MSE of the indirect light against a ``ref_spp`` reference) and wall time of
     joint bilateral upsampling from each factor, normal vs lobe weights, and adaptive
-    re-sampling (``resample_spp`` samples per re-rendered pixel, default ``low_spp``)."""
+    re-sampling (``resample_spp`` samples per re-rendered pixel, default ``low_spp``).
+    ``cluster``: where the references (full and low resolution) are rendered
+    (:func:`glossrt.render.blocks.references`)."""
     from .. import render, scenes
     from ..denoise.upsampling import adaptive_resample, upsample
+    from ..render import blocks
 
     w, h = size
     for f in factors:
@@ -75,15 +79,18 @@ def upsampling(size: tuple[int, int] = (192, 144), ref_spp: int = 256, low_spp: 
     full_r = render.Renderer(scenes.load(scene, size=size))
     full = full_r.render(0)
     say(f"reference {w}x{h}, {ref_spp} spp")
-    ref = full_r.render_reference(0, spp=ref_spp)
+    ref = blocks.references(full_r, blocks.reference_job(scene, size), [0], ref_spp,
+                            cluster, desc=f"reference {scene} {ref_spp} spp")[0]
     tgt, rest = _indirect(ref), _rest(full)
     spec = ref.numpy("indirect_specular")
     res = UpsamplingResults(size, ref_spp, low_spp, threshold)
     res.images["reference (indirect)"] = tgt
     for f in factors:
         say(f"1/{f}: low-resolution reference {w // f}x{h // f}, {low_spp} spp")
-        low = render.Renderer(scenes.load(scene, size=(w // f, h // f))).render_reference(
-            0, spp=low_spp)
+        low_size = (w // f, h // f)
+        low = blocks.references(render.Renderer(scenes.load(scene, size=low_size)),
+                                blocks.reference_job(scene, low_size), [0], low_spp, cluster,
+                                desc=f"reference {scene} 1/{f} {low_spp} spp")[0]
         for weight in ("normal", "lobe"):
             dr.eval(upsample(full, low, weight=weight))  # warm the kernel cache
             times = []
@@ -141,21 +148,24 @@ class SpatioTemporalResults:
 def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames: int = 16,
                     ref_spp: int = 256, ref_frames: tuple[int, ...] = (7, 15),
                     scene: str = "glossy-cornell",
-                    progress: Callable[[str], None] | None = None) -> SpatioTemporalResults:
+                    progress: Callable[[str], None] | None = None,
+                    cluster=None) -> SpatioTemporalResults:
     """Spatial-only vs spatio-temporal upsampling of 1 spp, jittered low-resolution indirect
     light over an animated sequence (camera and object motion), MSE of the indirect light
-    against references at ``ref_frames``."""
+    against references at ``ref_frames`` (rendered on ``cluster``:
+    :func:`glossrt.render.blocks.references`)."""
     from .. import render, scenes
     from ..denoise.upsampling import SpatioTemporalUpsampler, jitter_sequence, upsample
+    from ..render import blocks
 
     w, h = size
     say = progress or (lambda _m: None)
     full_r = render.Renderer(scenes.load(scene, size=size))
     low_r = render.Renderer(scenes.load(scene, size=(w // factor, h // factor)))
-    refs = {}
-    for i in ref_frames:
-        say(f"reference frame {i}, {ref_spp} spp")
-        refs[i] = _indirect(full_r.render_reference(i, spp=ref_spp))
+    say(f"reference frames {list(ref_frames)}, {ref_spp} spp")
+    refs = {f.index: _indirect(f) for f in blocks.references(
+        full_r, blocks.reference_job(scene, size), ref_frames, ref_spp, cluster,
+        desc=f"references {scene} {ref_spp} spp")}
     res = SpatioTemporalResults(size, factor, frames, ref_spp, list(ref_frames))
     seq = [(full_r.render(i), low_r.render(i, jitter=jitter_sequence(factor, i)))
            for i in range(frames)]

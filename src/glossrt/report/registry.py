@@ -11,7 +11,9 @@
   :func:`benchmark` into :data:`BENCHMARKS`, run by :func:`registered_benchmarks` order.
 * Experiments (``glossrt experiment --which NAME``): ``fn(out, size, args) -> int``
   registered with :func:`register_experiment`; :func:`finish_experiment` writes their
-  Markdown (and JSON) results.
+  Markdown (and JSON) results. ``args.cluster`` is the run's one open Ray connection
+  (``glossrt experiment --cluster``, issue 27) or None; a run reads it with
+  :func:`experiment_cluster` and passes it to its references and builds.
 
 This module is a library below the experiments: it imports none of them.
 """
@@ -35,6 +37,7 @@ __all__ = [
     "SectionFn",
     "benchmark",
     "build_report",
+    "experiment_cluster",
     "finish_experiment",
     "markdown_table",
     "register_experiment",
@@ -230,6 +233,20 @@ def register_experiment(name: str, help: str, order: int = 100):
 def registered_experiments() -> list[tuple[str, str, ExperimentFn]]:
     """``(name, help, fn)`` of every registered experiment, in the order they are listed."""
     return [(e.name, e.help, e.fn) for e in sorted(_EXPERIMENTS.values(), key=lambda e: e.order)]
+
+
+def experiment_cluster(args):
+    """The cluster an experiment run's references and BSPVT builds go to: ``args.cluster``
+    (``glossrt experiment`` sets it to its open :class:`glossrt.cluster.Cluster`, or None),
+    a spec string checked with :func:`glossrt.cluster.parse` (``"none"``: None), or None
+    when ``args`` has no ``cluster`` (callers that predate the option). None: the
+    experiment's one-process path, unchanged."""
+    c = getattr(args, "cluster", None)
+    if isinstance(c, str):
+        from .. import cluster
+
+        return None if cluster.parse(c) is None else c
+    return c
 
 
 def finish_experiment(out: Path, stem: str, md: str, figure: str,
