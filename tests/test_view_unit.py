@@ -87,6 +87,9 @@ def test_camera_round_trip_through_a_look_at_matrix():
     assert abs(np.dot(back.up, fwd)) < 1e-5 and back.up[1] > 0.9
     assert back.close_to(vc.ViewerCamera(back.position, back.look_at, back.up, back.fov_y))
     assert not back.close_to(cam) and not back.close_to(None)
+    # the orbit point moved along the view axis: the same picture, the same camera
+    far = tuple(np.add(cam.position, 3.0 * np.subtract(cam.look_at, cam.position)))
+    assert cam.close_to(vc.ViewerCamera(cam.position, far, cam.up, cam.fov_y))
 
 
 def test_gizmo_matrix_rotates_about_the_light_centre():

@@ -525,8 +525,16 @@ class SpatioTemporalUpsampler:
         with no_gc():
             taps, inv_z = self._prepare(fch, lch, terms, static)
             for r in tile_starts(h, rows):
-                self._tile(fch, lch, terms, prev, taps, inv_z, out,
-                           dr.opaque(mi.UInt32, r * w), static)
+                start = dr.opaque(mi.UInt32, r * w)
+                values, img = self._tile(fch, lch, terms, prev, taps, inv_z, start, static)
+                # copied here, not inside the frozen call (see _temporal_tile)
+                idx = start + dr.arange(mi.UInt32, rows * w)
+                for dst, val in zip(out["history"], values, strict=True):
+                    dr.scatter(dst, val, idx)
+                for k in range(3):
+                    dr.scatter(out["image"], img[k], idx * 3 + k)
+                dr.eval(out)
+                del values, img
         del taps, inv_z
         hist = out["history"]
         k = 3 * len(channels)
@@ -572,7 +580,8 @@ def _temporal(fch, lch, terms, prev, static):
 # guides, the per-row sums of eq. 1, the interleaved history, the reprojection) came to
 # ~640 MB at 1920x1080. Large images therefore replay one recording per row tile of
 # ``rows x W`` pixels (the tile's first pixel an opaque input), writing the image and the
-# new history into full-size buffers; the per-frame low-resolution taps and the
+# new history into full-size buffers (copied there outside the frozen call, which would
+# copy a whole input buffer it scatters into); the per-frame low-resolution taps and the
 # full-resolution 1/z (whose neighbours the depth gradient reads) are computed once, before
 # the tiles. The last tile is moved up to end at the last row (overlapping the one before:
 # the same pixels get the same values), so every tile has one shape and one recording.
@@ -658,9 +667,12 @@ def _packed_taps(arrays: list, channels: tuple, use_lobe: bool) -> tuple:
     return packed, i_lobe, i_z
 
 
-def _temporal_tile(fch, lch, terms, prev, taps, inv_z_full, out, offset, static):
+def _temporal_tile(fch, lch, terms, prev, taps, inv_z_full, offset, static):
     """One row tile of :func:`_temporal` (the function :class:`SpatioTemporalUpsampler`
-    freezes for large images): the tile's image and new history scattered into ``out``."""
+    freezes for large images): the tile's new history values and image components (its
+    caller copies them into the full-size buffers, outside the frozen call: a frozen
+    function scattering into an input buffer copies the whole buffer first, measured with
+    drjit 1.5)."""
     import dataclasses
 
     from .common import gbuffer
@@ -687,7 +699,6 @@ def _temporal_tile(fch, lch, terms, prev, taps, inv_z_full, out, offset, static)
     dr.eval(blended, length)
     img = _compose(frame, channels, albedo_of, blended, hit)
     values = [c for bl in blended for c in bl] + [length, *gb.normal, gb.inv_z, gb.mesh]
-    for dst, val in zip(out["history"], values, strict=True):
-        dr.scatter(dst, val, grid.idx)
-    for k in range(3):
-        dr.scatter(out["image"], img[k], grid.idx * 3 + k)
+    img = [img[k] for k in range(3)]
+    dr.eval(values, img)
+    return values, img

@@ -533,6 +533,7 @@ class Pipeline:
         for layer in LAYERS:
             channels[layer] = ctx[layer]
         meta = dict(gb.meta)
+        meta.pop("omitted", None)  # (the G-buffer frame's: this frame has its own color)
         meta["pipeline"] = {
             "preset": self.preset,
             "choices": self.choices,

@@ -126,6 +126,15 @@ class ScaledSetup:
         return None if cam is None else dataclasses.replace(cam, resolution=self.size)
 
 
+#: what the G-buffer stage's frames leave out (:meth:`glossrt.render.Renderer.render`'s
+#: ``omit``): the path tracer's ``color`` (the pipeline's ``color`` is the composed image;
+#: the indirect stage sums the radiance channels it denoises itself)
+OMIT = ("color",)
+#: and the specaa stage's G-buffer pass (the filter reads the G-buffer alone; its
+#: ``direct_*`` and ``indirect_*`` are zero constants, path depth 1)
+GBUFFER_PASS_OMIT = ("emission", "color")
+
+
 class GBufferStage(Stage):
     """G-buffer plus 1 spp path tracing (:class:`glossrt.render.Renderer`), or with
     ``accumulate`` the running mean of converged estimates (``spp`` per frame) while the
@@ -141,6 +150,13 @@ class GBufferStage(Stage):
     :func:`glossrt.denoise.upsampling.jitter_sequence` (recorded in ``meta["jitter"]``,
     where the upsamplers put the samples), a cycle over the ``scale^2`` full-resolution
     pixel centres of a low-resolution pixel.
+
+    Memory (issue 25): the frames hold no buffer for the channels that are 0 by
+    construction (:meth:`glossrt.render.Renderer.zero_channels`: the full-resolution
+    ``indirect_*`` at path depth 2, ``direct_*`` when every emitter is excluded, as in the
+    low-resolution frame; zero constants instead) nor for the path tracer's ``color``
+    (:data:`OMIT`); frames of more than ``Renderer.tile_pixels`` pixels are traced in row
+    tiles.
 
     ``specaa`` (set by the pipeline: its :class:`SpecAAStage`): when that stage filters,
     the frame is traced in two passes so that the path tracer's primary hit sees the
@@ -191,8 +207,8 @@ class GBufferStage(Stage):
         self._passes = 0
 
     def frozen(self) -> list:
-        low = [self.low._trace_frozen] if self.low is not None else []
-        return [self.renderer._trace_frozen] + low
+        low = self.low.frozen_functions() if self.low is not None else []
+        return self.renderer.frozen_functions() + low
 
     def _filtered_roughness(self, index: int):
         """The specaa stage's filtered roughness of frame ``index`` from a G-buffer pass
@@ -200,7 +216,7 @@ class GBufferStage(Stage):
         spec = self.specaa
         if spec is None or not spec.filters:
             return None
-        return spec.filter(self.renderer.render_gbuffer(index))
+        return spec.filter(self.renderer.render_gbuffer(index, omit=GBUFFER_PASS_OMIT))
 
     def run(self, index: int, ctx: dict) -> dict:
         alpha = self._filtered_roughness(index)
@@ -209,14 +225,14 @@ class GBufferStage(Stage):
 
             # the motion vectors' previous pose, when the pipeline sets one (explicit posing)
             self.low.previous_pose = getattr(self.renderer, "previous_pose", None)
-            f = self.renderer.render(index, roughness=alpha)
+            f = self.renderer.render(index, roughness=alpha, omit=OMIT)
             jit = jitter_sequence(self.scale, index)
             low_alpha = None
             if alpha is not None:  # the full-resolution pixel each low sample lands on
                 k = index % (self.scale * self.scale)
                 i, j = k % self.scale, k // self.scale
                 low_alpha = alpha[j::self.scale, i::self.scale]
-            low = self.low.render(index, jitter=jit, roughness=low_alpha)
+            low = self.low.render(index, jitter=jit, roughness=low_alpha, omit=OMIT)
             # the full frame's light: emission and direct from it, the indirect light from
             # the low-resolution frame (the indirect stage upsamples it)
             f.meta["max_depth"] = low.meta["max_depth"]
@@ -224,7 +240,7 @@ class GBufferStage(Stage):
             f.meta["indirect_scale"] = self.scale
             return {"frame": f, "frame_low": low}
         if not self.accumulate:
-            return {"frame": self.renderer.render(index, roughness=alpha)}
+            return {"frame": self.renderer.render(index, roughness=alpha, omit=OMIT)}
         pose = index if self.setup.animated else 0
         if pose != self._pose:
             self.reset()

@@ -33,6 +33,7 @@ from .pathtracer import (
     UNBOUNDED_DEPTH,
     EmitterTable,
     ShapeTable,
+    pixel_channels,
     resolve_max_depth,
     trace_pixels,
 )
@@ -49,6 +50,14 @@ PIXELS_SALT = 0xADA9
 DEFAULT_MAX_DEPTH = 3
 #: lanes per launch when rendering references (pixels x samples)
 MAX_LANES = 1 << 21
+#: pixels per row tile of a frozen full frame (:meth:`Renderer.render`), rounded down to
+#: whole rows: larger frames replay one recording per row tile (see "row tiles" below). The
+#: value of the spatio-temporal upsampler's ``PIXELS_PER_TILE``: 320x180 and 640x360 run
+#: untiled, 1920x1080 in 8 tiles of 136 rows.
+TILE_PIXELS = 1 << 18
+#: radiance channels of the frame (besides ``emission``), by the path's part
+DIRECT_OUT = ("direct_diffuse", "direct_specular")
+INDIRECT_OUT = ("indirect_diffuse", "indirect_specular")
 
 
 def _flat(value):
@@ -68,7 +77,7 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
 
 
 def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
-           max_depth, jitter, normal_maps, primary, roughness=None, lobe_key=None):
+           max_depth, jitter, normal_maps, primary, roughness=None, lobe_key=None, skip=()):
     # ``normal_maps`` (= shapes.any_normal_map, which gbuffer() reads) is only a key of the
     # frozen function: a Python attribute of the ShapeTable is not part of dr.freeze's key.
     # ``primary``: None (one recording) or the primary-hit EmitterTable (another one; a new
@@ -76,9 +85,52 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
     # ``roughness``: None (one recording) or the per-pixel alpha of the primary hit's rough
     # lobes (another one, replayed with each frame's values); ``lobe_key``
     # (= shapes.lobe_key, which PrimaryLobe reads) is only a key, like ``normal_maps``
+    # ``skip``: radiance channels not written (a key too)
     out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
-                       height, max_depth, jitter, primary, roughness)
+                       height, max_depth, jitter, primary, roughness, skip)
     return {k: _flat(v) for k, v in out.items()}
+
+
+# -- row tiles of a frozen full frame -------------------------------------------------------
+#
+# A frozen replay (dr.freeze, Dr.Jit 1.5) keeps every intermediate buffer of the recorded
+# function until the call returns: the whole frame's path-tracing state and, for the
+# interleaved outputs (:func:`_flat`), a second copy of every channel. Frames of more than
+# :attr:`Renderer.tile_pixels` pixels therefore replay one recording per row tile of
+# ``rows x W`` pixels (the tile's first pixel an opaque input), whose channels are then
+# copied into full-size interleaved buffers outside the frozen call (new each frame: a
+# frozen function that scatters into an input buffer copies the whole buffer first,
+# measured with drjit 1.5: a 64 MiB buffer held 128 MiB over three such calls). The last
+# tile is moved up to end at the last row (overlapping the one before: the same pixels get
+# the same values, each pixel's random numbers depending on its index and the frame's seed
+# only), so every tile has one shape and one recording; its non-finite count only counts
+# the rows no earlier tile wrote. The pattern of glossrt.denoise.upsampling's row tiles.
+
+
+def tile_rows(width: int, height: int, pixels: int = TILE_PIXELS) -> int:
+    """Rows per tile of a ``width x height`` image (``height``: untiled)."""
+    return int(min(height, max(1, pixels // max(width, 1))))
+
+
+def tile_starts(height: int, rows: int) -> list[int]:
+    """First row of each tile; the last tile ends at the last row (equal shapes)."""
+    return [min(r, height - rows) for r in range(0, height, rows)]
+
+
+def _trace_tile(scene, sensor, shapes, emitters, table, motion_inputs, offset, count_from,
+                rows, seed, width, height, max_depth, jitter, normal_maps, primary,
+                roughness, lobe_key, skip):
+    # one row tile of a frame (the pixels offset .. offset + rows * width - 1; ``offset`` and
+    # ``count_from`` opaque, the rest as :func:`_trace`'s keys): its channels (interleaved
+    # flat arrays of the tile) and its non-finite count
+    n = rows * width
+    pixel = offset + dr.arange(mi.UInt32, n)
+    out, bad = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs, pixel,
+                              seed, width, height, max_depth, jitter, primary, roughness, skip)
+    bad = dr.select(pixel >= count_from, bad, 0)  # (the last tile's rows written before)
+    out = {k: _flat(v) for k, v in out.items()}
+    dr.eval(out, bad)
+    return out, dr.sum(bad)
 
 
 def _new_frozen_trace():
@@ -90,6 +142,16 @@ def _new_frozen_trace():
     scripts/run-tests.sh reran). A Renderer keeps one scene, so its recordings only ever
     replay with that scene."""
     return dr.freeze(_trace, warn_after=64)
+
+
+def _new_frozen_tile():
+    """A frozen :func:`_trace_tile` of its own for each :class:`Renderer` (as
+    :func:`_new_frozen_trace`). It records twice, on the first frame's first two tiles
+    (measured, drjit 1.5: ``auto_opaque`` keeps the first call's literal inputs in its key
+    and records again making those that changed opaque; with ``auto_opaque=False`` the
+    renderer's literals were made opaque in place, which made this renderer and the others
+    on the same scene record again on the next frame), then replays."""
+    return dr.freeze(_trace_tile, warn_after=64)
 
 
 def _warm_emitters(scene: mi.Scene) -> None:
@@ -172,7 +234,13 @@ class Renderer:
     (at most), a set used before replays its recording."""
 
     def __init__(self, setup: SceneSetup, max_depth: int | None = None, seed: int = 0,
-                 frozen: bool = True, primary_exclude: Collection[int] = ()):
+                 frozen: bool = True, primary_exclude: Collection[int] = (),
+                 tile_pixels: int = TILE_PIXELS):
+        if isinstance(tile_pixels, bool) or not isinstance(tile_pixels, (int, np.integer)) \
+                or tile_pixels < 1:
+            raise GlossrtError(f"tile_pixels must be a positive integer, got {tile_pixels!r}")
+        #: frozen frames of more pixels than this run in row tiles (:data:`TILE_PIXELS`)
+        self.tile_pixels = int(tile_pixels)
         self.setup = setup
         if max_depth is not None:
             md, self.max_depth_from = max_depth, "argument"
@@ -187,6 +255,7 @@ class Renderer:
         self.seed = seed
         self.frozen = frozen
         self._trace_frozen = _new_frozen_trace()  # recordings never shared across scenes
+        self._tile_frozen = _new_frozen_tile()
         self.shapes = ShapeTable(setup.scene)
         #: emitters in a load-independent order for next-event estimation (reproducible noise)
         self.emitters = EmitterTable(setup.scene)
@@ -221,6 +290,30 @@ class Renderer:
         self._exclude = exclude
 
     # -- low level ---------------------------------------------------------------------
+    def frozen_functions(self) -> list:
+        """The ``dr.freeze`` function this renderer's frames replay (the whole-frame trace,
+        or the row tiles' one above :attr:`tile_pixels` pixels), to count its recordings."""
+        if self.width * self.height > self.tile_pixels:
+            return [self._tile_frozen]
+        return [self._trace_frozen]
+
+    def zero_channels(self, max_depth: int | None = None) -> tuple[str, ...]:
+        """The radiance channels that are 0 by construction in a frame of path depth
+        ``max_depth`` (Mitsuba's convention; default the renderer's) with the current
+        :attr:`primary_exclude`: ``indirect_*`` at depth 2 or less (the path ends after
+        the primary vertex's next-event estimation and BSDF-sampled emitter hit:
+        :func:`~glossrt.render.pathtracer.shade` adds nothing to them), ``direct_*`` at
+        depth 1 (no light sampled) or when every emitter is excluded at the primary hit.
+        :meth:`render` writes no buffer for them: its frame holds one zero constant
+        (``dr.zeros``, no memory until it is read out) per such channel."""
+        md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
+        out = []
+        if md <= 1 or (self._emitter_ids and len(self._exclude) == len(self._emitter_ids)):
+            out += DIRECT_OUT
+        if md <= 2:
+            out += INDIRECT_OUT
+        return tuple(out)
+
     @property
     def mitsuba_max_depth(self) -> int:
         """``max_depth`` in Mitsuba's convention (-1: no limit)."""
@@ -275,13 +368,14 @@ class Renderer:
     def trace(self, frame: int, pixel: mi.UInt32, seed: mi.UInt32,
               frozen: bool | None = None, jitter: tuple[float, float] = (0.0, 0.0),
               jitter_limit: float = 0.5, roughness=None,
-              max_depth: int | None = None) -> dict:
+              max_depth: int | None = None, skip: tuple[str, ...] = ()) -> dict:
         """Poses ``frame`` and returns every channel (interleaved flat arrays) for the pixel
         indices ``pixel`` with per-lane (or one opaque) seed; primary rays pass through
         pixel centre + ``jitter`` (pixels, within ``[-jitter_limit, jitter_limit)``).
         ``roughness``: the primary hit's per-pixel alpha (see :meth:`render`), an opaque
         input of the frozen trace; ``max_depth``: this call's path depth (default the
-        renderer's; 1: G-buffer and emission only)."""
+        renderer's; 1: G-buffer and emission only); ``skip``: radiance channels left
+        out (a key of the frozen trace)."""
         roughness = self._roughness(roughness)
         md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
         self.setup.set_frame(frame)
@@ -296,7 +390,7 @@ class Renderer:
             out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
                      self._motion_inputs(frame), pixel, seed, self.width, self.height,
                      md, offset, self.shapes.any_normal_map, self._primary, roughness,
-                     self.shapes.lobe_key if roughness is not None else None)
+                     self.shapes.lobe_key if roughness is not None else None, tuple(skip))
             dr.eval(out)
         return out
 
@@ -334,7 +428,7 @@ class Renderer:
     # -- frames --------------------------------------------------------------------------
     def render(self, frame: int, seed: int | None = None,
                jitter: tuple[float, float] = (0.0, 0.0), jitter_limit: float = 0.5,
-               roughness=None) -> Frame:
+               roughness=None, omit: Collection[str] = ()) -> Frame:
         """The 1 spp Frame ``frame`` (G-buffer, separated radiance, motion vectors).
         ``jitter``: sub-pixel offset (x, y) of every primary ray from its pixel centre, in
         pixels within [-0.5, 0.5) (e.g. for spatio-temporal upsampling); recorded in
@@ -351,37 +445,113 @@ class Renderer:
         roughness of :mod:`glossrt.specaa`), so environment maps and path-traced light see
         it. An opaque input: frames with new values replay the frozen trace. The G-buffer's
         ``roughness`` stays the material's; ``meta["primary_roughness"]`` says
-        ``"override"``."""
-        w, h = self.width, self.height
+        ``"override"``.
+
+        ``omit``: radiance channels (of ``emission``, ``direct_*``, ``indirect_*``,
+        ``color``) the caller does not read: not written, and absent from the frame
+        (``meta["omitted"]`` lists them). Channels that are 0 by construction
+        (:meth:`zero_channels`) are not written either; the frame holds a zero constant for
+        each. Frozen frames of more than :attr:`tile_pixels` pixels are traced in row tiles
+        (the same values)."""
         t0 = time.perf_counter()
-        s = frame_seed(frame, self.seed if seed is None else seed)
-        out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
-                         jitter=jitter, jitter_limit=jitter_limit, roughness=roughness)
-        bad = int(out.pop("nonfinite")[0])
-        channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
+        channels, bad = self._trace_frame(frame, self.seed if seed is None else seed, jitter,
+                                          jitter_limit, roughness, None, omit)
         f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
+        if omit:
+            f.meta["omitted"] = sorted(set(omit))
         if tuple(jitter) != (0.0, 0.0):
             f.meta["jitter"] = [float(jitter[0]), float(jitter[1])]
         if roughness is not None:
             f.meta["primary_roughness"] = "override"
         return f
 
-    def render_gbuffer(self, frame: int) -> Frame:
+    def render_gbuffer(self, frame: int, omit: Collection[str] = ()) -> Frame:
         """The G-buffer of frame ``frame`` alone (path depth 1: every G-buffer channel and
         the motion vectors exactly as :meth:`render` gives them, the emission seen by the
         camera, no other light): a cheap first pass whose G-buffer a per-pixel roughness
         (specular antialiasing) is computed from before :meth:`render` traces the light
-        with it. Frozen like :meth:`render` (its own recording)."""
-        w, h = self.width, self.height
+        with it. Frozen like :meth:`render` (its own recording). Its ``direct_*`` and
+        ``indirect_*`` are zero constants (:meth:`zero_channels`); ``omit`` as
+        :meth:`render`'s."""
         t0 = time.perf_counter()
-        s = frame_seed(frame, self.seed)
-        out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
-                         max_depth=1)
-        bad = int(out.pop("nonfinite")[0])
-        channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
+        channels, bad = self._trace_frame(frame, self.seed, (0.0, 0.0), 0.5, None, 1, omit)
         f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
         f.meta["max_depth"] = 1
+        if omit:
+            f.meta["omitted"] = sorted(set(omit))
         return f
+
+    def _trace_frame(self, frame: int, seed: int, jitter, jitter_limit, roughness,
+                     max_depth: int | None, omit: Collection[str]) -> tuple[dict, int]:
+        """The whole frame's channels (``(H, W, C)`` tensors) and its non-finite count:
+        :meth:`trace` of every pixel, or its row tiles (frozen, more than
+        :attr:`tile_pixels` pixels); the zero channels as constants, ``omit`` left out."""
+        if isinstance(omit, (str, bytes)) or not isinstance(omit, Collection):
+            raise GlossrtError(f"omit must be a collection of channel names, got {omit!r}")
+        names = RADIANCE_OUT + ("color",)
+        for k in omit:
+            if k not in names:
+                raise GlossrtError(f"omit: {k!r} is not a radiance channel; choose from "
+                                   f"{', '.join(names)}")
+        w, h = self.width, self.height
+        zero = tuple(k for k in self.zero_channels(max_depth) if k not in omit)
+        skip = tuple(k for k in names if k in zero or k in omit)
+        s = frame_seed(frame, seed)
+        frozen = self.frozen
+        if not frozen or w * h <= self.tile_pixels:
+            out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
+                             jitter=jitter, jitter_limit=jitter_limit, roughness=roughness,
+                             max_depth=max_depth, skip=skip)
+            bad = int(out.pop("nonfinite")[0])
+        else:
+            out, bad = self._trace_tiles(frame, s, jitter, jitter_limit, roughness, max_depth,
+                                         skip)
+        channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
+        for k in zero:
+            channels[k] = dr.zeros(mi.TensorXf, (h, w, 3))
+        # the schema's order (readers list the channels as a frame holds them)
+        order = {k: i for i, k in enumerate(GBUFFER_OUT[:-1] + names + ("motion",))}
+        channels = dict(sorted(channels.items(), key=lambda kv: order.get(kv[0], len(order))))
+        return channels, bad
+
+    def _trace_tiles(self, frame: int, s: int, jitter, jitter_limit, roughness,
+                     max_depth: int | None, skip: tuple[str, ...]) -> tuple[dict, int]:
+        """The frozen frame in row tiles (see "row tiles of a frozen full frame"): flat
+        interleaved channels and the non-finite count."""
+        roughness = self._roughness(roughness)
+        md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
+        self.setup.set_frame(frame)
+        jx, jy = _check_jitter(jitter, jitter_limit)
+        offset = (None if (jx, jy) == (0.0, 0.0)
+                  else mi.Point2f(dr.opaque(mi.Float, jx), dr.opaque(mi.Float, jy)))
+        w, h = self.width, self.height
+        rows = tile_rows(w, h, self.tile_pixels)
+        names = [k for k in GBUFFER_OUT + RADIANCE_OUT + ("color",) if k not in skip]
+        buffers = {k: dr.empty(mi.Float, w * h * COMPONENTS.get(k, 3)) for k in names}
+        dr.eval(buffers)
+        seed = dr.opaque(mi.UInt32, s)
+        motion_inputs = self._motion_inputs(frame)
+        bad = []
+        done = 0  # rows written by the tiles so far
+        with no_gc():
+            for r in tile_starts(h, rows):
+                tile, count = self._tile_frozen(
+                    self.setup.scene, self.setup.sensor, self.shapes, self.emitters,
+                    self.table, motion_inputs, dr.opaque(mi.UInt32, r * w),
+                    dr.opaque(mi.UInt32, done * w), rows, seed, w, h, md, offset,
+                    self.shapes.any_normal_map, self._primary, roughness,
+                    self.shapes.lobe_key if roughness is not None else None, skip)
+                bad.append(count)
+                start = dr.opaque(mi.UInt32, r * w)  # (one copy kernel per width, any tile)
+                for k, v in tile.items():
+                    c = COMPONENTS.get(k, 3)
+                    dr.scatter(buffers[k], v, start * c + dr.arange(mi.UInt32, rows * w * c))
+                dr.eval(buffers)
+                del tile
+                done = r + rows
+            total = sum(bad[1:], bad[0])
+            dr.eval(total)
+        return buffers, int(total[0])
 
     def render_reference(self, frame: int, spp: int, seed: int | None = None,
                          progress: Callable[[int, int], None] | None = None,

@@ -851,9 +851,11 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  seed: mi.UInt32, width: int, height: int, max_depth: int,
                  jitter: mi.Point2f | None = None,
                  primary: EmitterTable | None = None,
-                 roughness: mi.Float | None = None) -> dict:
+                 roughness: mi.Float | None = None, skip: tuple[str, ...] = ()) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
+    ``skip``: radiance channels (of :data:`RADIANCE_OUT` and ``color``) left out of the
+    result, so that the kernel writes no buffer for them (:func:`pixel_channels`).
     ``jitter`` (pixels, in [-0.5, 0.5), or wider by ``Renderer.render``'s ``jitter_limit``)
     moves every primary ray off the pixel centre; the ``motion`` channel stays that of the
     pixel centre (docs/FORMATS.md: where the surface point seen through the pixel centre was
@@ -863,6 +865,24 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     ``roughness``: a microfacet alpha per *pixel* (flat, ``width * height``, read at each
     lane's ``pixel``) for the rough lobes of the primary hit (:func:`shade`'s ``alpha0``);
     the G-buffer keeps the material's roughness."""
+    out, bad = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs, pixel,
+                              seed, width, height, max_depth, jitter, primary, roughness, skip)
+    # one kernel for everything (a reduction first would re-run the path tracing for it)
+    dr.eval(out, bad)
+    out["nonfinite"] = dr.sum(bad)
+    return out
+
+
+def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
+                   emitters: EmitterTable, table, motion_inputs, pixel: mi.UInt32,
+                   seed: mi.UInt32, width: int, height: int, max_depth: int,
+                   jitter: mi.Point2f | None = None, primary: EmitterTable | None = None,
+                   roughness: mi.Float | None = None,
+                   skip: tuple[str, ...] = ()) -> tuple[dict, mi.UInt32]:
+    """:func:`trace_pixels`' channels, not evaluated, and the per-lane count of non-finite
+    radiance values. A skipped channel is still computed and counted (and summed into
+    ``color``): only its output is dropped, so the other channels and the count are those
+    of the full set (the same arithmetic)."""
     from .motion import motion
 
     xc = mi.Float(pixel % width) + 0.5
@@ -884,9 +904,11 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
         for c in range(3):
             bad += dr.select(ok[c], 0, 1)
         v = dr.select(ok, v, 0.0)
-        out[name] = v
+        if name not in skip:
+            out[name] = v
         color += v
-    out["color"] = color
+    if "color" not in skip:
+        out["color"] = color
     if jitter is None:
         ray_c, si_c, mesh_c = ray, r.si, mi.UInt32(out["mesh_id"])
     else:  # the pixel centre's own primary hit
@@ -900,7 +922,4 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                          mi.Vector3f(ray_c.o + ray_c.d * 1e6))
     out["motion"] = motion(p_motion, mesh_c, mi.Bool(True), mi.Point2f(xc, yc),
                            motion_inputs)
-    # one kernel for everything (a reduction first would re-run the path tracing for it)
-    dr.eval(out, bad)
-    out["nonfinite"] = dr.sum(bad)
-    return out
+    return out, bad

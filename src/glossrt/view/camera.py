@@ -32,10 +32,21 @@ class ViewerCamera:
         the positions): an echo of a camera the viewer itself sent."""
         if other is None:
             return False
-        a = np.concatenate([self.position, self.look_at, self.up, [self.fov_y]])
-        b = np.concatenate([other.position, other.look_at, other.up, [other.fov_y]])
-        scale = max(1.0, float(np.abs(a).max()))
-        return bool(np.all(np.abs(a - b) <= tol * scale))
+
+        def pose(c: ViewerCamera) -> tuple[np.ndarray, np.ndarray]:
+            # what the rendered image depends on: position, view direction, up, fov (not how
+            # far along the view axis the orbit point lies: clients move it)
+            p = np.asarray(c.position, np.float64)
+            d = np.asarray(c.look_at, np.float64) - p
+            d /= max(float(np.linalg.norm(d)), 1e-300)
+            u = np.asarray(c.up, np.float64)
+            u /= max(float(np.linalg.norm(u)), 1e-300)
+            return p, np.concatenate([d, u, [c.fov_y]])
+
+        pa, ra = pose(self)
+        pb, rb = pose(other)
+        scale = max(1.0, float(np.abs(pa).max()))
+        return bool(np.all(np.abs(pa - pb) <= tol * scale) and np.all(np.abs(ra - rb) <= tol))
 
 
 def fov_x_degrees(fov_y: float, size: tuple[int, int]) -> float:
