@@ -100,3 +100,19 @@ def check_frame(frame, names) -> None:
         if tuple(frame[n].shape[:2]) != (h, w):
             raise FrameError(f"{frame.where}: channel {n!r} has size {frame[n].shape[:2]}, "
                              f"expected {(h, w)}")
+
+
+#: pixels per row tile of the frozen full-resolution passes that run in tiles (the G-buffer
+#: trace, glossrt.render; the spatio-temporal upsampler, glossrt.denoise.upsampling): 2^18,
+#: so 320x180 and 640x360 run untiled, 1920x1080 in 8 tiles (docs/PERFORMANCE.md, memory)
+TILE_PIXELS = 1 << 18
+
+
+def tile_rows(width: int, height: int, pixels: int = TILE_PIXELS) -> int:
+    """Rows per tile of a ``width x height`` image (``height``: untiled)."""
+    return int(min(height, max(1, pixels // max(width, 1))))
+
+
+def tile_starts(height: int, rows: int) -> list[int]:
+    """First row of each tile; the last tile ends at the last row (equal shapes)."""
+    return [min(r, height - rows) for r in range(0, height, rows)]

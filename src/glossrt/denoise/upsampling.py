@@ -65,6 +65,7 @@ from ..backend import mi
 from ..brdf.sg import lobe_to_sg, smoothed_sharpness
 from ..errors import FrameError, GlossrtError
 from ..frame import RADIANCE
+from ..images import TILE_PIXELS, tile_rows, tile_starts
 from ..jit import exp_weight, no_gc, opaque
 from .bilateral import BETA, KAPPA, SIGMA_N2, SIGMA_Z2
 from .common import (
@@ -101,7 +102,7 @@ THRESHOLD = 0.05
 #: rows. Measured on 2 CPU cores at 1920x1080, ``full`` on polygon-light (see the report /
 #: docs/PERFORMANCE.md): the transient of the upsampler's frozen call scales with the
 #: tile's pixels (~300 bytes per pixel).
-PIXELS_PER_TILE = 1 << 18
+PIXELS_PER_TILE = TILE_PIXELS
 #: guide weights are floored at this fraction of the spatial weight (the spatial fallback)
 _FLOOR = 1e-6
 
@@ -597,16 +598,6 @@ class _TileGrid(Grid):
         self.idx = offset + dr.arange(mi.UInt32, n)
         self.x = mi.Int32(self.idx % w)
         self.y = mi.Int32(self.idx // w)
-
-
-def tile_rows(width: int, height: int, pixels: int = PIXELS_PER_TILE) -> int:
-    """Rows per tile of a ``width x height`` image (``height``: untiled)."""
-    return int(min(height, max(1, pixels // max(width, 1))))
-
-
-def tile_starts(height: int, rows: int) -> list[int]:
-    """First row of each tile; the last tile ends at the last row (equal shapes)."""
-    return [min(r, height - rows) for r in range(0, height, rows)]
 
 
 def _tile_channels(fch: dict, idx: mi.UInt32, rows: int, w: int) -> dict:

@@ -23,6 +23,7 @@ from ..backend import mi
 from ..brdf.ggx import SpecularAlbedoTable
 from ..errors import GlossrtError
 from ..frame import Frame
+from ..images import TILE_PIXELS, tile_rows, tile_starts
 from ..jit import no_gc
 from ..scenes import SceneSetup, _registry_id, emitter_kind, stable_emitters, stable_shapes
 from . import integrator as _integrator  # noqa: F401  (registers "glossrt" per variant)
@@ -50,11 +51,9 @@ PIXELS_SALT = 0xADA9
 DEFAULT_MAX_DEPTH = 3
 #: lanes per launch when rendering references (pixels x samples)
 MAX_LANES = 1 << 21
-#: pixels per row tile of a frozen full frame (:meth:`Renderer.render`), rounded down to
-#: whole rows: larger frames replay one recording per row tile (see "row tiles" below). The
-#: value of the spatio-temporal upsampler's ``PIXELS_PER_TILE``: 320x180 and 640x360 run
-#: untiled, 1920x1080 in 8 tiles of 136 rows.
-TILE_PIXELS = 1 << 18
+# pixels per row tile of a frozen full frame (:meth:`Renderer.render`): images.TILE_PIXELS,
+# rounded down to whole rows; larger frames replay one recording per row tile (see "row
+# tiles" below): 320x180 and 640x360 run untiled, 1920x1080 in 8 tiles of 136 rows
 #: radiance channels of the frame (besides ``emission``), by the path's part
 DIRECT_OUT = ("direct_diffuse", "direct_specular")
 INDIRECT_OUT = ("indirect_diffuse", "indirect_specular")
@@ -105,16 +104,6 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
 # the same values, each pixel's random numbers depending on its index and the frame's seed
 # only), so every tile has one shape and one recording; its non-finite count only counts
 # the rows no earlier tile wrote. The pattern of glossrt.denoise.upsampling's row tiles.
-
-
-def tile_rows(width: int, height: int, pixels: int = TILE_PIXELS) -> int:
-    """Rows per tile of a ``width x height`` image (``height``: untiled)."""
-    return int(min(height, max(1, pixels // max(width, 1))))
-
-
-def tile_starts(height: int, rows: int) -> list[int]:
-    """First row of each tile; the last tile ends at the last row (equal shapes)."""
-    return [min(r, height - rows) for r in range(0, height, rows)]
 
 
 def _trace_tile(scene, sensor, shapes, emitters, table, motion_inputs, offset, count_from,

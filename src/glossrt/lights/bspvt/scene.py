@@ -219,27 +219,11 @@ def _pixel_triangles(scene: mi.Scene, frame, meshes: list, offsets) -> tuple:
     p = mi.Point3f(*split(frame["position"]))
     hit = split(frame["mesh_id"])[0] > 0
     o = mi.Point3f(*opaque(frame.camera.position))
-    d = p - o
-    dist = dr.norm(d)
-    ray = mi.Ray3f(o, d / dr.maximum(dist, 1e-12))
-    ray.maxt = dist * 1.01 + 1e-4
-    pi = scene.ray_intersect_preliminary(ray, active=hit)
-    shape_id = dr.reinterpret_array(mi.UInt32, pi.shape)
-    width = dr.width(hit)
-    verts = [dr.zeros(mi.UInt32, width) for _ in range(3)]
-    valid = dr.zeros(mi.Bool, width)
-    for mesh, off in zip(meshes, offsets, strict=True):
-        sel = hit & (shape_id == _registry_id(mi.ShapePtr, mesh)) & (
-            pi.prim_index < mesh.face_count())
-        faces = mesh.faces_buffer()
-        for j in range(3):
-            v = dr.gather(mi.UInt32, faces, pi.prim_index * 3 + j, sel) + int(off)
-            verts[j] = dr.select(sel, v, verts[j])
-        valid |= sel
-    # missed rays carry undefined (possibly non-finite) prim_uv: zero them before use
-    b1 = dr.select(valid, pi.prim_uv.x, 0.0)
-    b2 = dr.select(valid, pi.prim_uv.y, 0.0)
-    return verts, [dr.select(valid, 1.0 - b1 - b2, 0.0), b1, b2], valid
+    # missed rays carry undefined (possibly non-finite) prim_uv: _triangles zeroes them
+    return _triangles(scene, p, hit, o, _Geometry(
+        [m.faces_buffer() for m in meshes],
+        [_registry_id(mi.ShapePtr, m) for m in meshes],
+        [m.face_count() for m in meshes], [int(off) for off in offsets]))
 
 
 def _shade_pixel_mode(frame, dev, lights: list, triangles: tuple, f0, textures,
