@@ -823,7 +823,8 @@ def cmd_view(args) -> int:
                captures=args.captures, bspvt=args.bspvt)
     print(f"glossrt view: {v.url}  ({args.scene}, {v.pipe.preset}, {size[0]}x{size[1]}; "
           f"captures into {v.captures}; Ctrl-C stops)", flush=True)
-    serve(v)  # stopped: the render loop ended or was left mid-frame, no capture half-written
+    # stopped within 1 s: the render loop ended or was left mid-frame, no capture half-written
+    serve(v, timeout=1.0, stop_server=False)
     print("glossrt view: stopped", file=sys.stderr, flush=True)
     sys.stdout.flush()
     # no interpreter teardown: a frame still recording would hold it, and Dr.Jit's and

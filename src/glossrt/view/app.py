@@ -48,6 +48,10 @@ LOOPBACK = ("127.0.0.1", "localhost", "::1")
 #: seconds a client's camera reports are ignored after the viewer set its camera, unless it
 #: reports that camera back sooner (see Viewer._send_camera)
 SYNC_SECONDS = 10.0
+#: a client camera within this of the viewer's (position relative to the scene's scale;
+#: direction, up and fov in radians) is an echo, not a move: a user's drag moves it by far
+#: more, and clients report our camera back through float32 and their own orbit maths
+ECHO_TOL = 1e-3
 
 #: GUI ranges of the numeric pipeline options (slider: min, max, step); others are numbers
 SLIDERS: dict[str, tuple[float, float, float]] = {
@@ -198,6 +202,14 @@ class Viewer:
         self.port = int(self.server.get_port())
         up = np.asarray(self.pipe.setup.rest_camera, np.float64)[:3, 1]
         self.server.scene.set_up_direction(tuple(float(v) for v in up))
+        # a client starts from (and its "Reset View" returns to) viser's initial camera: make
+        # it the scene's, or the client reports viser's default camera as a move once the
+        # page has loaded (seen under load in the browser tests)
+        init, cam = self.server.initial_camera, self._camera
+        init.fov = cam.fov_y
+        init.up = cam.up
+        init.position = cam.position
+        init.look_at = cam.look_at
         self.server.on_client_connect(self._on_connect)
 
     def _scene_camera(self) -> ViewerCamera:
@@ -336,13 +348,13 @@ class Viewer:
                            tuple(map(float, cam.up_direction)), float(cam.fov))
         until = self._syncing_clients.get(client_id)
         if until is not None:
-            if new.close_to(self._sent_camera, tol=1e-5):
+            if new.close_to(self._sent_camera, tol=ECHO_TOL):
                 self._syncing_clients.pop(client_id, None)  # in sync from now on
                 return
             if time.monotonic() < until:
                 return
             self._syncing_clients.pop(client_id, None)
-        if new.close_to(self._camera, tol=1e-5):
+        if new.close_to(self._camera, tol=ECHO_TOL):
             return  # nothing moved
         self.inbox.post("camera", new)
 
@@ -435,16 +447,18 @@ class Viewer:
             time.sleep(0.02)
         return False
 
-    def stop(self, timeout: float = 2.0) -> None:
+    def stop(self, timeout: float = 2.0, stop_server: bool = True) -> None:
         """Stop the render loop and the server within ``timeout`` seconds. A capture being
-        written is finished first (it is written whole or not at all)."""
+        written is finished first (it is written whole or not at all). ``stop_server=False``:
+        leave the server to the process' exit (the CLI ends with ``os._exit``)."""
         t_end = time.monotonic() + timeout
         self._stop.set()
         self.inbox.wake()
         self._thread.join(max(0.0, t_end - time.monotonic() - 0.3))
         got = self._save_lock.acquire(timeout=max(0.0, t_end - time.monotonic() - 0.2))
         try:
-            self.server.stop()
+            if stop_server:
+                self.server.stop()
         finally:
             if got:
                 self._save_lock.release()
@@ -743,8 +757,9 @@ def open(scene, pipeline: str = "full", size=(320, 180), host: str = "127.0.0.1"
                   captures=captures, verbose=verbose, **choices)
 
 
-def serve(viewer: Viewer) -> None:
-    """Block until Ctrl-C or SIGTERM, then stop ``viewer`` within 2 seconds."""
+def serve(viewer: Viewer, timeout: float = 1.8, stop_server: bool = True) -> None:
+    """Block until Ctrl-C or SIGTERM, then stop ``viewer`` within ``timeout`` seconds (see
+    :meth:`Viewer.stop`)."""
     import signal
 
     done = threading.Event()
@@ -754,12 +769,12 @@ def serve(viewer: Viewer) -> None:
 
     old = {s: signal.signal(s, _handler) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        while not done.wait(0.1) and viewer._thread.is_alive():
+        while not done.wait(0.05) and viewer._thread.is_alive():
             pass
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        viewer.stop(timeout=1.8)
+        viewer.stop(timeout=timeout, stop_server=stop_server)
 
 
 __all__ = ["Viewer", "open", "serve"]
