@@ -99,8 +99,7 @@ def cluster_scaling(ctx: BenchContext) -> dict:
     workers = [int(n) for n in ctx.extra.get("cluster_workers", [1, 2])]
     setup = scenes.load("glossy-cornell", size=ctx.size)
     r = render.Renderer(setup)
-    job = {"scene": "glossy-cornell", "size": list(ctx.size), "orbit": None, "frames": 1,
-           "max_depth": None, "seed": 0}
+    job = blocks.reference_job("glossy-cornell", ctx.size)
     out: dict = {"scene": "glossy-cornell", "size": list(ctx.size), "spp": spp,
                  "bspvt_scene": "polygon-light", "bspvt_resolution": res_b, "runs": {}}
     images = {}

@@ -301,7 +301,7 @@ def cmd_render(args) -> int:
             if bad:
                 raise GlossrtError(f"{flag} goes with --reference (glossrt's converged "
                                    "frames, rendered as sample blocks)")
-    if blocks:
+    else:
         from . import cluster
 
         cluster.parse(args.cluster)  # a bad spec fails before any work
@@ -320,8 +320,9 @@ def cmd_render(args) -> int:
     out = _writable_dir(args.out)
     bad = 0
     tex_cache: dict = {}
-    desc = f"{'reference ' if reference else ''}{setup.name} {setup.size[0]}x{setup.size[1]}"
-    with Progress(len(todo) * (spp if reference else 1), desc) as p:
+    # (converged frames other than --mitsuba's went to the sample blocks above)
+    desc = f"{'reference ' if args.mitsuba else ''}{setup.name} {setup.size[0]}x{setup.size[1]}"
+    with Progress(len(todo) * (spp if args.mitsuba else 1), desc) as p:
         for k, i in enumerate(todo):
             if args.mitsuba:
                 import mitsuba as mi
@@ -358,11 +359,8 @@ def _render_reference_blocks(args, setup, r, size, todo, spp) -> int:
     from .render import blocks
 
     plan = blocks.block_plan(spp, setup.size[0], setup.size[1], args.block_spp)
-    scene = args.scene
-    if os.path.exists(scene):  # workers start in folders of their own
-        scene = os.path.abspath(scene)
-    job = {"scene": scene, "size": list(size) if size else None, "orbit": args.orbit,
-           "frames": args.frames, "max_depth": args.max_depth, "seed": args.seed}
+    job = blocks.reference_job(args.scene, size, frames=args.frames, orbit=args.orbit,
+                               max_depth=args.max_depth, seed=args.seed)
     want = {"scene": setup.name, "spp": spp, "seed": args.seed,
             "max_depth": r.mitsuba_max_depth, "reference": True,
             "variant": _variant(), "reference_block_spp": plan[0][1]}
@@ -446,7 +444,7 @@ def _render_pipeline(args, size) -> int:
 
 
 def _add_specaa(setup, frame, index: int, method: str, textures: dict,
-                renderer=None) -> None:
+                renderer) -> None:
     """Channel ``specaa``: the frame's direct light from the scene's point, directional and
     polygon lights with specular antialiasing ``method`` (glossrt.specaa); ``textures``: the
     prefiltered light textures, kept across frames. A scene without such lights (lit by an

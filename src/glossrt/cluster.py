@@ -117,9 +117,7 @@ def _driver_variant() -> str:
 
 
 def _device_of(variant: str) -> str:
-    from . import backend
-
-    return "gpu" if variant == backend.GPU_VARIANT else "cpu"
+    return "gpu" if variant == _GPU else "cpu"
 
 
 @dataclass
@@ -208,8 +206,6 @@ def connect(spec: str | Spec | Cluster | None = None,
                 ray.init(address="local", num_cpus=parsed.cpus or os.cpu_count() or 1, **kw)
             else:
                 ray.init(address=parsed.address, **kw)
-        except ClusterError:
-            raise
         except Exception as e:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             if parsed.kind == "client" and "timeout" in msg:
@@ -238,11 +234,11 @@ def _setup_worker(variant: str) -> dict:
     ray = _ray()
     ctx = ray.get_runtime_context()
     cpus = ctx.get_assigned_resources().get("CPU", 1.0)
-    node = ray.util.get_node_ip_address()
     info = _WORKER.get("info")
-    if info is None:
+    if info is None:  # (the node's address once: asking opens a socket)
         from . import __version__, backend
 
+        node = ray.util.get_node_ip_address()
         try:
             got = backend.use(_device_of(variant))
         except GlossrtError as e:
@@ -264,10 +260,6 @@ def _setup_worker(variant: str) -> dict:
         dr.set_thread_count(max(int(cpus), 1))
         _WORKER["cpus"] = cpus
     return dict(info, threads=max(int(cpus), 1))
-
-
-def _probe(variant: str) -> dict:
-    return _setup_worker(variant)
 
 
 def _run(fn: Callable, item, variant: str):
@@ -293,7 +285,7 @@ def _remote(name: str):
 
 
 def _probe_nodes(variant: str, task_env: dict | None = None) -> list[dict]:
-    """Run :func:`_probe` once on every alive node; refuse a node that cannot run glossrt or
+    """Run :func:`_setup_worker` once on every alive node; refuse a node that cannot run glossrt or
     differs from the driver (glossrt version, Mitsuba variant)."""
     ray = _ray()
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -312,7 +304,7 @@ def _probe_nodes(variant: str, task_env: dict | None = None) -> list[dict]:
                     scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False))
         if task_env:
             opts["runtime_env"] = task_env
-        refs[n.get("NodeManagerAddress", n["NodeID"])] = _remote("_probe").options(
+        refs[n.get("NodeManagerAddress", n["NodeID"])] = _remote("_setup_worker").options(
             **opts).remote(variant)
     out = []
     for name, ref in refs.items():

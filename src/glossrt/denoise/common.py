@@ -62,15 +62,18 @@ def add(a: Img, b: Img) -> Img:
     return [x + y for x, y in zip(a, b, strict=True)]
 
 
-def depth_gradient(grid: Grid, inv_z: mi.Float) -> tuple[mi.Float, mi.Float]:
+def depth_gradient(grid: Grid, inv_z: mi.Float,
+                   inv_z_image: mi.Float | None = None) -> tuple[mi.Float, mi.Float]:
     """Screen-space gradient of 1/z (one-sided difference of smaller magnitude, so a depth
     edge does not inflate it). 1/z is an affine function of clip-space depth, so
     |z(p)-z(q)| / |grad z . (p-q)| is the same for both: Schied 2017 eq. 3 works on it as on
-    clip-space depth."""
+    clip-space depth. ``inv_z_image``: where the neighbours are read when ``grid``'s lanes
+    are a part of the image (a row tile; default ``inv_z``, the lanes being the image)."""
+    src = inv_z if inv_z_image is None else inv_z_image
     out = []
     for dx, dy in ((1, 0), (0, 1)):
-        f = dr.gather(mi.Float, inv_z, grid.index(grid.x + dx, grid.y + dy)) - inv_z
-        b = inv_z - dr.gather(mi.Float, inv_z, grid.index(grid.x - dx, grid.y - dy))
+        f = dr.gather(mi.Float, src, grid.index(grid.x + dx, grid.y + dy)) - inv_z
+        b = inv_z - dr.gather(mi.Float, src, grid.index(grid.x - dx, grid.y - dy))
         # at the image border only the difference that exists counts
         f_ok = grid.inside(grid.x + dx, grid.y + dy)
         b_ok = grid.inside(grid.x - dx, grid.y - dy)

@@ -74,6 +74,7 @@ from .common import (
     apply_view_coefficients,
     check_frame,
     demodulate,
+    depth_gradient,
     finite,
     frame_jitter,
     lobe_tap_weight,
@@ -608,21 +609,6 @@ def _tile_channels(fch: dict, idx: mi.UInt32, rows: int, w: int) -> dict:
             for k, t in fch.items()}
 
 
-def _tile_depth_gradient(grid: Grid, inv_z_full: mi.Float,
-                         inv_z: mi.Float) -> tuple[mi.Float, mi.Float]:
-    """:func:`glossrt.denoise.common.depth_gradient` of the tile's pixels, the neighbours'
-    1/z read from the whole image's (the same arithmetic, so the same values)."""
-    out = []
-    for dx, dy in ((1, 0), (0, 1)):
-        f = dr.gather(mi.Float, inv_z_full, grid.index(grid.x + dx, grid.y + dy)) - inv_z
-        b = inv_z - dr.gather(mi.Float, inv_z_full, grid.index(grid.x - dx, grid.y - dy))
-        f_ok = grid.inside(grid.x + dx, grid.y + dy)
-        b_ok = grid.inside(grid.x - dx, grid.y - dy)
-        use_f = f_ok & (~b_ok | (dr.abs(f) < dr.abs(b)))
-        out.append(dr.select(use_f, f, dr.select(b_ok, b, 0.0)))
-    return out[0], out[1]
-
-
 def _temporal_prepare(fch, lch, terms, static):
     """Once per frame before the tiles: the low-resolution taps (interleaved arrays) and
     the full-resolution 1/z of the SVGF G-buffer (:func:`glossrt.denoise.common.gbuffer`)."""
@@ -680,7 +666,7 @@ def _temporal_tile(fch, lch, terms, prev, taps, inv_z_full, offset, static):
                                     grid=grid, taps=(packed, i_lobe, i_z))
     gb = gbuffer(frame, grid, with_roughness=use_lobe)
     inv_z = dr.gather(mi.Float, inv_z_full, grid.idx)
-    dzdx, dzdy = _tile_depth_gradient(grid, inv_z_full, inv_z)
+    dzdx, dzdy = depth_gradient(grid, inv_z, inv_z_full)
     gb = dataclasses.replace(gb, inv_z=inv_z, dzdx=dzdx, dzdy=dzdy)
     moments = [[dr.zeros(mi.Float, n)] * 2 for _ in channels]
     blended, _, length = reproject(grid, gb, split(frame["motion"]), prev, illum, moments,

@@ -687,8 +687,8 @@ def section_pipeline(ctx: DemoContext, report: Report) -> None:
 def run_experiment(out, size, args) -> int:
     """Every preset against the converged reference (module docstring); writes pipeline.md,
     pipeline.json and one montage per scene (pipeline_SCENE.png)."""
-    check_args(size, args.spp, args.frames)
-    res = evaluate(size=size, spp=args.spp, frames=args.frames,
+    res = evaluate(  # (evaluate checks the arguments before any work)
+size=size, spp=args.spp, frames=args.frames,
                    progress=lambda m: print(m, flush=True), cluster=experiment_cluster(args))
     for scene in res.scenes:
         res.montage(out / f"pipeline_{scene}.png", scene)

@@ -32,8 +32,9 @@ from ..errors import GlossrtError
 from ..frame import Frame
 from ..images import merge, split
 from ..jit import no_gc, opaque
+from ..render import DIRECT_OUT, INDIRECT_OUT
 
-RADIANCE_PT = ("direct_diffuse", "direct_specular", "indirect_diffuse", "indirect_specular")
+RADIANCE_PT = DIRECT_OUT + INDIRECT_OUT  # the path tracer's radiance channels
 GUIDES = ("albedo_diffuse", "albedo_specular", "normal", "position", "depth", "roughness",
           "distribution", "mesh_id", "motion")
 
@@ -184,7 +185,7 @@ class GBufferStage(Stage):
                 raise GlossrtError("accumulate=true traces the converged reference at full "
                                    "resolution: use indirect_scale=1")
             low_setup = ScaledSetup(setup, self.scale)
-            n = len(render.emitter_index(setup))
+            n = len(setup.scene.emitters())
             self.low = render.Renderer(low_setup, max_depth=md, seed=opts["seed"] + 1,
                                        primary_exclude=tuple(range(n)))
             full_md = self.low.mitsuba_max_depth
@@ -644,12 +645,12 @@ def filter_params(opts: dict) -> dict:
     average's ``alpha``, sec. 4.1; the edge-stopping ``sigma_z``, ``sigma_n``, ``sigma_l``,
     sec. 4.4, eqs. 3-5) and Tokuyoshi 2015's lobe weight parameters ``beta``, ``kappa``
     (sec. 4.2; read by ``svgf-lobe`` and the lobe-weighted upsamplers)."""
-    return {"alpha": float(opts.get("svgf_alpha", 0.2)),
-            "sigma_z": float(opts.get("svgf_sigma_z", 1.0)),
-            "sigma_n": float(opts.get("svgf_sigma_n", 128.0)),
-            "sigma_l": float(opts.get("svgf_sigma_l", 4.0)),
-            "beta": float(opts.get("lobe_beta", 20.0)),
-            "kappa": float(opts.get("lobe_kappa", 100.0))}
+    from .config import DEFAULTS
+
+    o = {**DEFAULTS, **opts}
+    return {"alpha": float(o["svgf_alpha"]), "sigma_z": float(o["svgf_sigma_z"]),
+            "sigma_n": float(o["svgf_sigma_n"]), "sigma_l": float(o["svgf_sigma_l"]),
+            "beta": float(o["lobe_beta"]), "kappa": float(o["lobe_kappa"])}
 
 
 def _denoiser(method: str, **params):
@@ -667,8 +668,8 @@ def _denoiser(method: str, **params):
 
 #: the low-resolution frame's channels the upsamplers read besides the light
 LOW_GUIDES = ("normal", "depth", "mesh_id", "roughness", "distribution")
-INDIRECT_PT = ("indirect_diffuse", "indirect_specular")
-DIRECT_PT = ("direct_diffuse", "direct_specular")
+INDIRECT_PT = INDIRECT_OUT
+DIRECT_PT = DIRECT_OUT
 
 
 class IndirectStage(Stage):
@@ -708,7 +709,6 @@ class IndirectStage(Stage):
             self.denoiser = _denoiser(method, **fp)
             self.low_denoiser = self.direct_denoiser = self.upsampler = None
             return
-        from .. import render
         from ..denoise.upsampling import SpatioTemporalUpsampler, Upsampler
 
         self.inputs = ("frame", "frame_low")
@@ -721,7 +721,7 @@ class IndirectStage(Stage):
         self._resampler = None
         self.low_denoiser = _denoiser(method, signals="indirect", output="illumination", **fp)
         # the primary hit's path-traced direct light: left to the path tracer for some lights
-        self.direct_pt = len(tuple(exclude)) < len(render.emitter_index(setup))
+        self.direct_pt = len(tuple(exclude)) < len(setup.scene.emitters())
         self.direct_denoiser = (_denoiser(method, signals="direct", **fp) if self.direct_pt
                                 else None)
         # frozen (the camera terms and the jitter opaque inputs): steady frames replay
@@ -833,7 +833,7 @@ class IndirectStage(Stage):
         if self._resampler is None:
             from .. import render
 
-            n = len(render.emitter_index(self.setup))
+            n = len(self.setup.scene.emitters())
             self._resampler = render.Renderer(self.setup, max_depth=self.opts["max_depth"],
                                               seed=self.opts["seed"] + 2, frozen=False,
                                               primary_exclude=tuple(range(n)))

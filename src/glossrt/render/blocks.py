@@ -59,8 +59,13 @@ def block_plan(spp: int, width: int, height: int,
     return [(s, min(block_spp, spp - s)) for s in range(0, spp, block_spp)]
 
 
+def _job_key(job: dict) -> tuple:
+    """What identifies a job's renderer (the cached one is reused when it matches)."""
+    return tuple(sorted((k, repr(v)) for k, v in job.items()))
+
+
 def _renderer(job: dict) -> Renderer:
-    key = tuple(sorted((k, repr(v)) for k, v in job.items()))
+    key = _job_key(job)
     if _CACHE.get("key") != key:
         from .. import scenes
 
@@ -168,7 +173,7 @@ def reference_frames(renderer: Renderer, job: dict, frames: Sequence[int], spp: 
              for i in frames for s, c in plan]
     # in this process the driver's renderer serves the blocks (no second scene load)
     _CACHE.clear()
-    _CACHE["key"] = tuple(sorted((k, repr(v)) for k, v in job.items()))
+    _CACHE["key"] = _job_key(job)
     _CACHE["renderer"] = renderer
     merge = BlockMerge()
     t0 = time.perf_counter()

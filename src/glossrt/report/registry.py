@@ -238,15 +238,9 @@ def registered_experiments() -> list[tuple[str, str, ExperimentFn]]:
 def experiment_cluster(args):
     """The cluster an experiment run's references and BSPVT builds go to: ``args.cluster``
     (``glossrt experiment`` sets it to its open :class:`glossrt.cluster.Cluster`, or None),
-    a spec string checked with :func:`glossrt.cluster.parse` (``"none"``: None), or None
-    when ``args`` has no ``cluster`` (callers that predate the option). None: the
+    None when ``args`` has no ``cluster`` (callers that predate the option). None: the
     experiment's one-process path, unchanged."""
-    c = getattr(args, "cluster", None)
-    if isinstance(c, str):
-        from .. import cluster
-
-        return None if cluster.parse(c) is None else c
-    return c
+    return getattr(args, "cluster", None)
 
 
 def finish_experiment(out: Path, stem: str, md: str, figure: str,

@@ -237,10 +237,17 @@ def stable_emitters(scene: mi.Scene) -> list:
         if shape is not None:
             r = rank.get(_registry_id(mi.ShapePtr, shape))
             if r is not None:
-                return (0, r, "", "", "")
-        return (1, 0, e.id(), e.class_name(), _param_digest(e))
+                return (0, r, "", "")
+        return (1, 0, e.id(), e.class_name())
 
-    return sorted(scene.emitters(), key=key)
+    emitters = list(scene.emitters())
+    keys = [key(e) for e in emitters]
+    ties = {k for k in keys if keys.count(k) > 1}
+    # the parameters' digest only where id and plugin tie (an environment map's digest reads
+    # all its texels, and the pipeline orders the emitters every frame)
+    order = sorted(range(len(emitters)), key=lambda i: keys[i] + (
+        _param_digest(emitters[i]) if keys[i] in ties else "",))
+    return [emitters[i] for i in order]
 
 
 class SceneSetup:
@@ -307,6 +314,8 @@ class SceneSetup:
         self.params = mi.traverse(scene)
         self._rest: dict[str, tuple[str, object]] = {}
         self._rest_normals: dict[str, np.ndarray] = {}
+        #: moved meshes' rest vertex positions on the host (read once, not per pose)
+        self._rest_positions: dict[str, np.ndarray] = {}
         #: shapes in mesh_id order (1-based); stable across loads of the same scene
         self.shapes = stable_shapes(scene)
         shapes = {s.id(): s for s in self.shapes}
@@ -339,6 +348,8 @@ class SceneSetup:
             if key in self.params.keys():
                 val = self.params[key]
                 self._rest[sid] = (key, type(val)(val))
+                if key.endswith("vertex_positions"):
+                    self._rest_positions[sid] = np.array(val, dtype=np.float64).reshape(-1, 3)
                 normals = f"{sid}.vertex_normals"
                 if key.endswith("vertex_positions") and normals in self.params.keys():
                     # written with the positions: Mitsuba would recompute them otherwise
@@ -515,8 +526,7 @@ class SceneSetup:
             if key.endswith("to_world"):
                 self.params[key] = mi.Transform4f(m) @ rest
             else:
-                v = np.array(rest, dtype=np.float64).reshape(-1, 3)
-                v = v @ m[:3, :3].T + m[:3, 3]
+                v = self._rest_positions[sid] @ m[:3, :3].T + m[:3, 3]
                 # in memory Dr.Jit allocated: a NumPy-backed buffer's alignment varies, and
                 # dr.freeze then re-records now and then (glossrt.jit.owned_float)
                 self.params[key] = owned_float(v)

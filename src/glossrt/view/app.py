@@ -488,6 +488,8 @@ class Viewer:
 
     # -- the render loop (its own thread: every Dr.Jit call) ---------------------------------------
     def _set_status(self, text: str) -> None:
+        if text == self.status:
+            return  # (every frame sets it: no GUI update, no repeats in the log)
         self.status = text
         self.status_log.append(text)
         self._status_md.content = f"**{text}**"
@@ -515,6 +517,13 @@ class Viewer:
                     w.value = type(w.value)(v)
         finally:
             self._syncing = False
+
+    def _reset_gizmo(self, sid: str) -> None:
+        """Light ``sid``'s gizmo back at the light's rest pose."""
+        g = self._gizmos.get(sid)
+        if g is not None:
+            g.position = tuple(float(v) for v in self._lights[sid][0])
+            g.wxyz = (1.0, 0.0, 0.0, 0.0)
 
     def _apply(self, values: dict[str, Any], actions) -> bool:
         """Apply what was posted; True when the pose or the pipeline changed."""
@@ -559,16 +568,12 @@ class Viewer:
                 changed = True
             except GlossrtError as e:
                 self._set_message(f"refused: {e}")
-                g = self._gizmos.get(sid)
-                if g is not None:  # the gizmo back where the light is
-                    g.position = tuple(float(v) for v in self._lights[sid][0])
-                    g.wxyz = (1.0, 0.0, 0.0, 0.0)
+                self._reset_gizmo(sid)  # the gizmo back where the light is
         if actions.get("reset_pose"):
             self.pipe.clear_pose()
             self._camera = self._scene_camera()
-            for sid, g in self._gizmos.items():
-                g.position = tuple(float(v) for v in self._lights[sid][0])
-                g.wxyz = (1.0, 0.0, 0.0, 0.0)
+            for sid in self._gizmos:
+                self._reset_gizmo(sid)
             for client in self.server.get_clients().values():
                 self._send_camera(client, self._camera)
             changed = True
@@ -600,10 +605,9 @@ class Viewer:
             self._reference.reset()
 
     def _errors(self, color: np.ndarray) -> dict[str, float]:
+        """RMSE and FLIP of ``color`` against the accumulated reference (there must be one)."""
         from ..metrics import flip, rmse
 
-        if self._ref_color is None:
-            return {}
         return {"rmse": rmse(color, self._ref_color), "flip": flip(color, self._ref_color)}
 
     def _image(self, frame) -> np.ndarray:
@@ -680,8 +684,9 @@ class Viewer:
         s["stage_ms"] = dict(p["stage_ms"])
         s["recordings"] = self.pipe.recordings()
         s["reference_spp"] = self._ref_spp
-        s.update(self._errors(frame.numpy("color")))
-        if self._ref_color is None:
+        if self._ref_color is not None:
+            s.update(self._errors(frame.numpy("color")))
+        else:
             s.pop("rmse", None)
             s.pop("flip", None)
         s["index"] = self.index

@@ -55,9 +55,3 @@ class Inbox:
     def wake(self) -> None:
         """End a :meth:`take`'s wait early (stopping)."""
         self._wake.set()
-
-    def reset(self) -> None:
-        """Drop everything not yet taken."""
-        with self._lock:
-            self._values.clear()
-            self._actions.clear()

@@ -27,11 +27,9 @@ def names(frame_names) -> list[str]:
     return first + list(EXTRA) + rest
 
 
-def _srgb8(x: np.ndarray) -> np.ndarray:
-    from ..metrics import srgb_encode
-
-    x = np.clip(np.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
-    return np.round(srgb_encode(x) * 255.0).astype(np.uint8)
+def _u8(x: np.ndarray) -> np.ndarray:
+    """Values in [0, 1] (clamped) as 8 bits, linearly."""
+    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 def _rgb(x: np.ndarray) -> np.ndarray:
@@ -70,18 +68,18 @@ def visualise(name: str, data: np.ndarray, exposure: float = 0.0,
     if name in RADIANCE or name.startswith(("direct_", "indirect_")):
         return display(_rgb(x), exposure, tonemap)
     if name in ("normal", "tangent"):
-        return np.round(np.clip(0.5 + 0.5 * _rgb(x), 0, 1) * 255).astype(np.uint8)
+        return _u8(0.5 + 0.5 * _rgb(x))
     if name == "mesh_id":
-        return np.round(_hues(_rgb(x)[..., 0]) * 255).astype(np.uint8)
+        return _u8(_hues(_rgb(x)[..., 0]))
     if name == "motion":
         m = _rgb(x)
         m[..., :2] = 0.5 + m[..., :2] / 16.0
-        return np.round(np.clip(m, 0, 1) * 255).astype(np.uint8)
+        return _u8(m)
     if name in ("depth", "position"):
-        return np.round(_rgb(_normalised(x)) * 255).astype(np.uint8)
+        return _u8(_rgb(_normalised(x)))
     if name.startswith("albedo"):
-        return _srgb8(_rgb(x))
-    return np.round(np.clip(np.nan_to_num(_rgb(x)), 0, 1) * 255).astype(np.uint8)
+        return display(_rgb(x), 0.0, "srgb")  # reflectances: sRGB-encoded, no tonemap
+    return _u8(np.nan_to_num(_rgb(x)))
 
 
 def error_map(image: np.ndarray, reference: np.ndarray, scale: float = 0.25) -> np.ndarray:

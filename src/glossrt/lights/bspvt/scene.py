@@ -140,8 +140,7 @@ def _map_items(fn, items: list, cluster, progress: bool, desc: str) -> list:
     from ...cluster import map_items
 
     return map_items(fn, items, cluster="none" if cluster is None else cluster, desc=desc,
-                     weights=[it["stop"] - it["start"] for it in items], progress=progress,
-                     num_gpus=1 if mi.variant().startswith("cuda") else 0)
+                     weights=[it["stop"] - it["start"] for it in items], progress=progress)
 
 
 def vertex_beckmann(scene: mi.Scene) -> np.ndarray:
