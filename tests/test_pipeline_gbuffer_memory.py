@@ -11,7 +11,9 @@ from glossrt import pipeline, render, scenes
 from glossrt.errors import GlossrtError
 from glossrt.render.pathtracer import RADIANCE_OUT
 
-SCHEMA = render.GBUFFER_OUT + RADIANCE_OUT + ("color",)
+# (polygon-light is isotropic: its pipeline frames leave the anisotropy channels out)
+SCHEMA = tuple(k for k in render.GBUFFER_OUT + RADIANCE_OUT + ("color",)
+               if k not in render.pathtracer.ANISOTROPY_OUT)
 COARSE = {"bspvt_resolution": 8}
 
 

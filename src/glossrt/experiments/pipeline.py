@@ -76,7 +76,10 @@ BENCH_CASES = (("full", "polygon-light", (320, 180), 20.0),
                ("schied2017", "glossy-cornell", (320, 180), 30.0))
 TARGET_RATIO = 1.10  # the composed frame against the sum of its stages run alone
 #: the benchmark's memory cases: (preset, scene, size); issue 25: at most 600 MB at 1920x1080
-MEMORY_CASES = (("full", "polygon-light", (640, 360)), ("full", "polygon-light", (1920, 1080)))
+#: (preset, scene, size, options): the 1920x1080 frame also with ``release_memory``
+MEMORY_CASES = (("full", "polygon-light", (640, 360), {}),
+                ("full", "polygon-light", (1920, 1080), {}),
+                ("full", "polygon-light", (1920, 1080), {"release_memory": True}))
 MEMORY_TARGET_MB = 600.0
 #: ``pipeline_shrink`` values: every size of the cases stays even (1/2-resolution indirect)
 SHRINKS = (1, 2, 5, 10)
@@ -568,17 +571,23 @@ def timing_markdown(t: dict) -> str:
                      f"{target} | {inside} | {alone} | "
                      f"{c['sum_alone_ms']:.2f} | {c['ratio_frame_vs_sum']:.3f} |")
     if t.get("memory"):
-        lines += ["", "| preset / scene | size | Dr.Jit peak (MB) | process peak RSS (MB) | "
-                  "RSS before (MB) | target (MB) |", "|---|---|---|---|---|---|"]
+        lines += ["", "| preset / scene | size | options | Dr.Jit peak (MB) | largest stage "
+                  "(MB) | process peak RSS (MB) | RSS before (MB) | frame (ms) | target (MB) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for m in t["memory"].values():
             w, h = m["size"]
 
             def mb(v):
                 return "-" if v is None else f"{v:.0f}"
 
-            lines.append(f"| {m['preset']} / {m['scene']} | {w}x{h} | {mb(m['jit_peak_mb'])} | "
+            stages = m.get("jit_peak_mb_per_stage") or {}
+            top = max(stages, key=stages.get) if stages else None
+            largest = f"{top} {stages[top]:.0f}" if top else "-"
+            opts = ", ".join(f"{k}={v}" for k, v in (m.get("options") or {}).items()) or "-"
+            lines.append(f"| {m['preset']} / {m['scene']} | {w}x{h} | {opts} | "
+                         f"{mb(m['jit_peak_mb'])} | {largest} | "
                          f"{mb(m['rss_peak_mb'])} | {mb(m['rss_before_mb'])} | "
-                         f"{mb(m['target_mb'])} |")
+                         f"{1000 * m['frame_s']:.0f} | {mb(m['target_mb'])} |")
     return "\n".join(lines)
 
 
@@ -621,8 +630,8 @@ def bench_pipeline(ctx: BenchContext) -> dict:
       not synchronised), each stage alone, and the composed frame against the sum of its
       stages run alone (target <= 1.1);
     * memory (:func:`memory`, each case in a fresh process): the peak of a steady-state
-      ``full`` frame on polygon-light at 640x360 and 1920x1080 (:data:`MEMORY_CASES`;
-      target: at most 600 MB at 1920x1080).
+      ``full`` frame on polygon-light at 640x360 and 1920x1080, the latter also with
+      ``release_memory`` (:data:`MEMORY_CASES`; target: at most 600 MB at 1920x1080).
 
     Options (``glossrt bench --only pipeline --case-option KEY=VALUE``, or
     ``ctx.extra``): ``pipeline_shrink`` divides every size by 2, 5 or 10 for a quick run
@@ -646,12 +655,14 @@ def bench_pipeline(ctx: BenchContext) -> dict:
         cases[f"{preset}/{scene}@{w}x{h}"] = {**t, "target_fps": fps if shrink == 1 else None}
     mem = {}
     if _option(extra, "pipeline_memory", True):
-        for preset, scene, size in MEMORY_CASES:
+        for preset, scene, size, opts in MEMORY_CASES:
             w, h = scaled(size)
-            m = memory_in_subprocess(preset, scene, (w, h), choices=choices)
+            m = memory_in_subprocess(preset, scene, (w, h), choices={**(choices or {}), **opts})
+            m["options"] = opts
             if shrink != 1:
                 m["target_mb"] = None
-            mem[f"{preset}/{scene}@{w}x{h}"] = m
+            tag = "".join(f" {k}={v}" for k, v in opts.items())
+            mem[f"{preset}/{scene}@{w}x{h}{tag}"] = m
     return {"shrink": shrink, "cases": cases, "memory": mem, "repeats": ctx.turns}
 
 

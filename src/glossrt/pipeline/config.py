@@ -66,6 +66,7 @@ OPTIONS: dict[str, Any] = {
     "svgf_sigma_l": float,
     "lobe_beta": float,
     "lobe_kappa": float,
+    "release_memory": bool,
     "accumulate": bool,
     "spp": int,
     "seed": int,
@@ -107,6 +108,9 @@ DEFAULTS: dict[str, Any] = {
     "svgf_sigma_l": 4.0,
     "lobe_beta": 20.0,
     "lobe_kappa": 100.0,
+    # hand the blocks Dr.Jit's allocator keeps for reuse back after each stage (and after
+    # the low-resolution denoiser): Pipeline.render's docstring
+    "release_memory": False,
     "accumulate": False,
     "spp": 1,
     "seed": 0,

@@ -199,6 +199,11 @@ class GBufferStage(Stage):
         self.spp = int(opts["spp"])
         self.seed = int(opts["seed"])
         self.specaa: SpecAAStage | None = None
+        #: what the frames leave out: :data:`OMIT`, and on isotropic scenes the anisotropy
+        #: channels (``tangent``, ``roughness_uv``: no stage reads them there; 48 MiB at
+        #: 1920x1080)
+        self.omit = OMIT + (() if self.renderer.shapes.any_anisotropic
+                            else render.pathtracer.ANISOTROPY_OUT)
         self.reset()
 
     def reset(self) -> None:
@@ -217,7 +222,8 @@ class GBufferStage(Stage):
         spec = self.specaa
         if spec is None or not spec.filters:
             return None
-        return spec.filter(self.renderer.render_gbuffer(index, omit=GBUFFER_PASS_OMIT))
+        return spec.filter(self.renderer.render_gbuffer(
+            index, omit=GBUFFER_PASS_OMIT + self.omit[len(OMIT):]))
 
     def run(self, index: int, ctx: dict) -> dict:
         alpha = self._filtered_roughness(index)
@@ -226,14 +232,14 @@ class GBufferStage(Stage):
 
             # the motion vectors' previous pose, when the pipeline sets one (explicit posing)
             self.low.previous_pose = getattr(self.renderer, "previous_pose", None)
-            f = self.renderer.render(index, roughness=alpha, omit=OMIT)
+            f = self.renderer.render(index, roughness=alpha, omit=self.omit)
             jit = jitter_sequence(self.scale, index)
             low_alpha = None
             if alpha is not None:  # the full-resolution pixel each low sample lands on
                 k = index % (self.scale * self.scale)
                 i, j = k % self.scale, k // self.scale
                 low_alpha = alpha[j::self.scale, i::self.scale]
-            low = self.low.render(index, jitter=jit, roughness=low_alpha, omit=OMIT)
+            low = self.low.render(index, jitter=jit, roughness=low_alpha, omit=self.omit)
             # the full frame's light: emission and direct from it, the indirect light from
             # the low-resolution frame (the indirect stage upsamples it)
             f.meta["max_depth"] = low.meta["max_depth"]
@@ -241,7 +247,7 @@ class GBufferStage(Stage):
             f.meta["indirect_scale"] = self.scale
             return {"frame": f, "frame_low": low}
         if not self.accumulate:
-            return {"frame": self.renderer.render(index, roughness=alpha, omit=OMIT)}
+            return {"frame": self.renderer.render(index, roughness=alpha, omit=self.omit)}
         pose = index if self.setup.animated else 0
         if pose != self._pose:
             self.reset()
@@ -697,6 +703,9 @@ class IndirectStage(Stage):
     name = "indirect"
     inputs = ("frame",)
     outputs = ("indirect",)
+    #: hand Dr.Jit's cached blocks back after the low-resolution denoiser (the pipeline's
+    #: option ``release_memory``)
+    release_memory = False
 
     def __init__(self, method: str, opts: dict | None = None, setup=None,
                  exclude: tuple[int, ...] = ()):
@@ -801,6 +810,9 @@ class IndirectStage(Stage):
         h, w = gb.height, gb.width
         lch = {k: low[k] for k in LOW_GUIDES if k in low}
         lch.update(self._low_light(low))
+        if self.release_memory:
+            dr.eval(lch)
+            dr.flush_malloc_cache()
         for k in ("emission",) + DIRECT_PT:
             lch[k] = _zeros(low.height, low.width)
         lo = _with_channels(low, lch)

@@ -29,6 +29,7 @@ from ..scenes import SceneSetup, _registry_id, emitter_kind, stable_emitters, st
 from . import integrator as _integrator  # noqa: F401  (registers "glossrt" per variant)
 from .motion import MotionInputs
 from .pathtracer import (
+    ANISOTROPY_OUT,
     RADIANCE_OUT,
     RR_DEPTH,
     UNBOUNDED_DEPTH,
@@ -437,7 +438,9 @@ class Renderer:
         ``"override"``.
 
         ``omit``: radiance channels (of ``emission``, ``direct_*``, ``indirect_*``,
-        ``color``) the caller does not read: not written, and absent from the frame
+        ``color``) or anisotropy channels (``tangent``, ``roughness_uv``:
+        :data:`~glossrt.render.pathtracer.ANISOTROPY_OUT`) the caller does not read: not
+        written, and absent from the frame
         (``meta["omitted"]`` lists them). Channels that are 0 by construction
         (:meth:`zero_channels`) are not written either; the frame holds a zero constant for
         each. Frozen frames of more than :attr:`tile_pixels` pixels are traced in row tiles
@@ -479,12 +482,13 @@ class Renderer:
             raise GlossrtError(f"omit must be a collection of channel names, got {omit!r}")
         names = RADIANCE_OUT + ("color",)
         for k in omit:
-            if k not in names:
-                raise GlossrtError(f"omit: {k!r} is not a radiance channel; choose from "
-                                   f"{', '.join(names)}")
+            if k not in names + ANISOTROPY_OUT:
+                raise GlossrtError(f"omit: {k!r} is not a radiance channel or an anisotropy "
+                                   f"channel; choose from "
+                                   f"{', '.join(names + ANISOTROPY_OUT)}")
         w, h = self.width, self.height
         zero = tuple(k for k in self.zero_channels(max_depth) if k not in omit)
-        skip = tuple(k for k in names if k in zero or k in omit)
+        skip = tuple(k for k in names + ANISOTROPY_OUT if k in zero or k in omit)
         s = frame_seed(frame, seed)
         frozen = self.frozen
         if not frozen or w * h <= self.tile_pixels:

@@ -57,6 +57,9 @@ def resolve_max_depth(max_depth: int) -> int:
         raise GlossrtError(f"max_depth must be >= 1, or -1 for unbounded; got {max_depth}")
     return UNBOUNDED_DEPTH if max_depth == -1 else max_depth
 
+#: the G-buffer channels of anisotropic lobes (``tangent``; ``roughness_uv``, which equals
+#: ``(roughness, roughness)`` on isotropic lobes): a caller that reads neither may skip them
+ANISOTROPY_OUT = ("roughness_uv", "tangent")
 RADIANCE_OUT = ("emission", "direct_diffuse", "direct_specular", "indirect_diffuse",
                 "indirect_specular")
 
@@ -854,8 +857,9 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  roughness: mi.Float | None = None, skip: tuple[str, ...] = ()) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring).
-    ``skip``: radiance channels (of :data:`RADIANCE_OUT` and ``color``) left out of the
-    result, so that the kernel writes no buffer for them (:func:`pixel_channels`).
+    ``skip``: radiance channels (of :data:`RADIANCE_OUT` and ``color``) and the anisotropy
+    channels (:data:`ANISOTROPY_OUT`) left out of the result, so that the kernel writes no
+    buffer for them (:func:`pixel_channels`).
     ``jitter`` (pixels, in [-0.5, 0.5), or wider by ``Renderer.render``'s ``jitter_limit``)
     moves every primary ray off the pixel centre; the ``motion`` channel stays that of the
     pixel centre (docs/FORMATS.md: where the surface point seen through the pixel centre was
@@ -896,6 +900,9 @@ def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     alpha0 = None if roughness is None else dr.gather(mi.Float, roughness, pixel)
     r = shade(scene, sampler, ray, max_depth, emitters, primary, alpha0, shapes)
     out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
+    for name in ANISOTROPY_OUT:  # (the optional G-buffer channels a caller may skip)
+        if name in skip:
+            del out[name]
     bad = mi.UInt32(0)  # per lane: radiance values that were not finite
     color = dr.zeros(mi.Color3f)
     for name in RADIANCE_OUT:

@@ -65,7 +65,7 @@ FOLDERS: dict[str, tuple[str, ...]] = {
     "Stages": ("direct", "indirect", "indirect_scale", "upsampling", "upsampling_weight",
                "specaa", "taa"),
     "Display": ("exposure", "tonemap"),
-    "Advanced": ("spp", "accumulate", "seed", "max_depth"),
+    "Advanced": ("spp", "accumulate", "seed", "max_depth", "release_memory"),
 }
 
 
