@@ -14,16 +14,20 @@ cluster: the same items run in this process, in order).
 
 What travels: ``fn`` is a module-level function, pickled by reference (workers import its
 module, so glossrt must be installed there); items and results are plain picklable data
-(NumPy arrays, strings, numbers), never Dr.Jit objects. Scheduling, retries of a killed
-worker's items (``max_retries``) and GPU assignment (``CUDA_VISIBLE_DEVICES`` per task) are
-Ray's. Every worker process is set up before its first item: Dr.Jit's thread count is the
-number of CPUs Ray gave the task, the Mitsuba variant is the driver's, and on remote clusters
-Dr.Jit's kernel cache is a node-local folder (``DRJIT_CACHE_DIR``, default
-``/tmp/glossrt-drjit-cache``; env ``GLOSSRT_WORKER_KERNEL_CACHE`` on the driver chooses
-another): shared kernel caches on network file systems are a known source of failures.
-Connecting probes every node once: a node whose glossrt cannot be imported, whose libLLVM is
-missing, or whose glossrt version or Mitsuba variant differs from the driver's fails the run
-at once with a message naming the node.
+(NumPy arrays, strings, numbers), never Dr.Jit objects. A scene travels as its built-in
+name, or as its XML and the files it references (:func:`glossrt.scenefiles.bundle`), put
+once per run into Ray's object store (:func:`share`) and unpacked once per node
+(:func:`resolve` + :func:`glossrt.scenefiles.materialise`): no shared folder is needed.
+Scheduling, retries of a killed worker's items (``max_retries``) and GPU assignment
+(``CUDA_VISIBLE_DEVICES`` per task) are Ray's. Every worker process is set up before its
+first item: Dr.Jit's thread count is the number of CPUs Ray gave the task, the Mitsuba
+variant is the driver's, and on remote clusters Dr.Jit's kernel cache is a node-local folder
+(``DRJIT_CACHE_DIR``, default ``/tmp/glossrt-drjit-cache``; env
+``GLOSSRT_WORKER_KERNEL_CACHE`` on the driver chooses another): shared kernel caches on
+network file systems are a known source of failures. Connecting probes every node once: a
+node whose glossrt cannot be imported, whose libLLVM is missing, or whose glossrt version or
+Mitsuba variant differs from the driver's fails the run at once with a message naming the
+node.
 
 Ground floor: this module imports Ray, Mitsuba and Dr.Jit only inside functions.
 """
@@ -208,7 +212,12 @@ def connect(spec: str | Spec | Cluster | None = None,
                 ray.init(address=parsed.address, **kw)
         except Exception as e:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-            if parsed.kind == "client" and "timeout" in msg:
+            chain = f"{e} {e.__cause__} {e.__context__}"
+            if "AuthToken" in chain or "Authentication" in chain:
+                msg += (" (the cluster requires Ray's token: set RAY_AUTH_MODE=token here "
+                        "and copy the head's ~/.ray/auth_token to this machine, "
+                        "docs/CLUSTER.md)")
+            elif parsed.kind == "client" and "timeout" in msg:
                 msg += (" (recent Ray clusters require a token: set RAY_AUTH_MODE=token "
                         "and RAY_AUTH_TOKEN, or copy the head's ~/.ray/auth_token here)")
             raise ClusterError(f"cannot connect to Ray cluster {parsed}: {msg}") from None
@@ -343,10 +352,13 @@ class WorkerStats:
     pid: int
     items: int = 0
     seconds: float = 0.0
+    #: Ray's id of the node (several nodes may share an address)
+    node_id: str = ""
 
     def __str__(self) -> str:
         rate = self.items / self.seconds if self.seconds > 0 else float("inf")
-        return (f"worker {self.node} pid {self.pid}: {self.items} item(s) in "
+        nid = f" (node {self.node_id[:8]})" if self.node_id else ""
+        return (f"worker {self.node}{nid} pid {self.pid}: {self.items} item(s) in "
                 f"{self.seconds:.1f} s ({rate:.2f}/s)")
 
 
@@ -376,7 +388,7 @@ def _imap(fn, items, weights, c, desc, num_gpus, num_cpus, max_retries, show, st
 
     def account(info, seconds):
         key = (info["node"], info["pid"])
-        s = per.setdefault(key, WorkerStats(*key))
+        s = per.setdefault(key, WorkerStats(*key, node_id=info.get("node_id", "")))
         s.items += 1
         s.seconds += seconds
 
@@ -454,3 +466,24 @@ def map_items(fn: Callable, items: Iterable, *, cluster=None, desc: str = "",
     return list(imap_items(fn, list(items), cluster=cluster, desc=desc, weights=weights,
                            num_gpus=num_gpus, num_cpus=num_cpus, max_retries=max_retries,
                            progress=progress, stats=stats))
+
+
+# -- data shared with the workers (issue 27: scenes travel as XML and files) ----------------
+def share(value, cluster=None):
+    """``value`` put once into the object store of the open ``cluster`` (a :class:`Cluster`
+    from :func:`connect`): the returned reference travels inside work items at no cost and
+    each worker fetches the value with :func:`resolve` (e.g. a scene bundle's bytes,
+    :mod:`glossrt.scenefiles`). Without a cluster (None) ``value`` is returned as it is."""
+    if cluster is None:
+        return value
+    return _ray().put(value)
+
+
+def resolve(value):
+    """On a worker: the value a :func:`share` reference stands for (Ray resolves references
+    only when they are a task's own arguments, not inside an item's dict); anything else is
+    returned as it is."""
+    ray = sys.modules.get("ray")
+    if ray is not None and isinstance(value, ray.ObjectRef):
+        return ray.get(value)
+    return value

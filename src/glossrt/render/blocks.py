@@ -12,8 +12,12 @@ finish; it differs from :meth:`Renderer.render_reference` only by float32 roundi
 one sums the same samples in float32 on the device).
 
 Items and results are plain data (dicts of numbers, strings and NumPy arrays): the scene
-travels as its name or XML path plus the load arguments, and every worker process loads it
-once (:func:`render_reference_block` keeps the last renderer).
+travels as its built-in name, or as its XML and the files it references
+(:func:`glossrt.scenefiles.bundle`, put once into the cluster's object store by
+:func:`reference_frames`, unpacked once per node by :func:`glossrt.scenefiles.materialise`:
+no shared folder needed), plus the load arguments; every worker process loads it once
+(:func:`render_reference_block` keeps the last renderer). Without a cluster nothing is
+packed: the driver's renderer serves the blocks.
 """
 
 from __future__ import annotations
@@ -71,10 +75,15 @@ def _renderer(job: dict) -> Renderer:
 
         _CACHE.clear()
         size = tuple(job["size"]) if job.get("size") else None
+        scene = job["scene"]
+        if job.get("scene_files") is not None:  # the XML and its files, shipped
+            from .. import cluster, scenefiles
+
+            scene = scenefiles.materialise(job["scene_files"], fetch=cluster.resolve)
         if job.get("static"):  # the animation removed (scenes.load_static)
-            setup = scenes.load_static(job["scene"], size=size)
+            setup = scenes.load_static(scene, size=size)
         else:
-            setup = scenes.load(job["scene"], size=size, orbit=job.get("orbit"),
+            setup = scenes.load(scene, size=size, orbit=job.get("orbit"),
                                 frames=job.get("frames", 1))
         _CACHE["renderer"] = Renderer(setup, max_depth=job.get("max_depth"),
                                       seed=job.get("seed", 0), frozen=False)
@@ -86,7 +95,8 @@ def render_reference_block(item: dict) -> dict:
     """One block of a reference frame (a work item, see the module). ``item``: ``job`` (the
     scene: ``scene``, ``size``, ``orbit``, ``frames``, ``max_depth``, ``seed``, and
     ``static``: true for :func:`glossrt.scenes.load_static`'s setup; see
-    :func:`reference_job`), ``frame``, ``start`` and ``count`` (its samples). Returns
+    :func:`reference_job`; on a cluster also ``scene_files``, see :func:`shipped_job`),
+    ``frame``, ``start`` and ``count`` (its samples). Returns
     ``count``, ``nonfinite`` (samples replaced by 0), ``mean`` (name -> (H, W, 3) float32
     per-pixel mean of each radiance channel) and, for the block of sample 0, ``gbuffer``
     (sample 0's G-buffer channels)."""
@@ -169,26 +179,46 @@ def reference_frames(renderer: Renderer, job: dict, frames: Sequence[int], spp: 
 
     plan = block_plan(spp, renderer.width, renderer.height, block_spp)
     bs = plan[0][1]
-    items = [{"job": job, "frame": int(i), "start": s, "count": c}
-             for i in frames for s, c in plan]
-    # in this process the driver's renderer serves the blocks (no second scene load)
-    _CACHE.clear()
-    _CACHE["key"] = _job_key(job)
-    _CACHE["renderer"] = renderer
-    merge = BlockMerge()
-    t0 = time.perf_counter()
-    try:
-        for k, block in enumerate(_cluster.imap_items(
-                render_reference_block, items, cluster=cluster, desc=desc,
-                weights=[c for _, c in plan] * len(frames), stats=stats)):
-            merge.add(block)
-            if (k + 1) % len(plan) == 0:
-                yield merge.frame(renderer, int(frames[k // len(plan)]),
-                                  time.perf_counter() - t0, bs)
-                merge = BlockMerge()
-                t0 = time.perf_counter()
-    finally:
+    with _cluster.connect(cluster) as c:
+        job = shipped_job(job, c)
+        items = [{"job": job, "frame": int(i), "start": s, "count": n}
+                 for i in frames for s, n in plan]
+        # in this process the driver's renderer serves the blocks (no second scene load)
         _CACHE.clear()
+        _CACHE["key"] = _job_key(job)
+        _CACHE["renderer"] = renderer
+        merge = BlockMerge()
+        t0 = time.perf_counter()
+        try:
+            for k, block in enumerate(_cluster.imap_items(
+                    render_reference_block, items, cluster=c, desc=desc,
+                    weights=[n for _, n in plan] * len(frames), stats=stats)):
+                merge.add(block)
+                if (k + 1) % len(plan) == 0:
+                    yield merge.frame(renderer, int(frames[k // len(plan)]),
+                                      time.perf_counter() - t0, bs)
+                    merge = BlockMerge()
+                    t0 = time.perf_counter()
+        finally:
+            _CACHE.clear()
+
+
+def shipped_job(job: dict, cluster=None) -> dict:
+    """``job`` as the workers of the open ``cluster`` get it: an XML scene's files packed
+    (:func:`glossrt.scenefiles.bundle`) and their bytes put once into the cluster's object
+    store (:func:`glossrt.cluster.share`) under ``scene_files``, so that a node without the
+    driver's folders renders the same scene. Without a cluster, or for a built-in scene,
+    ``job`` as it is."""
+    import os
+
+    from .. import cluster as _cluster
+    from .. import scenefiles
+
+    if cluster is None or job.get("scene_files") is not None or not os.path.isfile(
+            str(job["scene"])):
+        return job
+    b = scenefiles.bundle(job["scene"])
+    return dict(job, scene_files=dict(b, data=_cluster.share(b["data"], cluster)))
 
 
 def reference_job(scene, size: Sequence[int] | None = None, *, frames: int = 1, orbit=None,
@@ -197,7 +227,8 @@ def reference_job(scene, size: Sequence[int] | None = None, *, frames: int = 1, 
     size=size, orbit=orbit, frames=frames)`` (``static``: ``scenes.load_static(scene,
     size=size)``) and ``Renderer(setup, max_depth=max_depth, seed=seed)``: plain data a
     worker loads the same scene from (an XML path made absolute: workers start in folders
-    of their own)."""
+    of their own; on a cluster :func:`reference_frames` ships the file and what it
+    references, :func:`shipped_job`)."""
     import os
 
     if not isinstance(scene, (str, os.PathLike)):

@@ -1533,14 +1533,45 @@ def scene_ref(scene) -> str:
     return os.path.abspath(s) if os.path.isfile(s) else s
 
 
-def _item_scene(ref: str) -> tuple:
-    """``(occluders, positions, normals)`` of scene ``ref`` (:func:`glossrt.scenes.load`),
-    cached per process (a worker that gets several items loads the scene once). The key has
-    the variant and, for a file, its modification time."""
+def ship_scene(items: list[dict], cluster=None) -> list[dict]:
+    """``items`` (:func:`vertex_chunk_items`) as the workers of the open ``cluster`` get them:
+    an XML scene packed with the files it references (:func:`glossrt.scenefiles.bundle`),
+    its bytes put once into the cluster's object store (:func:`glossrt.cluster.share`), so
+    that nodes without the driver's folders load the same scene. Without a cluster, or for a
+    built-in scene, ``items`` as they are."""
+    from ... import cluster as _cluster
+    from ... import scenefiles
+
+    if cluster is None or not items or not isinstance(items[0]["scene"], str) or \
+            not os.path.isfile(items[0]["scene"]):
+        return items
+    b = scenefiles.bundle(items[0]["scene"])
+    shipped = dict(b, data=_cluster.share(b["data"], cluster))
+    return [dict(it, scene=shipped) for it in items]
+
+
+def _scene_name(ref) -> str:
+    return ref["xml"] if isinstance(ref, dict) else str(ref)
+
+
+def _item_scene(ref) -> tuple:
+    """``(occluders, positions, normals)`` of scene ``ref`` (:func:`glossrt.scenes.load`; a
+    shipped bundle from :func:`ship_scene` is unpacked first,
+    :func:`glossrt.scenefiles.materialise`), cached per process (a worker that gets several
+    items loads the scene once). The key has the variant and, for a file, its modification
+    time (for a bundle, its digest)."""
     from ...scenes import load
 
-    key = (ref, mi.variant(), os.stat(ref).st_mtime_ns if os.path.isfile(ref) else None)
+    if isinstance(ref, dict):
+        key = ("bundle", ref.get("digest"), mi.variant())
+    else:
+        key = (ref, mi.variant(), os.stat(ref).st_mtime_ns if os.path.isfile(ref) else None)
     if key not in _ITEM_SCENES:
+        if isinstance(ref, dict):
+            from ... import cluster as _cluster
+            from ... import scenefiles
+
+            ref = scenefiles.materialise(ref, fetch=_cluster.resolve)
         scene = load(ref).scene
         pos, nrm, _ = scene_vertices(scene)
         _ITEM_SCENES.clear()  # one scene at a time: a worker serves one build
@@ -1580,7 +1611,8 @@ def build_vertex_chunk(item: dict) -> dict:
     occ, pos, nrm = _item_scene(item["scene"])
     a, b = int(item["start"]), int(item["stop"])
     if not (0 <= a < b <= len(pos)):
-        raise GlossrtError(f"vertex range {a}..{b} outside scene {item['scene']!r} "
+        raise GlossrtError(f"vertex range {a}..{b} outside scene "
+                           f"{_scene_name(item['scene'])!r} "
                            f"({len(pos)} vertices)")
     settings = {k: item[k] for k in CHUNK_SETTINGS if k in item}
     if settings.get("threads") is None and item.get("engine", "numpy") == "numpy":

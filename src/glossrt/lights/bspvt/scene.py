@@ -113,11 +113,15 @@ def _build_chunked(ref: str, pos: np.ndarray, resolution: int, epsilon: float, m
     file is refused)."""
     import time
 
+    from ...cluster import connect
+
     t0 = time.perf_counter()
     items = build.vertex_chunk_items(ref, len(pos), resolution, epsilon, method,
                                      chunk_vertices, **settings)
-    results = _map_items(build.build_vertex_chunk, items, cluster, progress,
-                         f"BSPVT build {resolution}x{resolution}")
+    with connect("none" if cluster is None else cluster) as c:
+        # an XML scene travels with the items (no shared folder needed on the nodes)
+        results = _map_items(build.build_vertex_chunk, build.ship_scene(items, c), c,
+                             progress, f"BSPVT build {resolution}x{resolution}")
     info = {"method": method, "angles": settings.get("angles", build.DEFAULT_ANGLES)
             if method == "batched" else None,
             "max_leaves": settings.get("max_leaves"),
