@@ -152,13 +152,17 @@ def test_every_command_of_the_cluster_howto(tmp_path):
     assert not any(_session(s) for s in sessions), "Ray processes left behind"
     # the reference through two Ray nodes: bit-identical to the local cluster's, resumed
     # without new work; the trees, the table and the experiment written
-    local, remote = _frames(tmp_path / "refs-local"), _frames(tmp_path / "refs")
-    assert len(local) > 0 and local.keys() == remote.keys()
-    for k in local:
-        assert local[k].tobytes() == remote[k].tobytes(), k
+    local = _frames(tmp_path / "refs-local")
+    assert len(local) > 0
+    for folder in ("refs", "refs-client"):  # as a Ray driver, through Ray Client
+        remote = _frames(tmp_path / folder)
+        assert local.keys() == remote.keys(), folder
+        for k in local:
+            assert local[k].tobytes() == remote[k].tobytes(), (folder, k)
     assert "wrote 0 frame(s)" in out and "(2 complete one(s) kept: --resume)" in out, out[-2000:]
     nodes = set(re.findall(r"worker \S+ \(node ([0-9a-f]{8})\) pid", out))
     assert len(nodes) == 2, out[-3000:]  # the blocks ran on both nodes
+    assert "wrote 2 frame(s) to refs-client" in out, out[-2000:]
     for f in ("trees.npz", "ltc.npz"):
         assert (tmp_path / f).stat().st_size > 0
     assert any((tmp_path / "exp").iterdir())

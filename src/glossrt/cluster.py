@@ -208,6 +208,16 @@ def connect(spec: str | Spec | Cluster | None = None,
             if parsed.kind == "local":
                 # "local": a new instance even where `ray start` left one running
                 ray.init(address="local", num_cpus=parsed.cpus or os.cpu_count() or 1, **kw)
+            elif parsed.kind == "client":
+                try:
+                    ray.init(address=parsed.address, **kw)
+                except Exception as e:
+                    # Ray 2.60's client server may fail the first session after the head
+                    # started (seen once: a gRPC check failure in its SpecificServer);
+                    # a second attempt connects
+                    if "Initialization failure from server" not in str(e):
+                        raise
+                    ray.init(address=parsed.address, **kw)
             else:
                 ray.init(address=parsed.address, **kw)
         except Exception as e:
