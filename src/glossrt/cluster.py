@@ -178,13 +178,16 @@ def _probe_address(spec: Spec) -> None:
 
 @contextmanager
 def connect(spec: str | Spec | Cluster | None = None,
-            worker_env: dict[str, str] | None = None) -> Iterator[Cluster | None]:
+            worker_env: dict[str, str] | None = None,
+            local_gpus: int | None = None) -> Iterator[Cluster | None]:
     """Open the cluster ``spec`` for a run: ``with connect("local:2") as c: ...``. Yields
     None for no cluster (see :func:`parse`), a :class:`Cluster` otherwise. A local Ray
     instance glossrt started is shut down at the end (no process left behind); a Ray that
     was already initialised in this process is used as it is and left running.
     ``worker_env``: more environment variables for the worker processes (e.g.
-    ``DRJIT_LIBLLVM_PATH`` where nodes keep libLLVM elsewhere)."""
+    ``DRJIT_LIBLLVM_PATH`` where nodes keep libLLVM elsewhere). ``local_gpus``: the GPUs a
+    ``local`` instance offers (default: Ray's detection), e.g. one per device of a
+    multi-GPU workstation."""
     if isinstance(spec, Cluster):
         yield spec
         return
@@ -207,7 +210,9 @@ def connect(spec: str | Spec | Cluster | None = None,
         try:
             if parsed.kind == "local":
                 # "local": a new instance even where `ray start` left one running
-                ray.init(address="local", num_cpus=parsed.cpus or os.cpu_count() or 1, **kw)
+                gpus = {} if local_gpus is None else {"num_gpus": int(local_gpus)}
+                ray.init(address="local", num_cpus=parsed.cpus or os.cpu_count() or 1,
+                         **gpus, **kw)
             elif parsed.kind == "client":
                 try:
                     ray.init(address=parsed.address, **kw)
