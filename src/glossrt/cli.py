@@ -558,6 +558,11 @@ def _radiance_problems(frame, channels, totals: dict) -> dict:
 def cmd_experiment(args) -> int:
     from .scenes import parse_size
 
+    # which of --size / --spp the command line gave: a --scale paper run takes its paper's
+    # values for the others (glossrt.experiments.lobes.run_paper reads args.explicit)
+    args.explicit = {o for o in ("size", "spp") if getattr(args, o) is not None}
+    args.size = EXPERIMENT_SIZE if args.size is None else args.size
+    args.spp = EXPERIMENT_SPP if args.spp is None else args.spp
     for opt in ("frames", "spp", "ref_every", "static_frames"):
         if getattr(args, opt) < 1:
             raise GlossrtError(f"--{opt.replace('_', '-')} must be >= 1, got {getattr(args, opt)}")
@@ -567,6 +572,9 @@ def cmd_experiment(args) -> int:
         raise GlossrtError(f"--resolution must be >= 1, got {args.resolution}")
     if args.polygons < 0:
         raise GlossrtError(f"--polygons must be >= 0, got {args.polygons}")
+    from .report.registry import experiment_scale
+
+    experiment_scale(args)  # a bad --scale: one line, before anything is written
     size = parse_size(args.size)
     _check_memory(size)
     if args.published is not None:
@@ -858,6 +866,10 @@ DEVICE_CHOICES = ["auto", "cpu", "gpu"]
 DEVICE_HELP = "backend (default: env GLOSSRT_DEVICE or auto)"
 
 
+#: ``glossrt experiment``'s --size and --spp when not given (and not --scale paper)
+EXPERIMENT_SIZE, EXPERIMENT_SPP = "256x192", 1024
+
+
 def _experiments() -> list:
     """``(name, help, fn)`` of every ``glossrt experiment --which`` run, each registered by its
     paper's module in :mod:`glossrt.experiments`."""
@@ -1040,12 +1052,21 @@ COMMANDS: tuple[Command, ...] = (
             "the denoiser comparison behind docs/RESULTS.md (quality, time, temporal error)",
             "glossrt experiment --out results --size 256x192 --frames 30 --spp 1024", (
                 _arg("--out", required=True),
-                _arg("--size", default="256x192"),
+                _arg("--size", default=None,
+                     help=f"default {EXPERIMENT_SIZE}; with --scale paper the paper's size "
+                          "where the experiment has one (lobes: 640x360)"),
                 _arg("--frames", type=int, default=30),
                 _arg("--ref-every", type=int, default=10),
-                _arg("--spp", type=int, default=1024),
+                _arg("--spp", type=int, default=None,
+                     help=f"reference samples per pixel, default {EXPERIMENT_SPP}; with "
+                          "--scale paper the paper's where the experiment has one "
+                          "(lobes: 4096)"),
                 _arg("--static-frames", type=int, default=60),
                 _which_arg,
+                _arg("--scale", default="quick", metavar="{quick,paper}",
+                     help="quick (default): the small runs measured on the 2-core machine; "
+                          "paper: the papers' sizes (issue 28; bspvt: Table 1 on the "
+                          "teapot-17k and teapot-100k scenes and the epsilon sweep)"),
                 _arg("--resolution", type=int, default=64,
                      help="bspvt: cube-map face size of the visibility maps"),
                 _arg("--polygons", type=int, default=2000,

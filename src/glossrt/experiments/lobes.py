@@ -53,6 +53,7 @@ from ..report.registry import (
     BenchContext,
     benchmark,
     experiment_cluster,
+    experiment_scale,
     finish_experiment,
     markdown_table,
     register_experiment,
@@ -63,6 +64,22 @@ from . import upsampling as ue
 
 __all__ = [
     "DEFAULT_BETAS",
+    "PAPER_INPUT_SPP",
+    "PAPER_K",
+    "PAPER_REF_SPP",
+    "PAPER_SIZE",
+    "BiasVariance",
+    "ErrorSplit",
+    "PaperStudy",
+    "Rendered",
+    "claims",
+    "fig4_paper",
+    "fig5_paper",
+    "load_paper_json",
+    "paper_json",
+    "noisy_input",
+    "render_scene",
+    "roughness_band",
     "FIG4_METHODS",
     "FIG5_METHODS",
     "Fig4Result",
@@ -93,9 +110,26 @@ SHARP_ALPHA, ROUGH_ALPHA = 0.02, 0.5
 # helpers
 
 
-def _render(scene: str, size: tuple[int, int], ref_spp: int, cluster=None):
-    """(setup, 1 spp frame 0, reference frame 0, seconds); the reference rendered on
-    ``cluster`` (:func:`glossrt.render.blocks.references`: None, in this process)."""
+@dataclass
+class Rendered:
+    """One scene's frame 0 as the experiments use it: ``setup``, its ``renderer``, the 1 spp
+    ``frame`` (seed 0), the ``reference`` of ``ref_spp`` samples and the render's ``seconds``.
+    Pass it to another experiment on the same scene to render the reference once."""
+
+    scene: str
+    size: tuple[int, int]
+    ref_spp: int
+    setup: Any
+    renderer: Any
+    frame: Any
+    reference: Any
+    seconds: float
+
+
+def render_scene(scene: str, size: tuple[int, int], ref_spp: int, cluster=None) -> Rendered:
+    """Render ``scene``'s frame 0 at ``size``: the 1 spp frame and the reference of
+    ``ref_spp`` samples, on ``cluster`` (:func:`glossrt.render.blocks.references`: None, in
+    this process)."""
     from .. import render, scenes
     from ..render import blocks
 
@@ -107,7 +141,25 @@ def _render(scene: str, size: tuple[int, int], ref_spp: int, cluster=None):
     frame = r.render(0)
     ref = blocks.references(r, blocks.reference_job(scene, size), [0], int(ref_spp), cluster,
                             desc=f"reference {scene} {ref_spp} spp")[0]
-    return setup, frame, ref, time.perf_counter() - t0
+    return Rendered(scene, tuple(size), int(ref_spp), setup, r, frame, ref,
+                    time.perf_counter() - t0)
+
+
+def _reuse(rendered: Rendered | None, scene: str, size, ref_spp: int, cluster) -> Rendered:
+    """``rendered`` when it is ``scene`` at ``size`` and ``ref_spp``, else a new render."""
+    if rendered is None:
+        return render_scene(scene, size, ref_spp, cluster)
+    want = (scene, tuple(size), int(ref_spp))
+    if (rendered.scene, tuple(rendered.size), rendered.ref_spp) != want:
+        raise GlossrtError(f"rendered is {rendered.scene} {rendered.size} {rendered.ref_spp} "
+                           f"spp, wanted {want[0]} {want[1]} {want[2]} spp")
+    return rendered
+
+
+def _render(scene: str, size: tuple[int, int], ref_spp: int, cluster=None):
+    """(setup, 1 spp frame 0, reference frame 0, seconds): :func:`render_scene`'s."""
+    r = render_scene(scene, size, ref_spp, cluster)
+    return r.setup, r.frame, r.reference, r.seconds
 
 
 def _specular(frame, weight: str, **kwargs) -> np.ndarray:
@@ -360,6 +412,9 @@ class Fig6Result:
     curves: dict[str, np.ndarray]
     input_mse: list[float]
     seconds: dict[str, float] = field(default_factory=dict)
+    #: how many independent inputs each curve is the mean MSE over, and their spp
+    inputs: int = 1
+    input_spp: int = 1
 
     #: the swept parameter's name per method
     LABELS = {"normal": "1 / sigma_n^2", "lobe": "beta"}
@@ -477,7 +532,8 @@ class Fig6Result:
 def fig6(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
          betas: Sequence[float] | np.ndarray = DEFAULT_BETAS,
          filter_kwargs: Mapping[str, Any] | None = None,
-         progress: Progress | None = None, cluster=None) -> Fig6Result:
+         progress: Progress | None = None, cluster=None, inputs: int = 1,
+         input_spp: int = 1, rendered: Rendered | None = None) -> Fig6Result:
     """Tokuyoshi 2015, sec. 5.2 / fig. 6: on ``glossy-spheres`` frame 0, the MSE of each
     sphere's ``indirect_specular`` for the lobe weight at every ``beta`` in ``betas`` and for
     the normal weight at every ``1 / sigma_n^2`` in ``betas`` (the same values; end of sec.
@@ -485,7 +541,12 @@ def fig6(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
     parameters are the paper's (kappa 100) and glossrt's (sigma_s 2, radius 6), or
     ``filter_kwargs``. The scene is rendered once; ``progress(done, total)`` after each
     filter run. ``cluster``: where the reference is rendered
-    (:func:`glossrt.render.blocks.references`)."""
+    (:func:`glossrt.render.blocks.references`).
+
+    ``inputs`` / ``input_spp``: the curves are the mean MSE over ``inputs`` independent
+    inputs of ``input_spp`` samples (seeds :data:`INPUT_SEED0` + i, :func:`noisy_input`);
+    the default 1 / 1 is the seed-0 frame of the quick runs. ``rendered``: a
+    :func:`render_scene` of ``glossy-spheres`` at ``size`` and ``ref_spp`` to reuse."""
     params = np.asarray(betas, dtype=np.float64).ravel()
     if params.size < 1 or not np.all(np.isfinite(params)) or np.any(params <= 0):
         raise GlossrtError("fig6: betas must be positive finite values (at least one)")
@@ -493,12 +554,19 @@ def fig6(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
     for swept in ("beta", "sigma_n2"):
         if swept in kw:
             raise GlossrtError(f"fig6: {swept!r} is swept; do not pass it in filter_kwargs")
-    setup, frame, ref, t_render = _render("glossy-spheres", size, ref_spp, cluster)
-    spheres, masks = _spheres(setup, frame)
-    target = ref.numpy(CHANNEL)
+    _check_counts(inputs=inputs, input_spp=input_spp)
+    rd = _reuse(rendered, "glossy-spheres", size, ref_spp, cluster)
+    spheres, masks = _spheres(rd.setup, rd.frame)
+    target = rd.reference.numpy(CHANNEL)
+    t0 = time.perf_counter()
+    if inputs == 1 and input_spp == 1:
+        frames = [rd.frame]
+    else:
+        frames = [noisy_input(rd.renderer, input_spp, INPUT_SEED0 + i) for i in range(inputs)]
+    seconds = {"render": rd.seconds if rendered is None else 0.0,
+               "inputs": time.perf_counter() - t0}
     curves = {m: np.zeros((len(spheres), params.size)) for m in ("normal", "lobe")}
-    seconds = {"render": t_render}
-    total, done = 2 * params.size, 0
+    total, done = 2 * params.size * len(frames), 0
     for m in ("normal", "lobe"):
         t0 = time.perf_counter()
         for j, p in enumerate(params):
@@ -507,15 +575,494 @@ def fig6(size: tuple[int, int] = (96, 72), ref_spp: int = 256,
                 extra = {"beta": dr.opaque(mi.Float, float(p))}
             else:
                 extra = {"sigma_n2": dr.opaque(mi.Float, float(1.0 / p))}
-            img = _specular(frame, m, **kw, **extra)
-            curves[m][:, j] = [_mse(img, target, mask) for mask in masks]
-            done += 1
-            _tick(progress, done, total)
+            for frame in frames:
+                img = _specular(frame, m, **kw, **extra)
+                curves[m][:, j] += [_mse(img, target, mask) / len(frames) for mask in masks]
+                done += 1
+                _tick(progress, done, total)
         seconds[m] = time.perf_counter() - t0
+    input_mse = [float(np.mean([_mse(f.numpy(CHANNEL), target, mask) for f in frames]))
+                 for mask in masks]
     return Fig6Result(scene="glossy-spheres", size=tuple(size), ref_spp=int(ref_spp),
                       filter_kwargs=kw, spheres=spheres, params=params, curves=curves,
-                      input_mse=[_mse(frame.numpy(CHANNEL), target, mask) for mask in masks],
+                      input_mse=input_mse, seconds=seconds, inputs=len(frames),
+                      input_spp=int(input_spp))
+
+
+# --------------------------------------------------------------------------------------------
+# paper scale (issue 28): bias / variance over K independent inputs, band vs interiors
+
+
+#: Tokuyoshi 2015, fig. 5's caption: 640x360 (the paper writes 360 x 640)
+PAPER_SIZE = (640, 360)
+#: issue 28: references of at least 4096 spp
+PAPER_REF_SPP = 4096
+#: issue 28: the input at 1 and at 4 spp
+PAPER_INPUT_SPP = (1, 4)
+#: independent inputs per noise level (glossrt's choice: the paper filters one input)
+PAPER_K = 16
+#: independent inputs fig. 6's curves are averaged over at paper scale (glossrt's choice)
+PAPER_FIG6_INPUTS = 4
+#: seed of the first independent input (the quick runs' one input is seed 0)
+INPUT_SEED0 = 1
+#: relative roughness difference that counts as a step (:func:`roughness_band`)
+STEP_TOL = 1e-3
+
+
+def _check_counts(**counts: int) -> None:
+    for name, v in counts.items():
+        if int(v) < 1:
+            raise GlossrtError(f"{name} must be >= 1, got {v}")
+
+
+def noisy_input(renderer, spp: int, seed: int):
+    """An independent noisy frame 0 of ``spp`` samples per pixel: :meth:`Renderer.render`
+    (1 spp, the real-time input) or :meth:`Renderer.render_reference` (``spp`` > 1: ``spp``
+    independent 1 spp estimates averaged, the same pixel-centre primary hits) with ``seed``
+    (distinct seeds: independent noise; the references use seed 0 with their own salt)."""
+    _check_counts(spp=spp)
+    if spp == 1:
+        return renderer.render(0, seed=int(seed))
+    return renderer.render_reference(0, int(spp), seed=int(seed))
+
+
+def roughness_band(alpha: np.ndarray, hit: np.ndarray, radius: int,
+                   tol: float = STEP_TOL) -> np.ndarray:
+    """The band around roughness steps: the hit pixels whose filter window (the (2 radius +
+    1)^2 pixels the cross-bilateral filter reads) holds hit pixels of different roughness
+    (``max - min > tol * max`` over the window's hit pixels of the G-buffer's ``alpha``).
+    The other hit pixels are the cells' interiors: their whole window has one roughness."""
+    if radius < 0:
+        raise GlossrtError(f"radius must be >= 0, got {radius}")
+    alpha = np.asarray(alpha, dtype=np.float64)
+    hit = np.asarray(hit, dtype=bool)
+    h, w = alpha.shape
+    pad = np.pad(np.where(hit, alpha, np.nan), radius, constant_values=np.nan)
+    lo = np.full((h, w), np.inf)
+    hi = np.full((h, w), -np.inf)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            win = pad[dy:dy + h, dx:dx + w]
+            lo, hi = np.fmin(lo, win), np.fmax(hi, win)  # fmin / fmax skip the NaNs
+    with np.errstate(invalid="ignore"):
+        return hit & (hi - lo > tol * np.abs(hi))
+
+
+@dataclass
+class ErrorSplit:
+    """MSE of one method over one region, split over K independent inputs (x_k, reference
+    r, per pixel and RGB channel, then the mean over the region's pixels and channels):
+
+    * ``variance`` = mean of s^2 = sum_k (x_k - mean_k x)^2 / (K - 1) (unbiased);
+    * ``bias2`` = mean of (mean_k x - r)^2 - s^2 / K (unbiased for (E[x] - r)^2: the mean
+      over K inputs still holds variance / K);
+    * ``mse`` = ``bias2`` + ``variance`` = the mean over k of each input's MSE (an identity);
+    * ``per_input``: each input's MSE (for paired comparisons between methods).
+
+    r is itself a ``ref_spp`` estimate: its variance (about the 1 spp variance / ref_spp,
+    :attr:`PaperStudy.ref_noise`) is inside ``bias2``."""
+
+    mse: float
+    bias2: float
+    variance: float
+    per_input: list[float]
+
+
+class BiasVariance:
+    """Accumulates K filtered inputs of one method against ``reference`` (H, W, 3) and
+    splits their error per region (``masks``: name -> (H, W) bool, or None for all pixels)
+    into :class:`ErrorSplit`. Sums in float64 of d = x - r and d^2 per pixel."""
+
+    def __init__(self, reference: np.ndarray, masks: Mapping[str, np.ndarray | None]):
+        self.ref = np.asarray(reference, dtype=np.float64)
+        self.masks = {k: (None if m is None else np.asarray(m, dtype=bool))
+                      for k, m in masks.items()}
+        for k, m in self.masks.items():
+            if m is not None and not m.any():
+                raise GlossrtError(f"region {k!r} has no pixel")
+        self.s1 = np.zeros_like(self.ref)
+        self.s2 = np.zeros_like(self.ref)
+        self.k = 0
+        self.per_input: dict[str, list[float]] = {k: [] for k in self.masks}
+
+    def add(self, image: np.ndarray) -> None:
+        d = np.asarray(image, dtype=np.float64) - self.ref
+        if d.shape != self.ref.shape:
+            raise GlossrtError(f"image shape {d.shape} is not the reference's {self.ref.shape}")
+        self.s1 += d
+        self.s2 += d * d
+        self.k += 1
+        for name, m in self.masks.items():
+            self.per_input[name].append(float(np.mean(d * d if m is None else (d * d)[m])))
+
+    def split(self, region: str) -> ErrorSplit:
+        if self.k < 2:
+            raise GlossrtError(f"a bias / variance split needs K >= 2 inputs, got {self.k}")
+        k, m = self.k, self.masks[region]
+        mean_d = self.s1 / k
+        var = np.maximum((self.s2 - self.s1 * mean_d) / (k - 1), 0.0)
+        bias2 = mean_d * mean_d - var / k
+        sel = (lambda a: a) if m is None else (lambda a: a[m])
+        return ErrorSplit(mse=float(np.mean(sel(self.s2)) / k), bias2=float(np.mean(sel(bias2))),
+                          variance=float(np.mean(sel(var))),
+                          per_input=list(self.per_input[region]))
+
+
+@dataclass
+class PaperStudy:
+    """One scene at paper scale: ``split[spp][method][region]`` (:class:`ErrorSplit`) for the
+    input and each filter over ``k`` independent inputs (seeds ``seeds``) per noise level
+    ``spp``; ``pixels[region]``; ``ref_noise[region]``: the reference's own variance, about
+    the 1 spp variance / ``ref_spp`` (from the lowest input spp's measured variance), a floor
+    under every ``bias2``. ``images``: the reference and, per spp, the first input and its
+    filtered versions (``"{method} {spp} spp"``); ``samples[(spp, method)]``: all K filtered
+    images (K, H, W, 3) when asked for (tests). A region without pixels is left out of
+    ``regions``."""
+
+    scene: str
+    size: tuple[int, int]
+    ref_spp: int
+    input_spp: tuple[int, ...]
+    k: int
+    seeds: tuple[int, ...]
+    params: dict[str, Any]
+    regions: list[str]
+    pixels: dict[str, int]
+    split: dict[int, dict[str, dict[str, ErrorSplit]]]
+    ref_noise: dict[str, float]
+    images: dict[str, np.ndarray] = field(repr=False)
+    samples: dict[tuple[int, str], np.ndarray] = field(repr=False, default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def compare(self, spp: int, a: str, b: str, region: str) -> tuple[float, float, float]:
+        """``(MSE a / MSE b, mean paired difference a - b, its standard error)`` over the K
+        inputs (both methods filter the same K inputs)."""
+        ea, eb = self.split[spp][a][region], self.split[spp][b][region]
+        d = np.asarray(ea.per_input) - np.asarray(eb.per_input)
+        se = float(np.std(d, ddof=1) / math.sqrt(d.size)) if d.size > 1 else math.inf
+        return ea.mse / eb.mse, float(d.mean()), se
+
+    def markdown(self) -> str:
+        cols = ["input spp", "method"]
+        for reg in self.regions:
+            cols += [f"{reg} ({self.pixels[reg]} px): MSE", "bias^2", "variance"]
+        cols += [f"/ normal ({self.regions[0]})"]
+        rows = []
+        for spp, per in self.split.items():
+            for m, regs in per.items():
+                row: list[Any] = [str(spp), m]
+                for reg in self.regions:
+                    e = regs[reg]
+                    row += [e.mse, e.bias2, e.variance]
+                row.append(regs[self.regions[0]].mse / per["normal"][self.regions[0]].mse
+                           if "normal" in per else None)
+                rows.append(row)
+        noise = ", ".join(f"{r} {_fmt(v)}" for r, v in self.ref_noise.items())
+        return (f"{self.scene} {self.size[0]}x{self.size[1]}, reference {self.ref_spp} spp, "
+                f"K = {self.k} independent inputs per noise level (seeds {self.seeds[0]}.."
+                f"{self.seeds[-1]}), filters {self.params or 'at the defaults'}. MSE = bias^2 + "
+                "variance; variance: unbiased over K (1/(K-1)); bias^2: (mean over K - "
+                "reference)^2 - variance/K. The reference's own noise (inside bias^2, about "
+                f"var(1 spp) / {self.ref_spp}): {noise}.\n\n" + _table(cols, rows))
+
+
+def _study(scene: str, size, ref_spp: int, input_spp: Sequence[int], k: int,
+           regions: Callable[[Rendered], dict[str, np.ndarray | None]], methods: Sequence[str],
+           kw: dict, progress: Progress | None, cluster, seeds, keep_samples: bool,
+           rendered: Rendered | None) -> PaperStudy:
+    input_spp = tuple(int(s) for s in input_spp)
+    _check_counts(k=k, **{f"input_spp[{i}]": s for i, s in enumerate(input_spp)})
+    seeds = tuple(range(INPUT_SEED0, INPUT_SEED0 + int(k))) if seeds is None else \
+        tuple(int(s) for s in seeds)
+    if len(seeds) < 2 or not input_spp:
+        raise GlossrtError(f"need >= 2 inputs per noise level and >= 1 noise level, got "
+                           f"{len(seeds)} seeds and input_spp {input_spp}")
+    rd = _reuse(rendered, scene, size, ref_spp, cluster)
+    target = rd.reference.numpy(CHANNEL)
+    # a region without pixels (no interior at a tiny size and a wide window) is left out
+    masks = {k_: m for k_, m in regions(rd).items() if m is None or m.any()}
+    filters = [m for m in methods if m != "input"]
+    split: dict[int, dict[str, dict[str, ErrorSplit]]] = {}
+    images: dict[str, np.ndarray] = {"reference": target}
+    samples: dict[tuple[int, str], np.ndarray] = {}
+    seconds = {"render": rd.seconds if rendered is None else 0.0, "inputs": 0.0,
+               **{m: 0.0 for m in filters}}
+    total, done = len(input_spp) * len(seeds) * len(filters), 0
+    for spp in input_spp:
+        acc = {m: BiasVariance(target, masks) for m in ["input", *filters]}
+        kept: dict[str, list] = {m: [] for m in acc}
+        for j, seed in enumerate(seeds):
+            t0 = time.perf_counter()
+            frame = noisy_input(rd.renderer, spp, seed)
+            seconds["inputs"] += time.perf_counter() - t0
+            imgs = {"input": frame.numpy(CHANNEL)}
+            for m in filters:
+                t0 = time.perf_counter()
+                imgs[m] = _specular(frame, m, **kw)
+                seconds[m] += time.perf_counter() - t0
+                done += 1
+                _tick(progress, done, total)
+            for m, img in imgs.items():
+                acc[m].add(img)
+                if keep_samples:
+                    kept[m].append(img)
+                if j == 0:
+                    images[f"{m} {spp} spp"] = img
+        split[spp] = {m: {reg: a.split(reg) for reg in masks} for m, a in acc.items()}
+        if keep_samples:
+            samples.update({(spp, m): np.stack(v) for m, v in kept.items()})
+    lo = min(input_spp)
+    ref_noise = {reg: split[lo]["input"][reg].variance * lo / rd.ref_spp for reg in masks}
+    return PaperStudy(scene=scene, size=tuple(size), ref_spp=int(ref_spp),
+                      input_spp=input_spp, k=len(seeds), seeds=seeds, params=dict(kw),
+                      regions=list(masks),
+                      pixels={r: int(rd.frame.width * rd.frame.height) if m is None
+                              else int(m.sum()) for r, m in masks.items()},
+                      split=split, ref_noise=ref_noise, images=images, samples=samples,
                       seconds=seconds)
+
+
+def fig4_paper(size: tuple[int, int] = PAPER_SIZE, ref_spp: int = PAPER_REF_SPP,
+               input_spp: Sequence[int] = PAPER_INPUT_SPP, k: int = PAPER_K,
+               filter_kwargs: Mapping[str, Any] | None = None,
+               progress: Progress | None = None, cluster=None, seeds=None,
+               keep_samples: bool = False, rendered: Rendered | None = None) -> PaperStudy:
+    """Tokuyoshi 2015, fig. 4 at paper scale (issue 28): ``roughness-map`` frame 0 at
+    ``size``, the reference of ``ref_spp`` samples rendered once (on ``cluster``), ``k``
+    independent inputs (seeds ``INPUT_SEED0``.., or ``seeds``) per noise level in
+    ``input_spp``, each filtered by every method of :data:`FIG4_METHODS`; the error of
+    each split into bias^2 and variance (:class:`ErrorSplit`) over the image, the band around
+    roughness steps (:func:`roughness_band` at the filter's radius) and the cells'
+    interiors (the other hit pixels)."""
+    kw = dict(filter_kwargs or {})
+    radius = int(kw.get("radius", _default_radius()))
+
+    def regions(rd: Rendered) -> dict[str, np.ndarray | None]:
+        hit = rd.frame.numpy("mesh_id")[..., 0] > 0
+        band = roughness_band(rd.frame.numpy("roughness")[..., 0], hit, radius)
+        return {"image": None, "band": band, "interior": hit & ~band}
+
+    return _study("roughness-map", size, ref_spp, input_spp, k, regions, FIG4_METHODS, kw,
+                  progress, cluster, seeds, keep_samples, rendered)
+
+
+def fig5_paper(size: tuple[int, int] = PAPER_SIZE, ref_spp: int = PAPER_REF_SPP,
+               input_spp: Sequence[int] = PAPER_INPUT_SPP, k: int = PAPER_K,
+               filter_kwargs: Mapping[str, Any] | None = None,
+               progress: Progress | None = None, cluster=None, seeds=None,
+               keep_samples: bool = False, rendered: Rendered | None = None) -> PaperStudy:
+    """Tokuyoshi 2015, fig. 5 at paper scale: as :func:`fig4_paper` on ``glossy-spheres``,
+    one region per sphere (``"s=1000"``, ``"s=100"``, ``"s=10"``: Phong exponents)."""
+    def regions(rd: Rendered) -> dict[str, np.ndarray | None]:
+        infos, masks = _spheres(rd.setup, rd.frame)
+        return {f"s={s.phong:g}": m for s, m in zip(infos, masks, strict=True)}
+
+    return _study("glossy-spheres", size, ref_spp, input_spp, k, regions, FIG5_METHODS,
+                  dict(filter_kwargs or {}), progress, cluster, seeds, keep_samples, rendered)
+
+
+def _default_radius() -> int:
+    from ..denoise.bilateral import RADIUS
+
+    return RADIUS
+
+
+_LABEL = {"input": "input", "normal": "normal-aware", "screen": "screen kernel",
+          "lobe": "lobe-aware"}
+
+
+def _verdict(ratio: float, diff: float, se: float, greater: bool = False) -> str:
+    """Whether "a < b" (``greater``: "a > b") holds for the paired difference ``diff`` = a -
+    b with standard error ``se``: HOLDS / DOES NOT HOLD when it is more than 2 standard
+    errors from 0 on that side / the other, else UNDECIDED (within the K inputs' noise)."""
+    nums = f"ratio {ratio:.3g}, difference {diff:.3g} +- {se:.2g}"
+    signed = -diff if greater else diff
+    if signed < -2.0 * se:
+        return f"HOLDS ({nums})"
+    if signed > 2.0 * se:
+        return f"DOES NOT HOLD ({nums})"
+    return f"UNDECIDED ({nums}: within 2 s.e.)"
+
+
+def claims(f4: PaperStudy | None = None, f5: PaperStudy | None = None,
+           f6: Mapping[int, Fig6Result] | None = None) -> list[str]:
+    """Which of Tokuyoshi 2015's claims (secs. 5.1-5.2) hold, one line each, computed from
+    the measured numbers: a paired comparison over the K inputs (:meth:`PaperStudy.compare`,
+    "a < b" holds when the mean paired MSE difference is below -2 standard errors; it
+    does not hold when above +2; else undecided) for figs. 4-5, the optima and curves for
+    fig. 6 (deterministic comparisons of the measured curves)."""
+    out = []
+    if f4 is not None:
+        at = f"fig. 4, roughness-map {f4.size[0]}x{f4.size[1]}"
+        for spp in f4.input_spp:
+            for a, b, reg in (("lobe", "normal", "image"), ("lobe", "normal", "band"),
+                              ("lobe", "normal", "interior"), ("lobe", "screen", "image"),
+                              ("lobe", "screen", "band")):
+                if reg in f4.regions and b in f4.split[spp]:
+                    out.append(f"{at}, {spp} spp: {_LABEL[a]} < {_LABEL[b]} MSE ({reg}): "
+                               + _verdict(*f4.compare(spp, a, b, reg)))
+    if f5 is not None:
+        at = f"fig. 5, glossy-spheres {f5.size[0]}x{f5.size[1]}"
+        sharp = f5.regions[0]
+        for spp in f5.input_spp:
+            out.append(f"{at}, {spp} spp: normal-aware > input MSE on the sharpest sphere "
+                       f"({sharp}; the normal weight at sigma_n^2 0.01 over-blurs it): "
+                       + _verdict(*f5.compare(spp, "normal", "input", sharp), greater=True))
+            for reg in f5.regions:
+                out.append(f"{at}, {spp} spp: lobe-aware < input MSE ({reg}): "
+                           + _verdict(*f5.compare(spp, "lobe", "input", reg)))
+                out.append(f"{at}, {spp} spp: lobe-aware < normal-aware MSE ({reg}): "
+                           + _verdict(*f5.compare(spp, "lobe", "normal", reg)))
+    for spp, r in (f6 or {}).items():
+        at = (f"fig. 6, glossy-spheres {r.size[0]}x{r.size[1]}, {spp} spp (mean of "
+              f"{r.inputs} input{'s' if r.inputs > 1 else ''})")
+        sl, sn = r.spread("lobe"), r.spread("normal")
+        edge = " (an optimum on the sweep's end: spreads are lower bounds)" \
+            if r.on_boundary("lobe").any() or r.on_boundary("normal").any() else ""
+        out.append(f"{at}: the lobe weight's optima are closer together than the normal "
+                   f"weight's: {'HOLDS' if sl < sn else 'DOES NOT HOLD'} ({sl:.2f} vs "
+                   f"{sn:.2f} decades){edge}")
+        q = r.optimum_mse("lobe") / r.optimum_mse("normal")
+        same = "HOLDS" if np.all(np.abs(q - 1) <= 0.1) else "DOES NOT HOLD"
+        out.append(f"{at}: at each sphere's own optimum the two weights' MSEs are almost the "
+                   f"same (within 10%): {same} (lobe / normal "
+                   f"{', '.join(f'{v:.3g}' for v in q)})")
+        pl, vl = r.mean_optimum("lobe")
+        pn, vn = r.mean_optimum("normal")
+        out.append(f"{at}: one common parameter gives a lower mean MSE with the lobe weight "
+                   f"(the purple line): {'HOLDS' if vl < vn else 'DOES NOT HOLD'} (lobe "
+                   f"{vl:.4g} at beta {pl:.3g}, normal {vn:.4g} at 1/sigma_n^2 {pn:.3g})")
+    return out
+
+
+def _explicit(args, name: str) -> bool:
+    """Whether ``glossrt experiment`` was given ``--NAME`` (``args.explicit``; callers
+    without it: every option counts as given)."""
+    given = getattr(args, "explicit", None)
+    return True if given is None else name in given
+
+
+def run_paper(out, size, args) -> int:
+    """``glossrt experiment --which lobes --scale paper``: figs. 4-6 at :data:`PAPER_SIZE`
+    (or ``--size`` when given), references of ``--spp`` (default :data:`PAPER_REF_SPP`),
+    inputs at :data:`PAPER_INPUT_SPP`, :data:`PAPER_K` inputs per noise level, fig. 6 over
+    :data:`PAPER_FIG6_INPUTS` inputs per noise level. Writes ``lobes-paper.md`` / ``.json``
+    and ``fig6-{spp}spp.png``."""
+    from ..progress import Progress as Bar
+
+    size = tuple(size) if _explicit(args, "size") else PAPER_SIZE
+    spp = int(args.spp) if _explicit(args, "spp") else PAPER_REF_SPP
+    cluster = experiment_cluster(args)
+    t0 = time.perf_counter()
+    parts = [f"# Tokuyoshi 2015 figs. 4-6 at paper scale ({size[0]}x{size[1]}, reference "
+             f"{spp} spp, inputs {' and '.join(map(str, PAPER_INPUT_SPP))} spp, K = {PAPER_K})"]
+
+    class bar:  # a progress bar made at the first tick, when the total is known
+        def __init__(self, desc: str):
+            self.desc, self.p = desc, None
+
+        def __call__(self, done: int, total: int) -> None:
+            self.p = self.p or Bar(total, self.desc)
+            self.p.update(done)
+
+        def close(self) -> None:
+            if self.p is not None:
+                self.p.close()
+
+    print("fig. 4 (roughness-map) ...", flush=True)
+    b = bar("fig. 4 filters")
+    f4 = fig4_paper(size, spp, k=PAPER_K, progress=b, cluster=cluster)
+    b.close()
+    print("fig. 5 (glossy-spheres) ...", flush=True)
+    spheres = render_scene("glossy-spheres", size, spp, cluster)
+    b = bar("fig. 5 filters")
+    f5 = fig5_paper(size, spp, k=PAPER_K, progress=b, rendered=spheres)
+    b.close()
+    f6 = {}
+    for s in PAPER_INPUT_SPP:
+        print(f"fig. 6 ({s} spp) ...", flush=True)
+        b = bar(f"fig. 6 sweep {s} spp")
+        f6[s] = fig6(size, spp, inputs=PAPER_FIG6_INPUTS, input_spp=s, progress=b,
+                     rendered=spheres)
+        b.close()
+        f6[s].plot(str(out / f"fig6-{s}spp.png"))
+    parts += [f"## fig. 4 analogue (roughness-map): band = hit pixels within the filter "
+              f"radius of a roughness step\n\n{f4.markdown()}",
+              f"## fig. 5 analogue (glossy-spheres)\n\n{f5.markdown()}"]
+    parts += [f"## fig. 6 analogue, {s} spp input (mean over {r.inputs} inputs)\n\n"
+              f"{r.markdown()}" for s, r in f6.items()]
+    parts.append("## Which claims hold\n\n" + "\n".join(f"- {c}" for c in claims(f4, f5, f6)))
+    wall = time.perf_counter() - t0
+    parts.append(f"Wall time {wall:.0f} s (reference renders {f4.seconds['render']:.0f} + "
+                 f"{spheres.seconds:.0f} s).")
+    data = paper_json(f4, f5, f6, size=list(size), ref_spp=spp, k=PAPER_K, wall_s=wall)
+    return finish_experiment(out, "lobes-paper", "\n\n".join(parts),
+                             f"fig6-{PAPER_INPUT_SPP[0]}spp.png", data)
+
+
+def study_to_json(s: PaperStudy) -> dict:
+    """:class:`PaperStudy` as JSON data (without images), for :func:`study_from_json`."""
+    return {"scene": s.scene, "size": list(s.size), "ref_spp": s.ref_spp,
+            "input_spp": list(s.input_spp), "k": s.k, "seeds": list(s.seeds),
+            "params": s.params, "regions": s.regions, "pixels": s.pixels,
+            "ref_noise": s.ref_noise, "seconds": s.seconds,
+            "split": {str(spp): {m: {reg: {"mse": e.mse, "bias2": e.bias2,
+                                           "variance": e.variance, "per_input": e.per_input}
+                                     for reg, e in regs.items()}
+                                 for m, regs in per.items()}
+                      for spp, per in s.split.items()}}
+
+
+def study_from_json(d: Mapping[str, Any]) -> PaperStudy:
+    """The :class:`PaperStudy` of :func:`study_to_json`'s data (no images)."""
+    split = {int(spp): {m: {reg: ErrorSplit(e["mse"], e["bias2"], e["variance"],
+                                            list(e["per_input"])) for reg, e in regs.items()}
+                        for m, regs in per.items()} for spp, per in d["split"].items()}
+    return PaperStudy(scene=d["scene"], size=tuple(d["size"]), ref_spp=int(d["ref_spp"]),
+                      input_spp=tuple(d["input_spp"]), k=int(d["k"]), seeds=tuple(d["seeds"]),
+                      params=dict(d["params"]), regions=list(d["regions"]),
+                      pixels=dict(d["pixels"]), split=split, ref_noise=dict(d["ref_noise"]),
+                      images={}, seconds=dict(d.get("seconds", {})))
+
+
+def fig6_to_json(r: Fig6Result) -> dict:
+    """:class:`Fig6Result` as JSON data, for :func:`fig6_from_json`."""
+    return {"scene": r.scene, "size": list(r.size), "ref_spp": r.ref_spp,
+            "filter_kwargs": r.filter_kwargs, "inputs": r.inputs, "input_spp": r.input_spp,
+            "spheres": [vars(sp) for sp in r.spheres], "params": r.params.tolist(),
+            "curves": {m: c.tolist() for m, c in r.curves.items()},
+            "input_mse": list(r.input_mse), "seconds": r.seconds}
+
+
+def fig6_from_json(d: Mapping[str, Any]) -> Fig6Result:
+    """The :class:`Fig6Result` of :func:`fig6_to_json`'s data."""
+    return Fig6Result(scene=d["scene"], size=tuple(d["size"]), ref_spp=int(d["ref_spp"]),
+                      filter_kwargs=dict(d["filter_kwargs"]),
+                      spheres=[SphereInfo(**sp) for sp in d["spheres"]],
+                      params=np.asarray(d["params"], dtype=np.float64),
+                      curves={m: np.asarray(c, dtype=np.float64)
+                              for m, c in d["curves"].items()},
+                      input_mse=list(d["input_mse"]), seconds=dict(d.get("seconds", {})),
+                      inputs=int(d["inputs"]), input_spp=int(d["input_spp"]))
+
+
+def paper_json(f4: PaperStudy, f5: PaperStudy, f6: Mapping[int, Fig6Result],
+               **extra: Any) -> dict:
+    """``lobes-paper.json``'s data: the three studies and the claims computed from them."""
+    return {**extra, "fig4": study_to_json(f4), "fig5": study_to_json(f5),
+            "fig6": {str(s): fig6_to_json(r) for s, r in f6.items()},
+            "claims": claims(f4, f5, f6)}
+
+
+def load_paper_json(path) -> tuple[PaperStudy, PaperStudy, dict[int, Fig6Result]]:
+    """``(fig4, fig5, {spp: fig6})`` of a ``lobes-paper.json`` (:func:`run_paper`), so the
+    claims (:func:`claims`) can be recomputed and asserted from stored measurements."""
+    import json
+    from pathlib import Path
+
+    d = json.loads(Path(path).read_text())
+    return (study_from_json(d["fig4"]), study_from_json(d["fig5"]),
+            {int(s): fig6_from_json(r) for s, r in d["fig6"].items()})
 
 
 @register_section("lobes", order=50)
@@ -596,9 +1143,14 @@ def bench_lobe_weights(ctx: BenchContext) -> dict:
 
 
 @register_experiment("lobes", "Tokuyoshi 2015 figs. 4-6 and upsampling (uses --size and "
-                     "--spp)", order=20)
+                     "--spp); --scale paper: figs. 4-6 at 640x360, 4096 spp references, "
+                     "16 inputs at 1 and at 4 spp, bias / variance, band vs interiors",
+                     order=20)
 def run_experiment(out, size, args) -> int:
-    """Tokuyoshi 2015 figs. 4-6 analogues and the upsampling measurements (RESULTS.md)."""
+    """Tokuyoshi 2015 figs. 4-6 analogues and the upsampling measurements (RESULTS.md);
+    ``--scale paper``: :func:`run_paper`."""
+    if experiment_scale(args) == "paper":
+        return run_paper(out, size, args)
     spp, cluster = args.spp, experiment_cluster(args)
     if size[0] % 4 or size[1] % 4:
         raise GlossrtError(f"--size must be a multiple of 4 in both axes for the 1/4 "

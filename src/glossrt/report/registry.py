@@ -34,10 +34,12 @@ __all__ = [
     "BENCHMARKS",
     "BenchContext",
     "DemoContext",
+    "EXPERIMENT_SCALES",
     "SectionFn",
     "benchmark",
     "build_report",
     "experiment_cluster",
+    "experiment_scale",
     "finish_experiment",
     "markdown_table",
     "register_experiment",
@@ -241,6 +243,22 @@ def experiment_cluster(args):
     None when ``args`` has no ``cluster`` (callers that predate the option). None: the
     experiment's one-process path, unchanged."""
     return getattr(args, "cluster", None)
+
+
+#: ``glossrt experiment --scale``: ``quick`` (the default: the small runs behind the tables
+#: measured on the 2-core machine) or ``paper`` (the papers' sizes, issue 28; each experiment
+#: that has a paper-scale run reads it with :func:`experiment_scale`, the others run as quick)
+EXPERIMENT_SCALES = ("quick", "paper")
+
+
+def experiment_scale(args) -> str:
+    """The scale of an experiment run: ``args.scale`` (``glossrt experiment --scale``, checked
+    against :data:`EXPERIMENT_SCALES`), ``"quick"`` when ``args`` has none (callers that
+    predate the option)."""
+    scale = getattr(args, "scale", None) or "quick"
+    if scale not in EXPERIMENT_SCALES:
+        raise GlossrtError(f"--scale must be one of {', '.join(EXPERIMENT_SCALES)}, got {scale!r}")
+    return scale
 
 
 def finish_experiment(out: Path, stem: str, md: str, figure: str,

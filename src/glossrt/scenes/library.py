@@ -413,6 +413,35 @@ def polygon_light_textured() -> SceneSpec:
     return polygon_light_scene(0.25, textured=True)
 
 
+#: (teapot quads per patch side, floor grid, sphere rings) of the paper-size polygon-light
+#: meshes (issue 28): the default density's 8 / 48 / 16 proportions scaled to about 17K
+#: vertices (Okuno & Iwasaki, Table 1: the fig. 6 teapot scene has 17K) and past 100K (their
+#: figs. 1 and 7 meshes have 506K and 138K). Vertices: teapot ``32 n^2 + 4 n + 2``, floor
+#: ``(m + 1)^2``, sphere ``2 k (k - 1) + 2``: 7262 + 8281 + 1742 = 17285 and
+#: 43958 + 49729 + 10806 = 104493.
+PAPER_SIZE_DENSITIES = {"teapot-17k": (15, 90, 30), "teapot-100k": (37, 222, 74)}
+
+
+@builtin(
+    "teapot-17k",
+    "polygon-light (GGX alpha 0.25) tessellated to 17285 vertices (teapot 15, floor 90, "
+    "sphere 30): the size of Okuno & Iwasaki's Table 1 teapot scene (17K vertices)",
+)
+def teapot_17k() -> SceneSpec:
+    t, f, sph = PAPER_SIZE_DENSITIES["teapot-17k"]
+    return polygon_light_scene(0.25, teapot_n=t, floor_n=f, sphere_n=sph)
+
+
+@builtin(
+    "teapot-100k",
+    "polygon-light (GGX alpha 0.25) tessellated to 104493 vertices (teapot 37, floor 222, "
+    "sphere 74): a mesh past 100K vertices, as Okuno & Iwasaki's 138K and 506K scenes",
+)
+def teapot_100k() -> SceneSpec:
+    t, f, sph = PAPER_SIZE_DENSITIES["teapot-100k"]
+    return polygon_light_scene(0.25, teapot_n=t, floor_n=f, sphere_n=sph)
+
+
 #: GGX alpha of the light-shapes spheres, left to right: mirror-like to rough
 LIGHT_SHAPES_ALPHAS = (0.01, 0.05, 0.15, 0.4)
 
