@@ -1170,4 +1170,8 @@ def run_experiment(out, size, args) -> int:
     print("spatio-temporal upsampling ...", flush=True)
     st = ue.spatio_temporal(size=size, ref_spp=spp, cluster=cluster)
     parts.append(f"## spatio-temporal upsampling (glossy-cornell)\n\n{st.markdown()}")
+    print("fig. 7 analogue (normal-mapped, Toksvig) ...", flush=True)
+    f7 = ue.fig7(size=size, frames=args.frames, ref_spp=spp, cluster=cluster)
+    parts.append(f"## fig. 7 analogue: spatio-temporal upsampling, simplified history vs "
+                 f"Herzog 2010 (normal-mapped, Toksvig)\n\n{f7.markdown()}")
     return finish_experiment(out, "lobes", "\n\n".join(parts), "fig6.png")

@@ -622,3 +622,36 @@ def normal_mapped() -> SceneSpec:
         ),
     }
     return SceneSpec(scene, camera_path=normal_mapped_path, max_depth=3)
+
+
+#: the normal map's mip level of ``normal-mapped-toksvig`` (a box filter of 2^level texels
+#: per side; glossrt's choice)
+NORMAL_MAPPED_TOKSVIG_LEVEL = 3
+
+
+@builtin(
+    "normal-mapped-toksvig",
+    "normal-mapped with each normal map replaced by its Toksvig-filtered mip level 3 and the "
+    "matching per-texel GGX roughness (Toksvig 2005; the scene of Tokuyoshi 2015's fig. 7 "
+    "analogue)",
+)
+def normal_mapped_toksvig() -> SceneSpec:
+    """``normal-mapped`` with Toksvig-filtered normal maps and roughness textures
+    (:func:`~glossrt.scenes.normalmap.toksvig` at :data:`NORMAL_MAPPED_TOKSVIG_LEVEL`)."""
+    from .normalmap import toksvig
+
+    spec = normal_mapped()
+    d = spec.scene_dict
+    for sid, alpha in (("floor", NORMAL_MAPPED_ALPHA_FLOOR),
+                       ("sphere", NORMAL_MAPPED_ALPHA_SPHERE)):
+        bsdf = d[sid]["bsdf"]
+        tex = bsdf["normalmap"]
+        # the bitmap the scene built (the sphere's green channel mirrored already)
+        nmap = np.array(tex["bitmap"], dtype=np.float32)
+        filtered, rough = toksvig(nmap, alpha, NORMAL_MAPPED_TOKSVIG_LEVEL)
+        tex["bitmap"] = mi.Bitmap(filtered)
+        bsdf["bsdf"]["alpha"] = {"type": "bitmap", "bitmap": mi.Bitmap(rough), "raw": True,
+                                 "filter_type": "bilinear", "wrap_mode": "repeat",
+                                 "to_uv": tex["to_uv"]}
+    spec.description = f"normal-mapped, Toksvig mip level {NORMAL_MAPPED_TOKSVIG_LEVEL}"
+    return spec

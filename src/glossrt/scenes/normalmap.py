@@ -124,3 +124,23 @@ def procedural_normal_map(size: int = 1024, seed: int = 3) -> np.ndarray:
     if size < 8:
         raise GlossrtError(f"normal map size must be at least 8 texels, got {size}")
     return _normal_map(size, seed).copy()
+
+
+def toksvig(normal_map: np.ndarray, alpha: float, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Toksvig 2005 ("Mipmapping normal maps", J. Graph. Tools 10(3)) at mip ``level`` of a
+    normal map in Mitsuba's encoding (``n = 2 rgb - 1``): the box-filtered mean normal
+    ``n_bar`` of ``2^level x 2^level`` texels, stored normalised (same encoding), and the
+    per-texel roughness widened by its shortening, ``alpha'^2 = alpha^2 + (1 - |n_bar|) /
+    |n_bar|`` (Toksvig's variance of the filtered normals, added to the lobe's), clamped to
+    1. Returns ``(map, alpha')``: (S / 2^level, S / 2^level, 3) and (..., 1) float32."""
+    if level < 0 or normal_map.shape[0] % (1 << level) or normal_map.shape[1] % (1 << level):
+        raise GlossrtError(f"toksvig: level {level} does not divide the map "
+                           f"{normal_map.shape[1]}x{normal_map.shape[0]}")
+    k = 1 << level
+    n = 2.0 * np.asarray(normal_map, dtype=np.float64) - 1.0
+    h, w = n.shape[0] // k, n.shape[1] // k
+    mean = n.reshape(h, k, w, k, 3).mean(axis=(1, 3))
+    length = np.maximum(np.linalg.norm(mean, axis=-1, keepdims=True), 1e-6)
+    a2 = alpha * alpha + (1.0 - np.minimum(length, 1.0)) / length
+    return (((mean / length + 1.0) * 0.5).astype(np.float32),
+            np.sqrt(np.minimum(a2, 1.0)).astype(np.float32))
