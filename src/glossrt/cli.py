@@ -560,8 +560,9 @@ def cmd_experiment(args) -> int:
 
     # which of --size / --spp the command line gave: a --scale paper run takes its paper's
     # values for the others (glossrt.experiments.lobes.run_paper reads args.explicit)
-    args.explicit = {o for o in ("size", "spp") if getattr(args, o) is not None}
+    args.explicit = {o for o in ("size", "spp", "frames") if getattr(args, o) is not None}
     args.size = EXPERIMENT_SIZE if args.size is None else args.size
+    args.frames = 30 if args.frames is None else args.frames
     args.spp = EXPERIMENT_SPP if args.spp is None else args.spp
     for opt in ("frames", "spp", "ref_every", "static_frames"):
         if getattr(args, opt) < 1:
@@ -1055,7 +1056,8 @@ COMMANDS: tuple[Command, ...] = (
                 _arg("--size", default=None,
                      help=f"default {EXPERIMENT_SIZE}; with --scale paper the paper's size "
                           "where the experiment has one (lobes: 640x360)"),
-                _arg("--frames", type=int, default=30),
+                _arg("--frames", type=int, default=None,
+                     help="default 30; with --scale paper specaa: 60"),
                 _arg("--ref-every", type=int, default=10),
                 _arg("--spp", type=int, default=None,
                      help=f"reference samples per pixel, default {EXPERIMENT_SPP}; with "
