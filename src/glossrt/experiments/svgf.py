@@ -95,10 +95,12 @@ def _run_sequence(method: str, frames: list) -> tuple[list, list[float]]:
 def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: int = 512,
               static_frames: int = 40, methods=DEFAULT_METHODS, scene: str = "glossy-cornell",
               progress=None, sequence=None, references=None,
-              cluster=None) -> DenoiserResults:
+              cluster=None, cache=None) -> DenoiserResults:
     """Run the comparison; ``sequence``/``references`` may be passed in (e.g. by the demo).
     ``cluster``: where the references are rendered (:func:`glossrt.render.blocks.references`:
-    None, in this process as before; else as sample blocks on that cluster)."""
+    None, in this process as before; else as sample blocks on that cluster); ``cache``: a
+    folder that keeps each finished reference frame for a rerun (the experiment command's
+    ``--out``/references)."""
     from .. import render, scenes
     from ..render import blocks
 
@@ -110,7 +112,7 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
         sequence = [r.render(i) for i in range(frames)]
         references = blocks.references(
             r, blocks.reference_job(scene, size, frames=frames), range(0, frames, ref_every),
-            ref_spp, cluster, desc=f"references {scene} {ref_spp} spp")
+            ref_spp, cluster, desc=f"references {scene} {ref_spp} spp", cache=cache)
     refs = {f.index: f for f in references}
     rs = render.Renderer(scenes.load_static(scene, size=size))
     static = [rs.render(i) for i in range(static_frames)]
@@ -234,7 +236,7 @@ def run_experiment(out, size, args) -> int:
     report page."""
     res = denoisers(size=size, frames=args.frames, ref_every=args.ref_every,
                     ref_spp=args.spp, static_frames=args.static_frames,
-                    cluster=experiment_cluster(args))
+                    cluster=experiment_cluster(args), cache=out / "references")
     md = res.markdown()
     (out / "denoisers.md").write_text(md + "\n")
     (out / "denoisers.json").write_text(json.dumps({

@@ -242,8 +242,20 @@ def reference_job(scene, size: Sequence[int] | None = None, *, frames: int = 1, 
             "static": bool(static)}
 
 
+def _cache_path(cache, job: dict, spp: int, blocks: bool, frame: int):
+    """Where :func:`references` keeps reference ``frame`` of ``job`` at ``spp`` samples (the
+    key: the job's plain fields, the sample count and the path, blocks or one process)."""
+    import hashlib
+    from pathlib import Path
+
+    plain = {k: v for k, v in job.items() if k != "scene_files"}
+    key = repr((sorted((k, repr(v)) for k, v in plain.items()), int(spp), bool(blocks)))
+    digest = hashlib.sha1(key.encode()).hexdigest()[:16]
+    return Path(cache) / f"reference_{digest}_{int(frame):04d}.exr"
+
+
 def references(renderer: Renderer, job: dict, frames: Sequence[int], spp: int,
-               cluster=None, desc: str = "") -> list[Frame]:
+               cluster=None, desc: str = "", cache=None) -> list[Frame]:
     """The reference frames ``frames`` of ``spp`` samples for the experiments (issue 27).
     ``cluster`` None: :meth:`Renderer.render_reference` of each frame in this process, the
     path the experiments had before (about 1.1-2x faster in one process than blocks, and
@@ -251,11 +263,33 @@ def references(renderer: Renderer, job: dict, frames: Sequence[int], spp: int,
     spec, ``"none"`` for the blocks in this process) :func:`reference_frames`, whose result
     is the same whatever the cluster and differs from :meth:`Renderer.render_reference` only
     by float32 rounding (measured: at most 2.4e-7 relative on ``glossy-cornell``).
-    ``job``: :func:`reference_job` of ``renderer``'s scene."""
-    if cluster is None:
-        return [renderer.render_reference(int(i), spp) for i in frames]
-    if job.get("size") and tuple(job["size"]) != (renderer.width, renderer.height):
-        raise GlossrtError(f"reference job size {job['size']} is not the renderer's "
-                           f"{renderer.width}x{renderer.height}")
-    return list(reference_frames(renderer, job, [int(i) for i in frames], spp,
-                                 cluster=cluster, desc=desc))
+    ``job``: :func:`reference_job` of ``renderer``'s scene. ``cache``: a folder where each
+    reference frame is written as soon as it is complete (atomically, :meth:`Frame.save`)
+    and read back by a later call for the same job, sample count and path, so that a killed
+    experiment keeps the references it had finished."""
+    frames = [int(i) for i in frames]
+    out: dict[int, Frame] = {}
+    if cache is not None:
+        for i in frames:
+            p = _cache_path(cache, job, spp, cluster is not None, i)
+            if p.is_file():
+                out[i] = Frame.load(p)
+    todo = [i for i in frames if i not in out]
+
+    def keep(f: Frame) -> None:
+        out[int(f.index)] = f
+        if cache is not None:
+            _cache_path(cache, job, spp, cluster is not None, f.index).parent.mkdir(
+                parents=True, exist_ok=True)
+            f.save(_cache_path(cache, job, spp, cluster is not None, f.index))
+
+    if todo and cluster is None:
+        for i in todo:
+            keep(renderer.render_reference(i, spp))
+    elif todo:
+        if job.get("size") and tuple(job["size"]) != (renderer.width, renderer.height):
+            raise GlossrtError(f"reference job size {job['size']} is not the renderer's "
+                               f"{renderer.width}x{renderer.height}")
+        for f in reference_frames(renderer, job, todo, spp, cluster=cluster, desc=desc):
+            keep(f)
+    return [out[i] for i in frames]
