@@ -502,3 +502,24 @@ def resolve(value):
     if ray is not None and isinstance(value, ray.ObjectRef):
         return ray.get(value)
     return value
+
+
+def ship_scene(scene, cluster=None):
+    """``scene`` as the workers of the open ``cluster`` get it: an XML file packed with the
+    files it references (:func:`glossrt.scenefiles.bundle`), its bytes put once into the
+    object store (:func:`share`); a built-in name, a scene without a cluster, or one already
+    shipped, as it is. Workers turn either form into a path with :func:`local_scene`."""
+    from . import scenefiles
+
+    if cluster is None or not isinstance(scene, str) or not os.path.isfile(scene):
+        return scene
+    b = scenefiles.bundle(scene)
+    return dict(b, data=share(b["data"], cluster))
+
+
+def local_scene(scene) -> str:
+    """On a worker: the path (or built-in name) of a scene from :func:`ship_scene`, a shipped
+    bundle unpacked once per node (:func:`glossrt.scenefiles.materialise`)."""
+    from . import scenefiles
+
+    return scenefiles.materialise(scene, fetch=resolve)

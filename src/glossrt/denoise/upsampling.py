@@ -608,19 +608,29 @@ class SpatioTemporalUpsampler:
         return mi.TensorXf(out["image"], (h, w, 3))
 
 
-def _temporal(fch, lch, terms, prev, static):
-    """One frame of :class:`SpatioTemporalUpsampler` on arrays (the function it freezes):
-    the output image and the new history."""
+def _spatial_step(fch, lch, terms, static):
+    """What both histories start from: the frame and its channels, the spatial upsample
+    ``illum`` of the frame's pixels (eq. 1) with its ``hit`` mask, the grid and the
+    geometry the consistency tests compare (background where ``_Guides.of`` says so)."""
     from .common import gbuffer
-    from .svgf import History, reproject
 
-    (fw, fh, lw, lh, channels, albedo_of, use_lobe, p, alpha) = static
+    (fw, fh, lw, lh, channels, albedo_of, use_lobe, p, _alpha) = static
     frame, low = _Channels(fch, fw, fh), _Channels(lch, lw, lh)
     albedo_of = dict(albedo_of)
     illum, _, hit = _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, *p)
     grid = Grid(fw, fh)
-    # its geometry for the consistency tests: background where _Guides.of says so
     gb = gbuffer(frame, grid, with_roughness=use_lobe)
+    return frame, channels, albedo_of, illum, hit, grid, gb
+
+
+def _temporal(fch, lch, terms, prev, static):
+    """One frame of :class:`SpatioTemporalUpsampler` on arrays (the function it freezes):
+    the output image and the new history."""
+    from .svgf import History, reproject
+
+    alpha = static[-1]
+    frame, channels, albedo_of, illum, hit, grid, gb = _spatial_step(fch, lch, terms, static)
+    fw, fh = grid.w, grid.h
     n = fw * fh
     moments = [[dr.zeros(mi.Float, n)] * 2 for _ in channels]
     # Herzog 2010 / Schied 2017 sec. 4.1: reprojected history, consistency-tested, blended
@@ -673,15 +683,10 @@ def _temporal_herzog(fch, lch, terms, prev, static, decay, sigma_c, floor):
     the distance Gaussian ``sigma_c`` = 0.5 full-resolution pixels with a floor of 0.05 as
     the new sample's confidence, one confidence for all channels, no upper clamp of ``c``
     (the decay bounds it by ``1 / (1 - decay)``), ``decay`` = 0.9."""
-    from .common import gbuffer
     from .svgf import History, reproject
 
-    (fw, fh, lw, lh, channels, albedo_of, use_lobe, p, _alpha) = static
-    frame, low = _Channels(fch, fw, fh), _Channels(lch, lw, lh)
-    albedo_of = dict(albedo_of)
-    illum, _, hit = _upsample_illum(frame, low, terms, channels, albedo_of, use_lobe, *p)
-    grid = Grid(fw, fh)
-    gb = gbuffer(frame, grid, with_roughness=use_lobe)
+    frame, channels, albedo_of, illum, hit, grid, gb = _spatial_step(fch, lch, terms, static)
+    fw, fh, lw = grid.w, grid.h, static[2]
     n = fw * fh
     zero = dr.zeros(mi.Float, n)
     c_s = herzog_confidence(grid, fw // lw, terms["jitter"], sigma_c, floor)

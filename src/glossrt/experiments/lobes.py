@@ -56,6 +56,7 @@ from ..report.registry import (
     experiment_scale,
     finish_experiment,
     markdown_table,
+    option_given,
     register_experiment,
     section_size,
 )
@@ -935,13 +936,6 @@ def claims(f4: PaperStudy | None = None, f5: PaperStudy | None = None,
     return out
 
 
-def _explicit(args, name: str) -> bool:
-    """Whether ``glossrt experiment`` was given ``--NAME`` (``args.explicit``; callers
-    without it: every option counts as given)."""
-    given = getattr(args, "explicit", None)
-    return True if given is None else name in given
-
-
 def run_paper(out, size, args) -> int:
     """``glossrt experiment --which lobes --scale paper``: figs. 4-6 at :data:`PAPER_SIZE`
     (or ``--size`` when given), references of ``--spp`` (default :data:`PAPER_REF_SPP`),
@@ -950,8 +944,8 @@ def run_paper(out, size, args) -> int:
     and ``fig6-{spp}spp.png``."""
     from ..progress import Progress as Bar
 
-    size = tuple(size) if _explicit(args, "size") else PAPER_SIZE
-    spp = int(args.spp) if _explicit(args, "spp") else PAPER_REF_SPP
+    size = tuple(size) if option_given(args, "size") else PAPER_SIZE
+    spp = int(args.spp) if option_given(args, "spp") else PAPER_REF_SPP
     cluster = experiment_cluster(args)
     t0 = time.perf_counter()
     parts = [f"# Tokuyoshi 2015 figs. 4-6 at paper scale ({size[0]}x{size[1]}, reference "

@@ -47,6 +47,7 @@ from ..report.registry import (
     experiment_scale,
     finish_experiment,
     markdown_table,
+    option_given,
     register_experiment,
     section_size,
 )
@@ -557,13 +558,6 @@ def evaluate_paper(size=PAPER_SIZE, spp: int = PAPER_SPP, frames: int = PAPER_FR
     return res
 
 
-def _explicit(args, name: str) -> bool:
-    """Whether ``glossrt experiment`` was given ``--NAME`` (``args.explicit``; callers
-    without it: every option counts as given)."""
-    given = getattr(args, "explicit", None)
-    return True if given is None else name in given
-
-
 def run_paper(out, size, args) -> int:
     """``glossrt experiment --which specaa --scale paper``: :func:`evaluate_paper` at
     :data:`PAPER_SIZE` (or ``--size``), :data:`PAPER_FRAMES` frames (or ``--frames``, any
@@ -572,9 +566,9 @@ def run_paper(out, size, args) -> int:
     frames (CLI default 10 = :data:`PAPER_REF_EVERY`). Writes ``specaa-paper.md`` /
     ``.json``, the RMSE-per-frame plot ``specaa-paper-rmse.png`` and frame 0's montage
     ``specaa-paper.png``."""
-    size = tuple(size) if _explicit(args, "size") else PAPER_SIZE
-    spp = int(args.spp) if _explicit(args, "spp") else PAPER_SPP
-    frames = int(args.frames) if _explicit(args, "frames") else PAPER_FRAMES
+    size = tuple(size) if option_given(args, "size") else PAPER_SIZE
+    spp = int(args.spp) if option_given(args, "spp") else PAPER_SPP
+    frames = int(args.frames) if option_given(args, "frames") else PAPER_FRAMES
     ref_every = int(getattr(args, "ref_every", PAPER_REF_EVERY))
     res = evaluate_paper(size=size, spp=spp, frames=frames, ref_every=ref_every,
                          progress=lambda m: print(m, flush=True))

@@ -149,6 +149,42 @@ class SpatioTemporalResults:
         return "\n".join(lines)
 
 
+def _sequence(scene: str, size, factor: int, frames: int, ref_frames, ref_spp: int,
+              cluster, say) -> tuple[dict, list]:
+    """The references' indirect light at ``ref_frames`` (rendered on ``cluster``:
+    :func:`glossrt.render.blocks.references`) and the 1 spp sequence: each frame's
+    full-resolution G-buffer and its jittered 1/``factor`` resolution frame."""
+    from .. import render, scenes
+    from ..denoise.upsampling import jitter_sequence
+    from ..render import blocks
+
+    w, h = size
+    full_r = render.Renderer(scenes.load(scene, size=size))
+    low_r = render.Renderer(scenes.load(scene, size=(w // factor, h // factor)))
+    say(f"reference frames {list(ref_frames)}, {ref_spp} spp")
+    refs = {f.index: _indirect(f) for f in blocks.references(
+        full_r, blocks.reference_job(scene, size), ref_frames, ref_spp, cluster,
+        desc=f"references {scene} {ref_spp} spp")}
+    seq = [(full_r.render(i), low_r.render(i, jitter=jitter_sequence(factor, i)))
+           for i in range(frames)]
+    return refs, seq
+
+
+def _upsample_sequence(seq: list, refs: dict, step) -> tuple[list[float], float]:
+    """``step(full, low)`` on every frame of ``seq``: the MSE of the indirect light at the
+    referenced frames and the median ms per frame after the first."""
+    errs, times = [], []
+    for i, (full, low) in enumerate(seq):
+        t0 = time.perf_counter()
+        img = step(full, low)
+        dr.eval(img)
+        dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+        if i in refs:
+            errs.append(float(np.mean((np.array(img) - _rest(full) - refs[i]) ** 2)))
+    return errs, 1000 * float(np.median(times[1:] or times))
+
+
 def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames: int = 16,
                     ref_spp: int = 256, ref_frames: tuple[int, ...] = (7, 15),
                     scene: str = "glossy-cornell",
@@ -158,37 +194,19 @@ def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames:
     light over an animated sequence (camera and object motion), MSE of the indirect light
     against references at ``ref_frames`` (rendered on ``cluster``:
     :func:`glossrt.render.blocks.references`)."""
-    from .. import render, scenes
-    from ..denoise.upsampling import SpatioTemporalUpsampler, jitter_sequence, upsample
-    from ..render import blocks
+    from ..denoise.upsampling import SpatioTemporalUpsampler, upsample
 
-    w, h = size
     say = progress or (lambda _m: None)
-    full_r = render.Renderer(scenes.load(scene, size=size))
-    low_r = render.Renderer(scenes.load(scene, size=(w // factor, h // factor)))
-    say(f"reference frames {list(ref_frames)}, {ref_spp} spp")
-    refs = {f.index: _indirect(f) for f in blocks.references(
-        full_r, blocks.reference_job(scene, size), ref_frames, ref_spp, cluster,
-        desc=f"references {scene} {ref_spp} spp")}
+    refs, seq = _sequence(scene, size, factor, frames, ref_frames, ref_spp, cluster, say)
     res = SpatioTemporalResults(size, factor, frames, ref_spp, list(ref_frames))
-    seq = [(full_r.render(i), low_r.render(i, jitter=jitter_sequence(factor, i)))
-           for i in range(frames)]
     for weight in ("normal", "lobe"):
         st = SpatioTemporalUpsampler(weight=weight)
         for mode in ("spatial", "spatio-temporal"):
-            errs, times = [], []
             st.reset()
-            for i, (full, low) in enumerate(seq):
-                t0 = time.perf_counter()
-                img = st(full, low) if mode == "spatio-temporal" else upsample(
-                    full, low, weight=weight)
-                dr.eval(img)
-                dr.sync_thread()
-                times.append(time.perf_counter() - t0)
-                if i in refs:
-                    errs.append(float(np.mean((np.array(img) - _rest(full) - refs[i]) ** 2)))
-            res.mse[(weight, mode)] = errs
-            res.ms[(weight, mode)] = 1000 * float(np.median(times[1:]))
+            step = st if mode == "spatio-temporal" else (
+                lambda full, low, weight=weight: upsample(full, low, weight=weight))
+            res.mse[(weight, mode)], res.ms[(weight, mode)] = _upsample_sequence(
+                seq, refs, step)
     return res
 
 
@@ -235,9 +253,7 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
     (default: the middle and the last frame), rendered on ``cluster``
     (:func:`glossrt.render.blocks.references`; a built-in scene, so workers load it by
     name)."""
-    from .. import render, scenes
-    from ..denoise.upsampling import SpatioTemporalUpsampler, jitter_sequence, upsample
-    from ..render import blocks
+    from ..denoise.upsampling import SpatioTemporalUpsampler, upsample
     from ..scenes.library import NORMAL_MAPPED_TOKSVIG_LEVEL
 
     w, h = size
@@ -252,32 +268,17 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
     if ref_spp < 1:
         raise GlossrtError(f"fig7: ref_spp must be >= 1, got {ref_spp}")
     say = progress or (lambda _m: None)
-    scene = FIG7_SCENE
     with warnings.catch_warnings():  # the mean-roughness warning: in FIG7_DIFFERENCES
         warnings.filterwarnings("ignore", message=".*textured roughness inside a wrapper")
-        full_r = render.Renderer(scenes.load(scene, size=size))
-        low_r = render.Renderer(scenes.load(scene, size=(w // factor, h // factor)))
-    say(f"fig. 7 references frames {list(ref_frames)}, {ref_spp} spp")
-    refs = {f.index: _indirect(f) for f in blocks.references(
-        full_r, blocks.reference_job(scene, size), ref_frames, ref_spp, cluster,
-        desc=f"references {scene} {ref_spp} spp")}
+        refs, seq = _sequence(FIG7_SCENE, size, factor, frames, ref_frames, ref_spp,
+                              cluster, say)
     res = Fig7Results(size, factor, frames, ref_spp, list(ref_frames),
                       mip_level=NORMAL_MAPPED_TOKSVIG_LEVEL)
-    seq = [(full_r.render(i), low_r.render(i, jitter=jitter_sequence(factor, i)))
-           for i in range(frames)]
     for weight in ("normal", "lobe"):
         for mode, history in FIG7_MODES:
-            st = None if history is None else SpatioTemporalUpsampler(weight=weight,
-                                                                      history=history)
-            errs, times = [], []
-            for i, (full, low) in enumerate(seq):
-                t0 = time.perf_counter()
-                img = upsample(full, low, weight=weight) if st is None else st(full, low)
-                dr.eval(img)
-                dr.sync_thread()
-                times.append(time.perf_counter() - t0)
-                if i in refs:
-                    errs.append(float(np.mean((np.array(img) - _rest(full) - refs[i]) ** 2)))
-            res.mse[(weight, mode)] = errs
-            res.ms[(weight, mode)] = 1000 * float(np.median(times[1:] or times))
+            step = ((lambda full, low, weight=weight: upsample(full, low, weight=weight))
+                    if history is None
+                    else SpatioTemporalUpsampler(weight=weight, history=history))
+            res.mse[(weight, mode)], res.ms[(weight, mode)] = _upsample_sequence(
+                seq, refs, step)
     return res

@@ -202,8 +202,9 @@ class GBufferStage(Stage):
         #: what the frames leave out: :data:`OMIT`, and on isotropic scenes the anisotropy
         #: channels (``tangent``, ``roughness_uv``: no stage reads them there; 48 MiB at
         #: 1920x1080)
-        self.omit = OMIT + (() if self.renderer.shapes.any_anisotropic
+        self._aniso_omit = (() if self.renderer.shapes.any_anisotropic
                             else render.pathtracer.ANISOTROPY_OUT)
+        self.omit = OMIT + self._aniso_omit
         self.reset()
 
     def reset(self) -> None:
@@ -223,7 +224,7 @@ class GBufferStage(Stage):
         if spec is None or not spec.filters:
             return None
         return spec.filter(self.renderer.render_gbuffer(
-            index, omit=GBUFFER_PASS_OMIT + self.omit[len(OMIT):]))
+            index, omit=GBUFFER_PASS_OMIT + self._aniso_omit))
 
     def run(self, index: int, ctx: dict) -> dict:
         alpha = self._filtered_roughness(index)

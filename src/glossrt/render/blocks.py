@@ -77,9 +77,9 @@ def _renderer(job: dict) -> Renderer:
         size = tuple(job["size"]) if job.get("size") else None
         scene = job["scene"]
         if job.get("scene_files") is not None:  # the XML and its files, shipped
-            from .. import cluster, scenefiles
+            from ..cluster import local_scene
 
-            scene = scenefiles.materialise(job["scene_files"], fetch=cluster.resolve)
+            scene = local_scene(job["scene_files"])
         if job.get("static"):  # the animation removed (scenes.load_static)
             setup = scenes.load_static(scene, size=size)
         else:
@@ -209,16 +209,12 @@ def shipped_job(job: dict, cluster=None) -> dict:
     store (:func:`glossrt.cluster.share`) under ``scene_files``, so that a node without the
     driver's folders renders the same scene. Without a cluster, or for a built-in scene,
     ``job`` as it is."""
-    import os
-
     from .. import cluster as _cluster
-    from .. import scenefiles
 
-    if cluster is None or job.get("scene_files") is not None or not os.path.isfile(
-            str(job["scene"])):
+    if job.get("scene_files") is not None:
         return job
-    b = scenefiles.bundle(job["scene"])
-    return dict(job, scene_files=dict(b, data=_cluster.share(b["data"], cluster)))
+    shipped = _cluster.ship_scene(job["scene"], cluster)
+    return job if shipped is job["scene"] else dict(job, scene_files=shipped)
 
 
 def reference_job(scene, size: Sequence[int] | None = None, *, frames: int = 1, orbit=None,
@@ -268,20 +264,16 @@ def references(renderer: Renderer, job: dict, frames: Sequence[int], spp: int,
     and read back by a later call for the same job, sample count and path, so that a killed
     experiment keeps the references it had finished."""
     frames = [int(i) for i in frames]
-    out: dict[int, Frame] = {}
-    if cache is not None:
-        for i in frames:
-            p = _cache_path(cache, job, spp, cluster is not None, i)
-            if p.is_file():
-                out[i] = Frame.load(p)
+    paths = ({i: _cache_path(cache, job, spp, cluster is not None, i) for i in frames}
+             if cache is not None else {})
+    out = {i: Frame.load(p) for i, p in paths.items() if p.is_file()}
     todo = [i for i in frames if i not in out]
 
     def keep(f: Frame) -> None:
         out[int(f.index)] = f
         if cache is not None:
-            _cache_path(cache, job, spp, cluster is not None, f.index).parent.mkdir(
-                parents=True, exist_ok=True)
-            f.save(_cache_path(cache, job, spp, cluster is not None, f.index))
+            paths[int(f.index)].parent.mkdir(parents=True, exist_ok=True)
+            f.save(paths[int(f.index)])
 
     if todo and cluster is None:
         for i in todo:

@@ -40,6 +40,7 @@ __all__ = [
     "build_report",
     "experiment_cluster",
     "experiment_scale",
+    "option_given",
     "finish_experiment",
     "markdown_table",
     "register_experiment",
@@ -259,6 +260,14 @@ def experiment_scale(args) -> str:
     if scale not in EXPERIMENT_SCALES:
         raise GlossrtError(f"--scale must be one of {', '.join(EXPERIMENT_SCALES)}, got {scale!r}")
     return scale
+
+
+def option_given(args, name: str) -> bool:
+    """Whether ``glossrt experiment`` was given ``--NAME`` (``args.explicit``, which the CLI
+    fills; callers without it: every option counts as given), e.g. so that a paper-scale run
+    takes the paper's size unless ``--size`` was given."""
+    given = getattr(args, "explicit", None)
+    return True if given is None else name in given
 
 
 def finish_experiment(out: Path, stem: str, md: str, figure: str,

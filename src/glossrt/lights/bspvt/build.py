@@ -1540,14 +1540,11 @@ def ship_scene(items: list[dict], cluster=None) -> list[dict]:
     that nodes without the driver's folders load the same scene. Without a cluster, or for a
     built-in scene, ``items`` as they are."""
     from ... import cluster as _cluster
-    from ... import scenefiles
 
-    if cluster is None or not items or not isinstance(items[0]["scene"], str) or \
-            not os.path.isfile(items[0]["scene"]):
+    if not items:
         return items
-    b = scenefiles.bundle(items[0]["scene"])
-    shipped = dict(b, data=_cluster.share(b["data"], cluster))
-    return [dict(it, scene=shipped) for it in items]
+    shipped = _cluster.ship_scene(items[0]["scene"], cluster)
+    return items if shipped is items[0]["scene"] else [dict(it, scene=shipped) for it in items]
 
 
 def _scene_name(ref) -> str:
@@ -1568,10 +1565,9 @@ def _item_scene(ref) -> tuple:
         key = (ref, mi.variant(), os.stat(ref).st_mtime_ns if os.path.isfile(ref) else None)
     if key not in _ITEM_SCENES:
         if isinstance(ref, dict):
-            from ... import cluster as _cluster
-            from ... import scenefiles
+            from ...cluster import local_scene
 
-            ref = scenefiles.materialise(ref, fetch=_cluster.resolve)
+            ref = local_scene(ref)
         scene = load(ref).scene
         pos, nrm, _ = scene_vertices(scene)
         _ITEM_SCENES.clear()  # one scene at a time: a worker serves one build
