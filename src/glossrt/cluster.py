@@ -424,7 +424,11 @@ def _imap(fn, items, weights, c, desc, num_gpus, num_cpus, max_retries, show, st
             ray = _ray()
             if num_gpus is None:  # the driver's variant decides
                 num_gpus = 1 if c.variant == _GPU else 0
-            opts = dict(num_cpus=num_cpus, num_gpus=num_gpus, max_retries=max_retries)
+            # SPREAD: blocks go round the nodes from the start. Ray's default packs them on
+            # the driver's node first, and short blocks all finished there before another
+            # node's worker process had started (seen in CI: 32 blocks on one of two nodes)
+            opts = dict(num_cpus=num_cpus, num_gpus=num_gpus, max_retries=max_retries,
+                        scheduling_strategy="SPREAD")
             if c.task_env:
                 opts["runtime_env"] = c.task_env
             task = _remote("_run").options(**opts)
