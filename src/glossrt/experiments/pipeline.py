@@ -52,8 +52,10 @@ from ..report.registry import (
     BenchContext,
     benchmark,
     experiment_cluster,
+    experiment_scale,
     finish_experiment,
     markdown_table,
+    option_given,
     register_experiment,
     section_size,
 )
@@ -69,6 +71,29 @@ VARIANTS: dict[str, tuple[str, dict]] = {
     "full, taa off": ("full", {"taa": False}),
 }
 INTERACTION_SCENE = "polygon-light"
+#: a scene name with this suffix: the scene rendered with direct light only (Mitsuba's
+#: ``max_depth`` 2 for the pipeline, the 1 spp input and the references alike), as the
+#: SVGF paper's fig. 11
+DIRECT_ONLY = "@direct"
+#: ``--scale paper`` (issue 28; Schied et al. 2017, Table 1 and figs. 10-12): the sizes and
+#: scenes of the paper's evaluation as far as glossrt has them. The animated glossy scene; a
+#: direct-lighting-only scene (fig. 11: polygon-light at max_depth 2); a many-lights scene
+#: (fig. 12: light-shapes, 18 polygon lights). glossrt's choices, where the paper gives
+#: none: 12 frames of each animation, the last :data:`PAPER_REF_FRAMES` of them referenced
+#: and scored (the filters' history builds over the first 9), no static runs (the temporal
+#: error is measured against the references' own change over the scored frames)
+PAPER_SIZE = (1280, 720)
+PAPER_SCENES = ("glossy-cornell", "polygon-light" + DIRECT_ONLY, "light-shapes")
+PAPER_FRAMES = 12
+PAPER_REF_FRAMES = 3
+PAPER_REF_SPP = 4096
+#: at paper scale, on every scene: SVGF (inside ``schied2017``, with its TAA) against the
+#: other reconstructions in the same pipeline, and without TAA
+PAPER_VARIANTS: dict[str, tuple[str, dict]] = {
+    "schied2017, indirect=atrous": ("schied2017", {"indirect": "atrous"}),
+    "schied2017, indirect=oidn": ("schied2017", {"indirect": "oidn"}),
+    "schied2017, taa off": ("schied2017", {"taa": False}),
+}
 #: the benchmark's frame-rate cases: (preset, scene, size, issue 25's fps target on a 2-core
 #: CPU)
 BENCH_CASES = (("full", "polygon-light", (320, 180), 20.0),
@@ -108,11 +133,22 @@ class PipelineResults:
     images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     layers: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     seconds: float = 0.0
+    #: None: every frame referenced, the second half scored; N: only the last N frames
+    #: referenced and scored
+    ref_frames: int | None = None
+    #: the composition rows (label -> preset, changed choices) measured
+    variants: dict[str, tuple[str, dict]] = field(default_factory=lambda: dict(VARIANTS))
 
     @property
     def first(self) -> int:
         """The first frame scored (the temporal filters' history builds before it)."""
+        if self.ref_frames:
+            return self.frames - self.ref_frames
         return max(1, self.frames // 2)
+
+    def referenced(self) -> list[int]:
+        """The frames of the motion sequences that get a reference."""
+        return list(range(self.first if self.ref_frames else 0, self.frames))
 
     def row(self, scene: str, label: str, motion: bool) -> dict | None:
         return next((r for r in self.rows if r["scene"] == scene and r["label"] == label
@@ -126,9 +162,11 @@ class PipelineResults:
         return out
 
     def markdown(self) -> str:
-        lines = ["| scene | pipeline (direct) | RMSE | x floor | FLIP | temporal | RMSE "
-                 "static | FLIP static | temporal static | ms / frame: stages (static) |",
-                 "|---|---|---|---|---|---|---|---|---|---|"]
+        static = any(not r["motion"] for r in self.rows)
+        lines = ["| scene | pipeline (direct) | RMSE | x floor | SSIM | FLIP | temporal | " +
+                 ("RMSE static | FLIP static | temporal static | " if static else "") +
+                 f"ms / frame: stages{' (static)' if static else ''} |",
+                 "|---|---|---|---|---|---|---|" + ("---|---|---|" if static else "") + "---|"]
         for scene in self.scenes:
             for label in self.labels(scene):
                 mo, st = self.row(scene, label, True), self.row(scene, label, False)
@@ -137,15 +175,15 @@ class PipelineResults:
                               None)
                 name = f"{label} ({direct})" if direct else label
                 cells = [scene, name]
-                for r in (mo, st):
+                for r in (mo, st) if static else (mo,):
                     if r is None or r.get("skipped"):
-                        cells += ["-"] * (4 if r is mo else 3)
+                        cells += ["-"] * (5 if r is mo else 3)
                         continue
                     cells.append(f"{r['rmse']:.4f}")
                     if r is mo:
                         ratio = (r["rmse"] / floor["rmse"] if floor and floor["rmse"] > 0
                                  else float("nan"))
-                        cells.append(f"{ratio:.2f}")
+                        cells += [f"{ratio:.2f}", f"{r['ssim']:.3f}"]
                     cells += [f"{r['flip']:.4f}", f"{r['temporal']:.4f}"]
                 ms = (st or {}).get("stage_ms") or (mo or {}).get("stage_ms")
                 cells.append(" + ".join(f"{k} {v:.1f}" for k, v in ms.items())
@@ -158,11 +196,12 @@ class PipelineResults:
                 f"motion): {r['skipped']}" for r in self.rows if r.get("skipped")]
 
     def interactions(self) -> list[str]:
-        """One sentence per :data:`VARIANTS` row measured: the change of RMSE, FLIP and
-        temporal error from ``full`` (with and without motion) when the one choice differs."""
+        """One sentence per composition row measured (:attr:`variants`): the change of RMSE,
+        FLIP and temporal error from its preset (with and without motion) when the one choice
+        differs."""
         out = []
         for scene in self.scenes:
-            for label, (preset, choices) in VARIANTS.items():
+            for label, (preset, choices) in self.variants.items():
                 parts = []
                 for motion in (True, False):
                     v, base = self.row(scene, label, motion), self.row(scene, preset, motion)
@@ -183,6 +222,7 @@ class PipelineResults:
         return {"size": list(self.size), "spp": self.spp, "frames": self.frames,
                 "scored_frames": [self.first, self.frames - 1], "scenes": list(self.scenes),
                 "presets": list(self.presets), "rows": self.rows,
+                "ref_frames": self.ref_frames,
                 "interactions": self.interactions(), "seconds": self.seconds}
 
     def montage(self, path: str | Path, scene: str) -> Path:
@@ -232,15 +272,29 @@ def _sequence(setup, preset: str, choices: dict, frames: int) -> dict:
 
 
 def _score(colours, refs, first: int) -> dict:
+    """RMSE, SSIM and FLIP averaged over frames ``first ..``; the temporal error from frame
+    ``first - 1`` on, or from ``first`` where that frame has no reference (``refs[t]``
+    None: not referenced)."""
     from .. import metrics
 
     scored = range(first, len(colours))
+    t0 = first - 1 if refs[first - 1] is not None else first
     return {"rmse": float(np.mean([metrics.rmse(colours[t], refs[t]) for t in scored])),
+            "ssim": float(np.mean([metrics.ssim(colours[t], refs[t]) for t in scored])),
             "flip": float(np.mean([metrics.flip(colours[t], refs[t]) for t in scored])),
-            "temporal": flicker(colours[first - 1:], refs[first - 1:])}
+            "temporal": flicker(colours[t0:], refs[t0:])}
 
 
-def check_args(size, spp: int, frames: int, scenes=SCENES, presets=PRESETS) -> None:
+def scene_case(scene: str) -> tuple[str, int | None]:
+    """``(built-in name, max_depth)`` of an experiment scene: ``NAME`` as it is (None: the
+    renderer's default depth), ``NAME@direct`` (:data:`DIRECT_ONLY`) direct light only."""
+    if scene.endswith(DIRECT_ONLY):
+        return scene[: -len(DIRECT_ONLY)], 2
+    return scene, None
+
+
+def check_args(size, spp: int, frames: int, scenes=SCENES, presets=PRESETS,
+               ref_frames: int | None = None) -> None:
     """Refuse bad arguments before any work."""
     from ..pipeline import PRESETS as KNOWN
     from ..scenes import BUILTIN, library  # noqa: F401  (library registers the built-ins)
@@ -256,44 +310,60 @@ def check_args(size, spp: int, frames: int, scenes=SCENES, presets=PRESETS) -> N
     if bad:
         raise GlossrtError(f"pipeline experiment: unknown preset(s) {bad}; choose from "
                            f"{', '.join(p for p in KNOWN if p != 'reference')}")
-    bad = [s for s in scenes if s not in BUILTIN]
+    bad = [s for s in scenes if scene_case(s)[0] not in BUILTIN]
     if bad:
         raise GlossrtError(f"pipeline experiment: unknown scene(s) {bad}")
+    if ref_frames is not None and not 2 <= ref_frames < frames:
+        raise GlossrtError(f"pipeline experiment: the referenced frames must be at least 2 "
+                           f"and fewer than --frames ({frames}), got {ref_frames}")
 
 
 def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, presets=PRESETS,
-             variants: bool = True, static: bool = True, choices: dict | None = None,
-             progress: Callable[[str], None] | None = None, cluster=None) -> PipelineResults:
+             variants: bool | dict = True, static: bool = True, choices: dict | None = None,
+             progress: Callable[[str], None] | None = None, cluster=None,
+             ref_frames: int | None = None, cache=None) -> PipelineResults:
     """Every preset on every scene against the converged reference (module docstring).
+    ``scenes``: built-in names, ``NAME@direct`` for direct light only (:func:`scene_case`).
     ``choices``: pipeline options applied to every run (e.g. a coarse ``bspvt_resolution``
-    in tests); ``variants``: also the :data:`VARIANTS` rows on :data:`INTERACTION_SCENE`;
-    ``static``: also the runs without motion. ``cluster``: where the references are
-    rendered (:func:`glossrt.render.blocks.references`: None, in this process as before)."""
+    in tests); ``variants``: True: also the :data:`VARIANTS` rows on
+    :data:`INTERACTION_SCENE`; a dict of the same form: those rows on every scene;
+    ``static``: also the runs without motion. ``ref_frames``: reference and score only the
+    last ``ref_frames`` frames of each motion sequence (None: every frame referenced, the
+    second half scored). ``cluster``, ``cache``: where the references are rendered and kept
+    (:func:`glossrt.render.blocks.references`; None: in this process, not kept)."""
     from .. import render
     from .. import scenes as scn
     from ..render import blocks
 
     scenes, presets = tuple(scenes), tuple(presets)
-    check_args(size, spp, frames, scenes, presets)
+    check_args(size, spp, frames, scenes, presets, ref_frames)
     say = progress or (lambda _m: None)
     choices = dict(choices or {})
     t0 = time.perf_counter()
-    res = PipelineResults(tuple(size), spp, frames, scenes, presets)
+    table = variants if isinstance(variants, dict) else VARIANTS
+    res = PipelineResults(tuple(size), spp, frames, scenes, presets, ref_frames=ref_frames,
+                          variants=dict(table) if variants else {})
     for scene in scenes:
+        name, depth = scene_case(scene)
         runs = [(p, p, {}) for p in presets]
-        if variants and scene == INTERACTION_SCENE:
-            runs += [(label, p, c) for label, (p, c) in VARIANTS.items()]
+        if variants and (isinstance(variants, dict) or scene == INTERACTION_SCENE):
+            runs += [(label, p, c) for label, (p, c) in table.items()]
         for motion in ((True, False) if static else (True,)):
-            setup = (scn.load(scene, size=size, frames=frames) if motion
-                     else scn.load_static(scene, size=size))
-            rend = render.Renderer(setup)
+            setup = (scn.load(name, size=size, frames=frames) if motion
+                     else scn.load_static(name, size=size))
+            rend = render.Renderer(setup, max_depth=depth)
             say(f"{scene} ({'with' if motion else 'without'} motion): references, {spp} spp")
-            job = (blocks.reference_job(scene, size, frames=frames) if motion
-                   else blocks.reference_job(scene, size, static=True))
-            refs = [f.numpy("color") for f in blocks.references(
-                rend, job, range(frames) if motion else range(1), spp, cluster,
-                desc=f"references {scene} {spp} spp")]
-            refs = refs if motion else refs * frames
+            job = (blocks.reference_job(name, size, frames=frames, max_depth=depth) if motion
+                   else blocks.reference_job(name, size, static=True, max_depth=depth))
+            wanted = res.referenced() if motion else [0]
+            got = blocks.references(rend, job, wanted, spp, cluster, cache=cache,
+                                    desc=f"references {scene} {spp} spp")
+            if motion:
+                refs = [None] * frames
+                for i, f in zip(wanted, got, strict=True):
+                    refs[i] = f.numpy("color")
+            else:
+                refs = [got[0].numpy("color")] * frames
             raw = [rend.render(i).numpy("color") for i in range(frames)]
             base = {"scene": scene, "motion": motion}
             res.rows.append({**base, "label": FLOOR, **_score(raw, refs, res.first)})
@@ -302,7 +372,8 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
                 res.images[scene] = {FLOOR: raw[-1]}
             for label, preset, extra in runs:
                 say(f"{scene} ({'with' if motion else 'without'} motion): {label}")
-                seq = _sequence(setup, preset, {**choices, **extra}, frames)
+                depth_choice = {} if depth is None else {"max_depth": depth}
+                seq = _sequence(setup, preset, {**choices, **depth_choice, **extra}, frames)
                 if "skipped" in seq:
                     res.rows.append({**base, "label": label, "skipped": seq["skipped"]})
                     continue
@@ -326,7 +397,7 @@ def _notes(res: PipelineResults) -> str:
     if res.skips():
         lines.append("Skipped (the pipeline refuses): " + "; ".join(res.skips()) + ".")
     if res.interactions():
-        lines.append("Composition (one choice of `full` changed; a positive change is worse): "
+        lines.append("Composition (one choice of a preset changed; a positive change is worse): "
                      + " | ".join(res.interactions()) + ".")
     return "\n\n".join(lines)
 
@@ -694,17 +765,39 @@ def section_pipeline(ctx: DemoContext, report: Report) -> None:
 
 @register_experiment("pipeline", "issue 25's frame pipeline: every preset on five scenes "
                      "against the converged reference, with and without motion, per-stage "
-                     "ms, composition interactions (--size, --spp, --frames >= 2)", order=70)
+                     "ms, composition interactions (--size, --spp, --frames >= 2); --scale "
+                     "paper: SVGF's Table 1 / figs. 10-12 at 1280x720 with TAA in the "
+                     "pipeline, a-trous and OIDN in it, direct-only and many-lights scenes",
+                     order=70)
 def run_experiment(out, size, args) -> int:
     """Every preset against the converged reference (module docstring); writes pipeline.md,
-    pipeline.json and one montage per scene (pipeline_SCENE.png)."""
+    pipeline.json and one montage per scene (pipeline_SCENE.png). ``--scale paper``:
+    :data:`PAPER_SCENES` at :data:`PAPER_SIZE` (or ``--size``), :data:`PAPER_FRAMES` frames
+    (or ``--frames``), the last :data:`PAPER_REF_FRAMES` referenced at
+    :data:`PAPER_REF_SPP` (or ``--spp``), :data:`PAPER_VARIANTS` on every scene, no static
+    runs; the references are kept in ``OUT/references`` (a rerun reuses them)."""
+    paper = experiment_scale(args) == "paper"
+    if paper:
+        size = tuple(size) if option_given(args, "size") else PAPER_SIZE
+        spp = int(args.spp) if option_given(args, "spp") else PAPER_REF_SPP
+        frames = int(args.frames) if option_given(args, "frames") else PAPER_FRAMES
+        kw = dict(scenes=PAPER_SCENES, variants=PAPER_VARIANTS, static=False,
+                  ref_frames=PAPER_REF_FRAMES, cache=out / "references")
+    else:
+        spp, frames, kw = args.spp, args.frames, {}
     res = evaluate(  # (evaluate checks the arguments before any work)
-size=size, spp=args.spp, frames=args.frames,
-                   progress=lambda m: print(m, flush=True), cluster=experiment_cluster(args))
+        size=size, spp=spp, frames=frames, progress=lambda m: print(m, flush=True),
+        cluster=experiment_cluster(args), **kw)
     for scene in res.scenes:
-        res.montage(out / f"pipeline_{scene}.png", scene)
+        res.montage(out / f"pipeline_{_file_name(scene)}.png", scene)
     w, h = size
-    md = (f"## every preset against the converged reference ({w}x{h}, reference {args.spp} "
-          f"spp, {args.frames} frames)\n\n{res.markdown()}\n\n{_notes(res)}")
-    return finish_experiment(out, "pipeline", md, f"pipeline_{res.scenes[0]}.png",
-                             res.as_dict())
+    scored = (f"the last {res.ref_frames} of {frames} frames referenced" if paper
+              else f"{frames} frames")
+    md = (f"## every preset against the converged reference ({w}x{h}, reference {spp} "
+          f"spp, {scored})\n\n{res.markdown()}\n\n{_notes(res)}")
+    return finish_experiment(out, "pipeline", md,
+                             f"pipeline_{_file_name(res.scenes[0])}.png", res.as_dict())
+
+
+def _file_name(scene: str) -> str:
+    return scene.replace(DIRECT_ONLY, "-direct-only")
