@@ -434,3 +434,40 @@ def test_camera_moves_slowly(setup):
     turn16 = math.degrees(math.acos(np.clip(np.dot(f0, f16) / np.linalg.norm(f0)
                                             / np.linalg.norm(f16), -1, 1)))
     assert 1.0 < turn16 * px_per_degree < 12.0
+
+
+@pytest.mark.parametrize("wrap", ["normalmap", "twosided(normalmap)", "twosided"])
+def test_textured_roughness_inside_a_wrapper_is_read_per_texel(wrap):
+    """A roughness texture (alpha 0.1 on the left half of the panel's uv square, 0.5 on the
+    right, nearest filtering) inside ``normalmap`` / ``twosided`` wrappers: the G-buffer's
+    roughness is the texel's alpha at every hit, pixel for pixel the same as the unwrapped
+    BSDF's (Mitsuba's own ``alpha`` attribute there), not the texture's mean 0.3 (what the
+    G-buffer read before, and what Tokuyoshi 2015's lobe weight then saw on fig. 7's
+    Toksvig-filtered scene)."""
+    def inner():  # (a fresh dict per load: Mitsuba takes the tensor it is given)
+        alphas = np.array([[[0.1], [0.5]]], np.float32)  # (1, 2, 1): two texels across u
+        return {"type": "roughconductor", "distribution": "ggx", "material": "Al",
+                "alpha": {"type": "bitmap", "data": mi.TensorXf(alphas), "raw": True,
+                          "filter_type": "nearest"}}
+
+    flat = {"type": "rgb", "value": [0.5, 0.5, 1.0]}  # the unperturbed normal
+    bsdf = {"normalmap": {"type": "normalmap", "normalmap": flat, "bsdf": inner()},
+            "twosided(normalmap)": {"type": "twosided", "bsdf": {
+                "type": "normalmap", "normalmap": flat, "bsdf": inner()}},
+            "twosided": {"type": "twosided", "bsdf": inner()}}[wrap]
+
+    def roughness(b):
+        setup = scenes.from_spec("panel", scenes.SceneSpec(_tilted_panel_scene(b, False)),
+                                 size=(24, 18))
+        f = Renderer(setup).render(0)
+        return f.numpy("roughness")[..., 0], f.numpy("mesh_id")[..., 0] > 0
+
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (the mean's warning would be an error here)
+        got, hit = roughness(bsdf)
+    want, hit0 = roughness(inner())
+    assert np.array_equal(hit, hit0) and hit.sum() > 100
+    np.testing.assert_allclose(np.unique(want[hit]), [0.1, 0.5], rtol=1e-6)  # both texels
+    np.testing.assert_allclose(got[hit], want[hit], rtol=0, atol=1e-7)

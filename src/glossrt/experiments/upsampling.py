@@ -15,7 +15,6 @@ Herzog 2010's confidence weighting.
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -225,10 +224,9 @@ FIG7_DIFFERENCES = (
     "floor and sphere, procedural bumps and scratches, slow camera dolly) instead of the "
     "paper's voxel-cone-traced room with a horse; path-traced 1 spp indirect light at 1/2 "
     "resolution (jittered) instead of cone tracing; one fixed mip level of the normal map "
-    "(Toksvig-filtered) for the whole image instead of per-pixel mip selection; the "
-    "G-buffer's roughness channel (the lobe weight's input) sees the *mean* Toksvig alpha "
-    "of each textured material (glossrt.render.materials reads textured roughness inside a "
-    "normal-map wrapper as its mean), while Mitsuba renders the per-texel alpha.")
+    "(Toksvig-filtered) for the whole image instead of per-pixel mip selection. The "
+    "G-buffer's roughness channel (the lobe weight's input) is the per-texel Toksvig alpha "
+    "Mitsuba renders (before 2026-12-02's fourth session it was each material's mean).")
 
 
 @dataclass
@@ -268,10 +266,8 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
     if ref_spp < 1:
         raise GlossrtError(f"fig7: ref_spp must be >= 1, got {ref_spp}")
     say = progress or (lambda _m: None)
-    with warnings.catch_warnings():  # the mean-roughness warning: in FIG7_DIFFERENCES
-        warnings.filterwarnings("ignore", message=".*textured roughness inside a wrapper")
-        refs, seq = _sequence(FIG7_SCENE, size, factor, frames, ref_frames, ref_spp,
-                              cluster, say)
+    refs, seq = _sequence(FIG7_SCENE, size, factor, frames, ref_frames, ref_spp, cluster,
+                          say)
     res = Fig7Results(size, factor, frames, ref_spp, list(ref_frames),
                       mip_level=NORMAL_MAPPED_TOKSVIG_LEVEL)
     for weight in ("normal", "lobe"):

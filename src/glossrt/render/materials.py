@@ -147,6 +147,47 @@ def diffuse_scale(bsdf: mi.BSDF, samples: int = 32) -> np.ndarray:
     return np.where(rho > 0, e / np.maximum(rho, 1e-12), 1.0).T
 
 
+class _Children(mi.TraversalCallback):
+    """The objects a Mitsuba plugin hands to ``traverse`` (a wrapper's nested BSDFs)."""
+
+    def __init__(self):
+        super().__init__()
+        self.objects: dict = {}
+
+    # (Mitsuba 3.9 calls ``put`` for objects and values alike)
+    def put(self, name, value, flags):
+        if isinstance(value, mi.Object):
+            self.objects[name] = value
+
+    def put_value(self, name, value, flags):
+        pass
+
+    def put_object(self, name, obj, flags):
+        self.put(name, obj, flags)
+
+
+def alpha_source(bsdf: mi.BSDF) -> mi.BSDF | None:
+    """The BSDF whose ``alpha`` attribute gives ``bsdf``'s roughness at a hit: ``bsdf``
+    itself when it has one (a textured roughness), else, through a ``normalmap`` (its
+    ``nested_bsdf``) or a ``twosided`` with one BSDF for both sides (its ``brdf_0``), the
+    wrapped BSDF's, at any depth; ``None`` when there is none (a constant roughness). The
+    wrappers evaluate the nested BSDF at the same texture coordinates, so the nested
+    BSDF's attribute is the roughness Mitsuba renders there. (A constant ``alpha`` is an
+    attribute too: :func:`describe_bsdf` reads it as a constant before asking.)"""
+    if bsdf.has_attribute("alpha"):
+        return bsdf
+    kind = bsdf.class_name()
+    if kind not in ("NormalMap", "TwoSidedBRDF"):
+        return None
+    cb = _Children()
+    bsdf.traverse(cb)
+    if kind == "TwoSidedBRDF" and cb.objects.get("brdf_1", cb.objects.get("brdf_0")) \
+            is not cb.objects.get("brdf_0"):
+        return None  # two different sides: no one texture
+    nested = cb.objects.get("nested_bsdf" if kind == "NormalMap" else "brdf_0")
+    return alpha_source(nested) if isinstance(nested, mi.BSDF) else None
+
+
 def describe_bsdf(bsdf: mi.BSDF) -> Material:
     """Lobes, roughness and Fresnel F0 (normal incidence) of a supported Mitsuba BSDF, looking
     through ``twosided`` and ``normalmap`` wrappers (the nested BSDF's roughness and F0), and
@@ -184,8 +225,8 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
                 alpha = float(np.sqrt(a_u * a_v))
                 if a_u != a_v:
                     aniso = (a_u, a_v)
-            elif bsdf.has_attribute("alpha"):
-                alpha_attr = True
+            elif bsdf.has_attribute("alpha") or alpha_source(bsdf) is not None:
+                alpha_attr = True  # per hit, from the BSDF of alpha_source (maybe nested)
             elif tex is not None:
                 alpha = float(np.mean(np.array(tex)))
                 warnings.warn(

@@ -660,6 +660,7 @@ class ShapeTable:
         "has_diffuse": mi.Bool,
         "has_specular": mi.Bool,
         "alpha_attr": mi.Bool,
+        "alpha_bsdf": mi.UInt32,
         "alpha": mi.Float,
         "f0": mi.Color3f,
         "normal_map": mi.UInt32,
@@ -676,12 +677,13 @@ class ShapeTable:
     })
 
     def __init__(self, scene: mi.Scene):
-        from .materials import describe_bsdf, lobe_override
+        from .materials import alpha_source, describe_bsdf, lobe_override
 
         shapes = stable_shapes(scene)
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
         n = max(ids, default=0) + 1
         index, has_d, has_s, attr, alpha = [0] * n, [False] * n, [False] * n, [False] * n, [0.0] * n
+        alpha_bsdf = [0] * n
         f0 = [[0.0] * n for _ in range(3)]
         normal_map = [0] * n
         beckmann = [False] * n
@@ -695,6 +697,9 @@ class ShapeTable:
             index[rid] = i + 1
             has_d[rid], has_s[rid], attr[rid], alpha[rid] = (
                 m.has_diffuse, m.has_specular, m.alpha_attr, m.alpha)
+            if m.alpha_attr:  # (the wrapped BSDF's id where a wrapper has the texture)
+                alpha_bsdf[rid] = int(dr.reinterpret_array(
+                    mi.UInt32, mi.BSDFPtr(alpha_source(s.bsdf())))[0])
             normal_map[rid] = m.normal_map
             beckmann[rid] = m.beckmann
             fres[rid] = m.fresnel.row()
@@ -709,6 +714,10 @@ class ShapeTable:
         self.has_diffuse = mi.Bool(has_d)
         self.has_specular = mi.Bool(has_s)
         self.alpha_attr = mi.Bool(attr)
+        #: per shape with a textured roughness: the registry id of the BSDF whose ``alpha``
+        #: attribute to evaluate (the shape's own, or the one inside its ``normalmap`` /
+        #: ``twosided``: :func:`glossrt.render.materials.alpha_source`)
+        self.alpha_bsdf = mi.UInt32(alpha_bsdf)
         self.alpha = mi.Float(alpha)
         self.f0 = mi.Color3f(*f0)
         self.normal_map = mi.UInt32(normal_map)
@@ -805,7 +814,11 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     alpha = dr.gather(mi.Float, shapes.alpha, rid, valid)
     f0 = dr.gather(mi.Color3f, shapes.f0, rid, valid)
     beckmann = dr.gather(mi.Bool, shapes.beckmann, rid, valid) & valid
-    alpha = dr.select(attr, bsdf.eval_attribute_1("alpha", si, valid & attr), alpha)
+    # a textured roughness: evaluated per hit on the BSDF that has it (inside a wrapper: the
+    # nested one, at the same texture coordinates)
+    source = dr.reinterpret_array(mi.BSDFPtr, dr.gather(mi.UInt32, shapes.alpha_bsdf, rid,
+                                                         valid & attr))
+    alpha = dr.select(attr, source.eval_attribute_1("alpha", si, valid & attr), alpha)
     normal_map = (dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
                   if shapes.any_normal_map else None)
     n, mapped = shading_normal(si, bsdf, ray, normal_map, valid)
