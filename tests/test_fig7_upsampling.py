@@ -8,6 +8,8 @@ Run with ``pytest -s`` to see the measured numbers."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -145,3 +147,38 @@ def test_fig7_runs_tiny():
     assert "Toksvig" in md and "Differences from the paper" in md
     with pytest.raises(GlossrtError, match="multiple"):
         ue.fig7(size=(25, 14), frames=2, ref_spp=1)
+
+
+def test_fig7_experiment_command(tmp_path, monkeypatch):
+    """``glossrt experiment --which fig7``: the paper scale takes 640x360, 16 frames and 4096
+    spp where the option was not given (checked on the arguments fig7 receives), and the
+    references are kept under OUT/references (a rerun renders none)."""
+    from types import SimpleNamespace
+
+    from glossrt.experiments import upsampling as ue
+    from glossrt.render import Renderer
+
+    seen = {}
+    real = ue.fig7
+
+    def spy(**kw):
+        seen.update(kw)
+        return real(**{**kw, "size": (24, 14), "frames": 3, "ref_spp": 4})
+
+    monkeypatch.setattr(ue, "fig7", spy)
+    paper = SimpleNamespace(scale="paper", explicit=set(), size="1x1", frames=30, spp=1)
+    assert ue.run_fig7(tmp_path, (1, 1), paper) == 0
+    assert (seen["size"], seen["frames"], seen["ref_spp"]) == ((640, 360), 16, 4096)
+    assert seen["cache"] == tmp_path / "references"
+    given = SimpleNamespace(scale="paper", explicit={"frames"}, frames=5, spp=1)
+    ue.run_fig7(tmp_path, (24, 14), given)
+    assert (seen["size"], seen["frames"], seen["ref_spp"]) == ((640, 360), 5, 4096)
+    quick = SimpleNamespace(scale="quick", explicit={"spp"}, frames=3, spp=4)
+    monkeypatch.setattr(Renderer, "render_reference",
+                        lambda *a, **k: pytest.fail("reference rendered again"))
+    assert ue.run_fig7(tmp_path, (24, 14), quick) == 0  # its references are in the cache
+    assert (seen["size"], seen["frames"], seen["ref_spp"]) == ((24, 14), 3, 4)
+    data = json.loads((tmp_path / "fig7.json").read_text())
+    assert set(data["mse"]) == {f"{w} / {m}" for w in ("normal", "lobe")
+                                for m, _ in ue.FIG7_MODES}
+    assert "| lobe | Herzog confidence |" in (tmp_path / "fig7.md").read_text()

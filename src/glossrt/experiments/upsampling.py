@@ -14,6 +14,7 @@ Herzog 2010's confidence weighting.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,6 +24,12 @@ import numpy as np
 
 from ..errors import GlossrtError
 from ..frame import RADIANCE
+from ..report.registry import (
+    experiment_cluster,
+    experiment_scale,
+    option_given,
+    register_experiment,
+)
 
 INDIRECT = ("indirect_diffuse", "indirect_specular")
 
@@ -149,9 +156,9 @@ class SpatioTemporalResults:
 
 
 def _sequence(scene: str, size, factor: int, frames: int, ref_frames, ref_spp: int,
-              cluster, say) -> tuple[dict, list]:
-    """The references' indirect light at ``ref_frames`` (rendered on ``cluster``:
-    :func:`glossrt.render.blocks.references`) and the 1 spp sequence: each frame's
+              cluster, say, cache=None) -> tuple[dict, list]:
+    """The references' indirect light at ``ref_frames`` (rendered on ``cluster``, kept in
+    ``cache``: :func:`glossrt.render.blocks.references`) and the 1 spp sequence: each frame's
     full-resolution G-buffer and its jittered 1/``factor`` resolution frame."""
     from .. import render, scenes
     from ..denoise.upsampling import jitter_sequence
@@ -163,7 +170,7 @@ def _sequence(scene: str, size, factor: int, frames: int, ref_frames, ref_spp: i
     say(f"reference frames {list(ref_frames)}, {ref_spp} spp")
     refs = {f.index: _indirect(f) for f in blocks.references(
         full_r, blocks.reference_job(scene, size), ref_frames, ref_spp, cluster,
-        desc=f"references {scene} {ref_spp} spp")}
+        desc=f"references {scene} {ref_spp} spp", cache=cache)}
     seq = [(full_r.render(i), low_r.render(i, jitter=jitter_sequence(factor, i)))
            for i in range(frames)]
     return refs, seq
@@ -242,13 +249,14 @@ class Fig7Results(SpatioTemporalResults):
 
 def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256,
          ref_frames: tuple[int, ...] | None = None, factor: int = 2,
-         progress: Callable[[str], None] | None = None, cluster=None) -> Fig7Results:
+         progress: Callable[[str], None] | None = None, cluster=None,
+         cache=None) -> Fig7Results:
     """Tokuyoshi 2015 fig. 7 analogue (sec. 5.3): spatio-temporal upsampling of 1 spp
     jittered 1/``factor`` resolution indirect light on the normal-mapped glossy scene with
     Toksvig-filtered roughness (:data:`FIG7_SCENE`, :data:`FIG7_DIFFERENCES`): spatial only,
     glossrt's simplified history and Herzog 2010's confidence weighting, normal and lobe
     weights; MSE of the indirect light against ``ref_spp`` references at ``ref_frames``
-    (default: the middle and the last frame), rendered on ``cluster``
+    (default: the middle and the last frame), rendered on ``cluster`` and kept in ``cache``
     (:func:`glossrt.render.blocks.references`; a built-in scene, so workers load it by
     name)."""
     from ..denoise.upsampling import SpatioTemporalUpsampler, upsample
@@ -267,7 +275,7 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
         raise GlossrtError(f"fig7: ref_spp must be >= 1, got {ref_spp}")
     say = progress or (lambda _m: None)
     refs, seq = _sequence(FIG7_SCENE, size, factor, frames, ref_frames, ref_spp, cluster,
-                          say)
+                          say, cache)
     res = Fig7Results(size, factor, frames, ref_spp, list(ref_frames),
                       mip_level=NORMAL_MAPPED_TOKSVIG_LEVEL)
     for weight in ("normal", "lobe"):
@@ -278,3 +286,44 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
             res.mse[(weight, mode)], res.ms[(weight, mode)] = _upsample_sequence(
                 seq, refs, step)
     return res
+
+
+#: ``glossrt experiment --which fig7 --scale paper``: the size of Tokuyoshi 2015's fig. 5
+#: (the paper gives none for fig. 7), 16 frames (the jitter cycle of 2x2 four times), the
+#: middle and last frame referenced at the SVGF paper's 4096 spp
+FIG7_PAPER_SIZE = (640, 360)
+FIG7_PAPER_FRAMES = 16
+FIG7_PAPER_REF_SPP = 4096
+
+
+@register_experiment("fig7", "Tokuyoshi 2015 fig. 7 analogue: spatio-temporal upsampling "
+                     "(simplified history vs Herzog 2010 confidence, normal and lobe "
+                     "weights) on the Toksvig-filtered normal-mapped scene (--size, --spp, "
+                     "--frames); --scale paper: 640x360, 16 frames, 4096 spp references",
+                     order=25)
+def run_fig7(out, size, args) -> int:
+    """:func:`fig7` at ``size`` with ``--spp`` references and ``--frames`` frames; ``--scale
+    paper``: :data:`FIG7_PAPER_SIZE`, :data:`FIG7_PAPER_FRAMES` and
+    :data:`FIG7_PAPER_REF_SPP` where the option was not given. Writes fig7.md / .json."""
+    paper = experiment_scale(args) == "paper"
+
+    def pick(name, value, default):
+        return value if not paper or option_given(args, name) else default
+
+    size = tuple(pick("size", tuple(size), FIG7_PAPER_SIZE))
+    frames = int(pick("frames", args.frames, FIG7_PAPER_FRAMES))
+    spp = int(pick("spp", args.spp, FIG7_PAPER_REF_SPP))
+    t0 = time.perf_counter()
+    res = fig7(size=size, frames=frames, ref_spp=spp, cluster=experiment_cluster(args),
+               progress=lambda m: print(m, flush=True), cache=out / "references")
+    seconds = time.perf_counter() - t0
+    md = (f"## Tokuyoshi 2015 fig. 7 analogue ({seconds:.0f} s)\n\n{res.markdown()}")
+    data = {"size": list(size), "frames": frames, "ref_spp": spp,
+            "ref_frames": list(res.ref_frames), "seconds": seconds,
+            "mse": {f"{w} / {m}": v for (w, m), v in res.mse.items()},
+            "ms": {f"{w} / {m}": v for (w, m), v in res.ms.items()}}
+    (out / "fig7.md").write_text(md + "\n")
+    (out / "fig7.json").write_text(json.dumps(data, indent=2, default=float))
+    print(md)
+    print(f"wrote {out / 'fig7.md'}")
+    return 0
