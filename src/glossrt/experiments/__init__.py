@@ -3,13 +3,16 @@ and ``glossrt bench`` / ``glossrt experiment``:
 
 * :mod:`.svgf`: every denoiser against converged references (Schied et al. 2017);
 * :mod:`.lobes` and :mod:`.upsampling`: Tokuyoshi 2015's lobe-aware filtering (figs. 4-6) and
-  upsampling (one paper: :mod:`.lobes` registers both halves' section and runs);
+  upsampling (one paper: :mod:`.lobes` registers both halves' section and run;
+  :mod:`.upsampling` its fig. 7 run, ``--which fig7``);
 * :mod:`.ltc`: Heitz et al. 2016's LTC against quadrature and Monte Carlo;
 * :mod:`.bspvt`: Okuno & Iwasaki's BSPVT shadows, with the ratio estimator beside them;
 * :mod:`.highlights`: Kimura & Tokoi 2004's light-shape highlights;
 * :mod:`.specaa`: specular antialiasing (Kaplanyan et al. 2016, Tokuyoshi & Kaplanyan 2021);
 * :mod:`.pipeline`: the frame pipeline that composes them (issue 25), every preset against
-  converged references.
+  converged references;
+* :mod:`.paper_scale`: the report's links to the evaluations at the papers' scale (issue 28)
+  in docs/RESULTS.md.
 
 Each module registers its report section (:func:`glossrt.report.register_section`), its
 benchmark case (:func:`glossrt.report.registry.benchmark`) and its ``glossrt experiment``
@@ -24,7 +27,7 @@ import importlib
 
 #: the experiment modules, one per paper (``upsampling`` is the second half of ``lobes``'s)
 MODULES = ("svgf", "lobes", "upsampling", "ltc", "bspvt", "highlights", "specaa",
-           "pipeline")
+           "pipeline", "paper_scale")
 
 
 def load_all() -> None:

@@ -108,6 +108,18 @@ class Section:
         """Add text (escaped; blank lines start new paragraphs)."""
         self._blocks.append(_text_html(text))
 
+    def links(self, items: Sequence[tuple[str, str, str]]) -> None:
+        """Add a list of ``(label, href, note)``: each label a link to ``href`` (a path
+        relative to the report, or a URL), then its note (escaped text; text in backticks is
+        shown as code)."""
+        lis = []
+        for label, href, note in items:
+            parts = re.split(r"`([^`]*)`", _esc(note))
+            text = "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts))
+            lis.append(f'<li><a href="{_esc(href)}">{_esc(label)}</a>'
+                       + (f": {text}" if note else "") + "</li>")
+        self._blocks.append("<ul>\n" + "\n".join(lis) + "\n</ul>")
+
     def image(self, name: str, img: Any, caption: str = "", exposure: float = 0.0) -> str:
         """Add a linear image, tone-mapped by :func:`tonemap`; returns its path relative to the
         report (``img/<name>.png``, with a suffix if the name is already taken)."""
