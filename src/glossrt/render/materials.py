@@ -147,23 +147,30 @@ def diffuse_scale(bsdf: mi.BSDF, samples: int = 32) -> np.ndarray:
     return np.where(rho > 0, e / np.maximum(rho, 1e-12), 1.0).T
 
 
-class _Children(mi.TraversalCallback):
-    """The objects a Mitsuba plugin hands to ``traverse`` (a wrapper's nested BSDFs)."""
+def _children(obj) -> dict:
+    """The objects a Mitsuba plugin hands to ``traverse`` (a wrapper's nested BSDFs), by
+    name. (The callback class is made here, not at import: touching ``mi`` picks the
+    variant.)"""
 
-    def __init__(self):
-        super().__init__()
-        self.objects: dict = {}
+    class Children(mi.TraversalCallback):
+        def __init__(self):
+            super().__init__()
+            self.objects: dict = {}
 
-    # (Mitsuba 3.9 calls ``put`` for objects and values alike)
-    def put(self, name, value, flags):
-        if isinstance(value, mi.Object):
-            self.objects[name] = value
+        # (Mitsuba 3.9 calls ``put`` for objects and values alike)
+        def put(self, name, value, flags):
+            if isinstance(value, mi.Object):
+                self.objects[name] = value
 
-    def put_value(self, name, value, flags):
-        pass
+        def put_value(self, name, value, flags):
+            pass
 
-    def put_object(self, name, obj, flags):
-        self.put(name, obj, flags)
+        def put_object(self, name, obj, flags):
+            self.put(name, obj, flags)
+
+    cb = Children()
+    obj.traverse(cb)
+    return cb.objects
 
 
 def alpha_source(bsdf: mi.BSDF) -> mi.BSDF | None:
@@ -179,12 +186,11 @@ def alpha_source(bsdf: mi.BSDF) -> mi.BSDF | None:
     kind = bsdf.class_name()
     if kind not in ("NormalMap", "TwoSidedBRDF"):
         return None
-    cb = _Children()
-    bsdf.traverse(cb)
-    if kind == "TwoSidedBRDF" and cb.objects.get("brdf_1", cb.objects.get("brdf_0")) \
-            is not cb.objects.get("brdf_0"):
+    objects = _children(bsdf)
+    if kind == "TwoSidedBRDF" and objects.get("brdf_1", objects.get("brdf_0")) \
+            is not objects.get("brdf_0"):
         return None  # two different sides: no one texture
-    nested = cb.objects.get("nested_bsdf" if kind == "NormalMap" else "brdf_0")
+    nested = objects.get("nested_bsdf" if kind == "NormalMap" else "brdf_0")
     return alpha_source(nested) if isinstance(nested, mi.BSDF) else None
 
 
