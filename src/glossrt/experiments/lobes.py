@@ -56,7 +56,7 @@ from ..report.registry import (
     experiment_scale,
     finish_experiment,
     markdown_table,
-    option_given,
+    paper_value,
     register_experiment,
     section_size,
 )
@@ -944,8 +944,8 @@ def run_paper(out, size, args) -> int:
     and ``fig6-{spp}spp.png``."""
     from ..progress import Progress as Bar
 
-    size = tuple(size) if option_given(args, "size") else PAPER_SIZE
-    spp = int(args.spp) if option_given(args, "spp") else PAPER_REF_SPP
+    size = tuple(paper_value(args, "size", size, PAPER_SIZE))
+    spp = int(paper_value(args, "spp", args.spp, PAPER_REF_SPP))
     cluster = experiment_cluster(args)
     t0 = time.perf_counter()
     parts = [f"# Tokuyoshi 2015 figs. 4-6 at paper scale ({size[0]}x{size[1]}, reference "

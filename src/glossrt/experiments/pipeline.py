@@ -55,7 +55,7 @@ from ..report.registry import (
     experiment_scale,
     finish_experiment,
     markdown_table,
-    option_given,
+    paper_value,
     register_experiment,
     section_size,
 )
@@ -345,6 +345,7 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
                           variants=dict(table) if variants else {})
     for scene in scenes:
         name, depth = scene_case(scene)
+        depth_choice = {} if depth is None else {"max_depth": depth}
         runs = [(p, p, {}) for p in presets]
         if variants and (isinstance(variants, dict) or scene == INTERACTION_SCENE):
             runs += [(label, p, c) for label, (p, c) in table.items()]
@@ -372,7 +373,6 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
                 res.images[scene] = {FLOOR: raw[-1]}
             for label, preset, extra in runs:
                 say(f"{scene} ({'with' if motion else 'without'} motion): {label}")
-                depth_choice = {} if depth is None else {"max_depth": depth}
                 seq = _sequence(setup, preset, {**choices, **depth_choice, **extra}, frames)
                 if "skipped" in seq:
                     res.rows.append({**base, "label": label, "skipped": seq["skipped"]})
@@ -777,14 +777,11 @@ def run_experiment(out, size, args) -> int:
     :data:`PAPER_REF_SPP` (or ``--spp``), :data:`PAPER_VARIANTS` on every scene, no static
     runs; the references are kept in ``OUT/references`` (a rerun reuses them)."""
     paper = experiment_scale(args) == "paper"
-    if paper:
-        size = tuple(size) if option_given(args, "size") else PAPER_SIZE
-        spp = int(args.spp) if option_given(args, "spp") else PAPER_REF_SPP
-        frames = int(args.frames) if option_given(args, "frames") else PAPER_FRAMES
-        kw = dict(scenes=PAPER_SCENES, variants=PAPER_VARIANTS, static=False,
-                  ref_frames=PAPER_REF_FRAMES, cache=out / "references")
-    else:
-        spp, frames, kw = args.spp, args.frames, {}
+    size = tuple(paper_value(args, "size", size, PAPER_SIZE))
+    spp = int(paper_value(args, "spp", args.spp, PAPER_REF_SPP))
+    frames = int(paper_value(args, "frames", args.frames, PAPER_FRAMES))
+    kw = (dict(scenes=PAPER_SCENES, variants=PAPER_VARIANTS, static=False,
+               ref_frames=PAPER_REF_FRAMES, cache=out / "references") if paper else {})
     res = evaluate(  # (evaluate checks the arguments before any work)
         size=size, spp=spp, frames=frames, progress=lambda m: print(m, flush=True),
         cluster=experiment_cluster(args), **kw)

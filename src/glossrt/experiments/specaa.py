@@ -47,7 +47,7 @@ from ..report.registry import (
     experiment_scale,
     finish_experiment,
     markdown_table,
-    option_given,
+    paper_value,
     register_experiment,
     section_size,
 )
@@ -566,9 +566,9 @@ def run_paper(out, size, args) -> int:
     frames (CLI default 10 = :data:`PAPER_REF_EVERY`). Writes ``specaa-paper.md`` /
     ``.json``, the RMSE-per-frame plot ``specaa-paper-rmse.png`` and frame 0's montage
     ``specaa-paper.png``."""
-    size = tuple(size) if option_given(args, "size") else PAPER_SIZE
-    spp = int(args.spp) if option_given(args, "spp") else PAPER_SPP
-    frames = int(args.frames) if option_given(args, "frames") else PAPER_FRAMES
+    size = tuple(paper_value(args, "size", size, PAPER_SIZE))
+    spp = int(paper_value(args, "spp", args.spp, PAPER_SPP))
+    frames = int(paper_value(args, "frames", args.frames, PAPER_FRAMES))
     ref_every = int(getattr(args, "ref_every", PAPER_REF_EVERY))
     res = evaluate_paper(size=size, spp=spp, frames=frames, ref_every=ref_every,
                          progress=lambda m: print(m, flush=True))

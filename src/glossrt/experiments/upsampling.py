@@ -14,7 +14,6 @@ Herzog 2010's confidence weighting.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,8 +25,8 @@ from ..errors import GlossrtError
 from ..frame import RADIANCE
 from ..report.registry import (
     experiment_cluster,
-    experiment_scale,
-    option_given,
+    finish_experiment,
+    paper_value,
     register_experiment,
 )
 
@@ -305,14 +304,9 @@ def run_fig7(out, size, args) -> int:
     """:func:`fig7` at ``size`` with ``--spp`` references and ``--frames`` frames; ``--scale
     paper``: :data:`FIG7_PAPER_SIZE`, :data:`FIG7_PAPER_FRAMES` and
     :data:`FIG7_PAPER_REF_SPP` where the option was not given. Writes fig7.md / .json."""
-    paper = experiment_scale(args) == "paper"
-
-    def pick(name, value, default):
-        return value if not paper or option_given(args, name) else default
-
-    size = tuple(pick("size", tuple(size), FIG7_PAPER_SIZE))
-    frames = int(pick("frames", args.frames, FIG7_PAPER_FRAMES))
-    spp = int(pick("spp", args.spp, FIG7_PAPER_REF_SPP))
+    size = tuple(paper_value(args, "size", size, FIG7_PAPER_SIZE))
+    frames = int(paper_value(args, "frames", args.frames, FIG7_PAPER_FRAMES))
+    spp = int(paper_value(args, "spp", args.spp, FIG7_PAPER_REF_SPP))
     t0 = time.perf_counter()
     res = fig7(size=size, frames=frames, ref_spp=spp, cluster=experiment_cluster(args),
                progress=lambda m: print(m, flush=True), cache=out / "references")
@@ -322,8 +316,4 @@ def run_fig7(out, size, args) -> int:
             "ref_frames": list(res.ref_frames), "seconds": seconds,
             "mse": {f"{w} / {m}": v for (w, m), v in res.mse.items()},
             "ms": {f"{w} / {m}": v for (w, m), v in res.ms.items()}}
-    (out / "fig7.md").write_text(md + "\n")
-    (out / "fig7.json").write_text(json.dumps(data, indent=2, default=float))
-    print(md)
-    print(f"wrote {out / 'fig7.md'}")
-    return 0
+    return finish_experiment(out, "fig7", md, "fig7.json", data)

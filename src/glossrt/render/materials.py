@@ -231,7 +231,7 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
                 alpha = float(np.sqrt(a_u * a_v))
                 if a_u != a_v:
                     aniso = (a_u, a_v)
-            elif bsdf.has_attribute("alpha") or alpha_source(bsdf) is not None:
+            elif alpha_source(bsdf) is not None:
                 alpha_attr = True  # per hit, from the BSDF of alpha_source (maybe nested)
             elif tex is not None:
                 alpha = float(np.mean(np.array(tex)))

@@ -659,7 +659,6 @@ class ShapeTable:
         "index": mi.UInt32,
         "has_diffuse": mi.Bool,
         "has_specular": mi.Bool,
-        "alpha_attr": mi.Bool,
         "alpha_bsdf": mi.UInt32,
         "alpha": mi.Float,
         "f0": mi.Color3f,
@@ -682,7 +681,7 @@ class ShapeTable:
         shapes = stable_shapes(scene)
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
         n = max(ids, default=0) + 1
-        index, has_d, has_s, attr, alpha = [0] * n, [False] * n, [False] * n, [False] * n, [0.0] * n
+        index, has_d, has_s, alpha = [0] * n, [False] * n, [False] * n, [0.0] * n
         alpha_bsdf = [0] * n
         f0 = [[0.0] * n for _ in range(3)]
         normal_map = [0] * n
@@ -695,8 +694,7 @@ class ShapeTable:
             m = describe_bsdf(s.bsdf())
             self.materials[s.id() or f"shape_{i}"] = m
             index[rid] = i + 1
-            has_d[rid], has_s[rid], attr[rid], alpha[rid] = (
-                m.has_diffuse, m.has_specular, m.alpha_attr, m.alpha)
+            has_d[rid], has_s[rid], alpha[rid] = m.has_diffuse, m.has_specular, m.alpha
             if m.alpha_attr:  # (the wrapped BSDF's id where a wrapper has the texture)
                 alpha_bsdf[rid] = int(dr.reinterpret_array(
                     mi.UInt32, mi.BSDFPtr(alpha_source(s.bsdf())))[0])
@@ -713,10 +711,10 @@ class ShapeTable:
         self.index = mi.UInt32(index)
         self.has_diffuse = mi.Bool(has_d)
         self.has_specular = mi.Bool(has_s)
-        self.alpha_attr = mi.Bool(attr)
         #: per shape with a textured roughness: the registry id of the BSDF whose ``alpha``
         #: attribute to evaluate (the shape's own, or the one inside its ``normalmap`` /
-        #: ``twosided``: :func:`glossrt.render.materials.alpha_source`)
+        #: ``twosided``: :func:`glossrt.render.materials.alpha_source`); 0 (no object):
+        #: the constant ``alpha``
         self.alpha_bsdf = mi.UInt32(alpha_bsdf)
         self.alpha = mi.Float(alpha)
         self.f0 = mi.Color3f(*f0)
@@ -810,14 +808,14 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     index = dr.gather(mi.UInt32, shapes.index, rid, valid)
     has_d = dr.gather(mi.Bool, shapes.has_diffuse, rid, valid)
     has_s = dr.gather(mi.Bool, shapes.has_specular, rid, valid)
-    attr = dr.gather(mi.Bool, shapes.alpha_attr, rid, valid)
     alpha = dr.gather(mi.Float, shapes.alpha, rid, valid)
     f0 = dr.gather(mi.Color3f, shapes.f0, rid, valid)
     beckmann = dr.gather(mi.Bool, shapes.beckmann, rid, valid) & valid
     # a textured roughness: evaluated per hit on the BSDF that has it (inside a wrapper: the
     # nested one, at the same texture coordinates)
-    source = dr.reinterpret_array(mi.BSDFPtr, dr.gather(mi.UInt32, shapes.alpha_bsdf, rid,
-                                                         valid & attr))
+    source_id = dr.gather(mi.UInt32, shapes.alpha_bsdf, rid, valid)
+    attr = valid & (source_id != 0)
+    source = dr.reinterpret_array(mi.BSDFPtr, source_id)
     alpha = dr.select(attr, source.eval_attribute_1("alpha", si, valid & attr), alpha)
     normal_map = (dr.gather(mi.UInt32, shapes.normal_map, rid, valid)
                   if shapes.any_normal_map else None)

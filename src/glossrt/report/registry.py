@@ -270,6 +270,14 @@ def option_given(args, name: str) -> bool:
     return True if given is None else name in given
 
 
+def paper_value(args, name: str, value, default):
+    """An option's value for this run: the paper's ``default`` in a ``--scale paper`` run
+    whose command line did not give ``--NAME``, else ``value`` (the command's)."""
+    if experiment_scale(args) == "paper" and not option_given(args, name):
+        return default
+    return value
+
+
 def finish_experiment(out: Path, stem: str, md: str, figure: str,
                       data: dict | None = None) -> int:
     """Write an experiment's ``STEM.md`` (and ``STEM.json`` with ``data``), print it."""
