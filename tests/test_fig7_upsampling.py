@@ -149,6 +149,30 @@ def test_fig7_runs_tiny():
         ue.fig7(size=(25, 14), frames=2, ref_spp=1)
 
 
+def test_fig7_bias_variance_over_independent_sequences():
+    """``inputs`` >= 2: K sequences with distinct seeds; the MSE is their mean and equals
+    bias^2 + variance of the split (an identity of the estimator, computed here by two
+    routes: each sequence's own MSE against the accumulated per-pixel sums); independent
+    noise gives a positive variance; one sequence gives no split."""
+    from glossrt.experiments import upsampling as ue
+
+    res = ue.fig7(size=(24, 14), frames=3, ref_spp=4, inputs=3)
+    assert res.inputs == 3 and set(res.split) == set(res.mse)
+    for key, per_frame in res.split.items():
+        assert len(per_frame) == len(res.ref_frames)
+        for e, mse in zip(per_frame, res.mse[key], strict=True):
+            assert len(e.per_input) == 3
+            assert np.isclose(np.mean(e.per_input), mse, rtol=1e-6)
+            assert np.isclose(e.bias2 + e.variance, mse, rtol=1e-6)
+            assert e.variance > 0
+    md = res.markdown()
+    assert "seeds 1-3" in md and "bias^2" in md
+    assert md.count("| lobe | Herzog confidence |") == 2
+    assert ue.fig7(size=(24, 14), frames=3, ref_spp=4).split == {}
+    with pytest.raises(GlossrtError, match="inputs"):
+        ue.fig7(size=(24, 14), frames=3, ref_spp=4, inputs=0)
+
+
 def test_fig7_experiment_command(tmp_path, monkeypatch):
     """``glossrt experiment --which fig7``: the paper scale takes 640x360, 16 frames and 4096
     spp where the option was not given (checked on the arguments fig7 receives), and the
@@ -163,12 +187,14 @@ def test_fig7_experiment_command(tmp_path, monkeypatch):
 
     def spy(**kw):
         seen.update(kw)
-        return real(**{**kw, "size": (24, 14), "frames": 3, "ref_spp": 4})
+        return real(**{**kw, "size": (24, 14), "frames": 3, "ref_spp": 4,
+                       "inputs": min(kw["inputs"], 2)})
 
     monkeypatch.setattr(ue, "fig7", spy)
     paper = SimpleNamespace(scale="paper", explicit=set(), size="1x1", frames=30, spp=1)
     assert ue.run_fig7(tmp_path, (1, 1), paper) == 0
     assert (seen["size"], seen["frames"], seen["ref_spp"]) == ((640, 360), 16, 4096)
+    assert seen["inputs"] == ue.FIG7_PAPER_INPUTS
     assert seen["cache"] == tmp_path / "references"
     given = SimpleNamespace(scale="paper", explicit={"frames"}, frames=5, spp=1)
     ue.run_fig7(tmp_path, (24, 14), given)
@@ -178,6 +204,7 @@ def test_fig7_experiment_command(tmp_path, monkeypatch):
                         lambda *a, **k: pytest.fail("reference rendered again"))
     assert ue.run_fig7(tmp_path, (24, 14), quick) == 0  # its references are in the cache
     assert (seen["size"], seen["frames"], seen["ref_spp"]) == ((24, 14), 3, 4)
+    assert seen["inputs"] == 1
     data = json.loads((tmp_path / "fig7.json").read_text())
     assert set(data["mse"]) == {f"{w} / {m}" for w in ("normal", "lobe")
                                 for m, _ in ue.FIG7_MODES}

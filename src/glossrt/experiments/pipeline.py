@@ -390,6 +390,132 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
     return res
 
 
+# -- TAA against pixel-centre and box-filtered references (issue 28) -------------------------
+
+#: ``glossrt experiment --which taa``: the scenes where TAA in the measured pipeline cost
+#: accuracy at 1280x720 (docs/RESULTS.md), and the two pipelines compared
+TAA_SCENES = ("glossy-cornell", "polygon-light" + DIRECT_ONLY)
+TAA_RUNS: dict[str, tuple[str, dict]] = {
+    "schied2017 (SVGF + TAA)": ("schied2017", {}),
+    "schied2017, taa off": ("schied2017", {"taa": False}),
+}
+#: the two references: glossrt's (every sample through the pixel centre) and Mitsuba's own
+#: ``path`` integrator through the scene's film, whose box pixel filter averages the whole
+#: pixel (the antialiased image TAA converges to)
+TAA_REFERENCES = ("pixel centre", "box filter")
+#: ``--scale paper``: the paper-scale pipeline run's size and frames; 1024 spp (glossrt's
+#: choice: at 4096 spp the pipeline table's RMSE moved by at most 4.1%)
+TAA_PAPER_SPP = 1024
+
+
+@dataclass
+class TaaResults:
+    size: tuple[int, int]
+    spp: int
+    frames: int
+    ref_frames: int
+    #: (scene, label, reference) -> RMSE / SSIM / FLIP / temporal; label includes the 1 spp
+    #: input (:data:`FLOOR`) and the other reference (``"other reference"``)
+    scores: dict[tuple[str, str, str], dict] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def markdown(self) -> str:
+        cols = ["scene", "pipeline"] + [f"{m} ({r})" for m in ("RMSE", "SSIM", "temporal")
+                                         for r in ("centre", "box")]
+        lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        keys = list(dict.fromkeys((sc, lb) for sc, lb, _ in self.scores))
+        for scene, label in keys:
+            cells = [scene, label]
+            for m, fmt in (("rmse", ".4f"), ("ssim", ".3f"), ("temporal", ".4f")):
+                for ref in TAA_REFERENCES:
+                    v = self.scores.get((scene, label, ref))
+                    cells.append("-" if v is None else format(v[m], fmt))
+            lines.append("| " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict:
+        return {"size": list(self.size), "spp": self.spp, "frames": self.frames,
+                "ref_frames": self.ref_frames, "seconds": self.seconds,
+                "scores": [{"scene": sc, "label": lb, "reference": rf, **v}
+                           for (sc, lb, rf), v in self.scores.items()]}
+
+
+def box_references(renderer, scene: str, frames, spp: int, cache=None) -> list[np.ndarray]:
+    """Mitsuba's ``path`` integrator at ``frames`` (:meth:`glossrt.render.Renderer.
+    render_mitsuba`: the scene's box pixel filter, ``renderer``'s ``max_depth``), colour
+    (H, W, 3); with ``cache``, each frame is kept there as an EXR and read back by a later
+    call for the same scene, size, sample count and frame."""
+    from ..frame import Frame
+
+    out = []
+    for i in frames:
+        path = (None if cache is None else Path(cache) /
+                f"mitsuba-path-{_file_name(scene)}-{renderer.width}x{renderer.height}-"
+                f"{spp}spp-{int(i):04d}.exr")
+        if path is not None and path.is_file():
+            out.append(Frame.load(path).numpy("color"))
+            continue
+        img = np.array(renderer.render_mitsuba(int(i), spp))
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            Frame(channels={"color": img}, index=int(i),
+                  meta={"scene": scene, "spp": spp, "reference": "mitsuba-path"}).save(path)
+        out.append(img)
+    return out
+
+
+def taa_check(size=(96, 72), spp: int = 256, frames: int = 6, ref_frames: int = 3,
+              scenes=TAA_SCENES, cluster=None, cache=None,
+              progress: Callable[[str], None] | None = None) -> TaaResults:
+    """Is TAA's cost in the measured pipeline an artefact of pixel-centre references?
+    Each pipeline of :data:`TAA_RUNS` (and the 1 spp input) over ``frames`` frames of each
+    scene's animation, scored (:func:`_score`) over the last ``ref_frames`` frames against
+    both references of :data:`TAA_REFERENCES` at ``spp`` samples: glossrt's
+    (:func:`glossrt.render.blocks.references`, on ``cluster``) and Mitsuba's box-filtered
+    (:func:`box_references`), both kept in ``cache``. Each reference is also scored
+    against the other (how much of the image the pixel filter changes)."""
+    from .. import render
+    from .. import scenes as scn
+    from ..render import blocks
+
+    scenes = tuple(scenes)
+    check_args(size, spp, frames, scenes, ("schied2017",), ref_frames)
+    say = progress or (lambda _m: None)
+    t0 = time.perf_counter()
+    res = TaaResults(tuple(size), spp, frames, ref_frames)
+    wanted = list(range(frames - ref_frames, frames))
+    first = frames - ref_frames
+    for scene in scenes:
+        name, depth = scene_case(scene)
+        setup = scn.load(name, size=size, frames=frames)
+        rend = render.Renderer(setup, max_depth=depth)
+        say(f"{scene}: pixel-centre references, {spp} spp")
+        job = blocks.reference_job(name, size, frames=frames, max_depth=depth)
+        got = blocks.references(rend, job, wanted, spp, cluster, cache=cache,
+                                desc=f"references {scene} {spp} spp")
+        say(f"{scene}: box-filtered references (Mitsuba path), {spp} spp")
+        refs = {TAA_REFERENCES[0]: [f.numpy("color") for f in got],
+                TAA_REFERENCES[1]: box_references(rend, scene, wanted, spp, cache)}
+        refs = {k: [None] * first + v for k, v in refs.items()}
+        runs = {FLOOR: [rend.render(i).numpy("color") for i in range(frames)]}
+        for label, (preset, extra) in TAA_RUNS.items():
+            say(f"{scene}: {label}")
+            choices = {} if depth is None else {"max_depth": depth}
+            seq = _sequence(setup, preset, {**choices, **extra}, frames)
+            if "skipped" in seq:
+                raise GlossrtError(f"taa check: {label} refused on {scene}: {seq['skipped']}")
+            runs[label] = seq["colours"]
+        for ref in TAA_REFERENCES:  # each reference against the other
+            runs[f"{ref} reference"] = refs[ref]
+        for label, colours in runs.items():
+            for ref in TAA_REFERENCES:
+                if label == f"{ref} reference":
+                    continue
+                res.scores[(scene, label, ref)] = _score(colours, refs[ref], first)
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
 def _notes(res: PipelineResults) -> str:
     lines = [f"Scored frames {res.first}..{res.frames - 1} of {res.frames}; `x floor`: RMSE "
              f"with motion over the raw 1 spp input's; temporal: flicker against the "
@@ -798,3 +924,28 @@ def run_experiment(out, size, args) -> int:
 
 def _file_name(scene: str) -> str:
     return scene.replace(DIRECT_ONLY, "-direct-only")
+
+
+@register_experiment("taa", "is TAA's cost in the measured pipeline an artefact of the "
+                     "references? schied2017 with and without TAA (and the 1 spp input) "
+                     "against pixel-centre references and Mitsuba's box-filtered path "
+                     "integrator (--size, --spp, --frames); --scale paper: 1280x720, 12 "
+                     "frames, the last 3 referenced at 1024 spp", order=71)
+def run_taa(out, size, args) -> int:
+    """:func:`taa_check` on :data:`TAA_SCENES`; ``--scale paper``: :data:`PAPER_SIZE`,
+    :data:`PAPER_FRAMES`, :data:`PAPER_REF_FRAMES` and :data:`TAA_PAPER_SPP` where the
+    option was not given. The references are kept in ``OUT/references``. Writes taa.md /
+    taa.json."""
+    paper = experiment_scale(args) == "paper"
+    size = tuple(paper_value(args, "size", size, PAPER_SIZE))
+    spp = int(paper_value(args, "spp", args.spp, TAA_PAPER_SPP))
+    frames = int(paper_value(args, "frames", args.frames, PAPER_FRAMES))
+    ref_frames = PAPER_REF_FRAMES if paper else max(2, min(PAPER_REF_FRAMES, frames // 2))
+    res = taa_check(size=size, spp=spp, frames=frames, ref_frames=ref_frames,
+                    cluster=experiment_cluster(args), cache=out / "references",
+                    progress=lambda m: print(m, flush=True))
+    w, h = size
+    md = (f"## TAA against pixel-centre and box-filtered references ({w}x{h}, {frames} "
+          f"frames, the last {ref_frames} referenced at {spp} spp, {res.seconds:.0f} s)\n\n"
+          f"{res.markdown()}")
+    return finish_experiment(out, "taa", md, "taa.json", res.as_dict())

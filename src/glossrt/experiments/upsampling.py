@@ -25,6 +25,7 @@ from ..errors import GlossrtError
 from ..frame import RADIANCE
 from ..report.registry import (
     experiment_cluster,
+    experiment_scale,
     finish_experiment,
     paper_value,
     register_experiment,
@@ -155,12 +156,12 @@ class SpatioTemporalResults:
 
 
 def _sequence(scene: str, size, factor: int, frames: int, ref_frames, ref_spp: int,
-              cluster, say, cache=None) -> tuple[dict, list]:
+              cluster, say, cache=None) -> tuple[dict, list, object]:
     """The references' indirect light at ``ref_frames`` (rendered on ``cluster``, kept in
-    ``cache``: :func:`glossrt.render.blocks.references`) and the 1 spp sequence: each frame's
-    full-resolution G-buffer and its jittered 1/``factor`` resolution frame."""
+    ``cache``: :func:`glossrt.render.blocks.references`), each frame's full-resolution
+    G-buffer and the 1/``factor`` resolution renderer (:func:`_lows` makes its 1 spp
+    sequence)."""
     from .. import render, scenes
-    from ..denoise.upsampling import jitter_sequence
     from ..render import blocks
 
     w, h = size
@@ -170,15 +171,23 @@ def _sequence(scene: str, size, factor: int, frames: int, ref_frames, ref_spp: i
     refs = {f.index: _indirect(f) for f in blocks.references(
         full_r, blocks.reference_job(scene, size), ref_frames, ref_spp, cluster,
         desc=f"references {scene} {ref_spp} spp", cache=cache)}
-    seq = [(full_r.render(i), low_r.render(i, jitter=jitter_sequence(factor, i)))
-           for i in range(frames)]
-    return refs, seq
+    return refs, [full_r.render(i) for i in range(frames)], low_r
 
 
-def _upsample_sequence(seq: list, refs: dict, step) -> tuple[list[float], float]:
+def _lows(low_r, factor: int, frames: int, seed: int | None = None) -> list:
+    """The jittered 1 spp low-resolution sequence (``seed``: None for the renderer's own;
+    distinct seeds give independent noise)."""
+    from ..denoise.upsampling import jitter_sequence
+
+    return [low_r.render(i, jitter=jitter_sequence(factor, i), seed=seed)
+            for i in range(frames)]
+
+
+def _upsample_sequence(seq: list, refs: dict, step) -> tuple[list[float], float, dict]:
     """``step(full, low)`` on every frame of ``seq``: the MSE of the indirect light at the
-    referenced frames and the median ms per frame after the first."""
-    errs, times = [], []
+    referenced frames, the median ms per frame after the first, and the upsampled indirect
+    light at the referenced frames (frame -> (H, W, 3))."""
+    errs, times, outs = [], [], {}
     for i, (full, low) in enumerate(seq):
         t0 = time.perf_counter()
         img = step(full, low)
@@ -186,8 +195,9 @@ def _upsample_sequence(seq: list, refs: dict, step) -> tuple[list[float], float]
         dr.sync_thread()
         times.append(time.perf_counter() - t0)
         if i in refs:
-            errs.append(float(np.mean((np.array(img) - _rest(full) - refs[i]) ** 2)))
-    return errs, 1000 * float(np.median(times[1:] or times))
+            outs[i] = np.array(img) - _rest(full)
+            errs.append(float(np.mean((outs[i] - refs[i]) ** 2)))
+    return errs, 1000 * float(np.median(times[1:] or times)), outs
 
 
 def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames: int = 16,
@@ -202,7 +212,9 @@ def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames:
     from ..denoise.upsampling import SpatioTemporalUpsampler, upsample
 
     say = progress or (lambda _m: None)
-    refs, seq = _sequence(scene, size, factor, frames, ref_frames, ref_spp, cluster, say)
+    refs, fulls, low_r = _sequence(scene, size, factor, frames, ref_frames, ref_spp, cluster,
+                                   say)
+    seq = list(zip(fulls, _lows(low_r, factor, frames), strict=True))
     res = SpatioTemporalResults(size, factor, frames, ref_spp, list(ref_frames))
     for weight in ("normal", "lobe"):
         st = SpatioTemporalUpsampler(weight=weight)
@@ -210,7 +222,7 @@ def spatio_temporal(size: tuple[int, int] = (192, 144), factor: int = 2, frames:
             st.reset()
             step = st if mode == "spatio-temporal" else (
                 lambda full, low, weight=weight: upsample(full, low, weight=weight))
-            res.mse[(weight, mode)], res.ms[(weight, mode)] = _upsample_sequence(
+            res.mse[(weight, mode)], res.ms[(weight, mode)], _ = _upsample_sequence(
                 seq, refs, step)
     return res
 
@@ -238,18 +250,58 @@ FIG7_DIFFERENCES = (
 @dataclass
 class Fig7Results(SpatioTemporalResults):
     mip_level: int = 0
+    #: independent 1 spp sequences (seeds); ``mse`` is the mean over them
+    inputs: int = 1
+    #: inputs >= 2: (weight, mode) -> per referenced frame, the error split into bias^2 and
+    #: variance over the inputs (:class:`glossrt.experiments.lobes.ErrorSplit`)
+    split: dict = field(default_factory=dict)
 
     def markdown(self) -> str:
         w, h = self.size
-        return (f"{w}x{h}, 1/{self.factor} resolution 1 spp jittered indirect light, "
+        head = (f"{w}x{h}, 1/{self.factor} resolution 1 spp jittered indirect light, "
                 f"{self.frames} frames, references {self.ref_spp} spp, Toksvig mip level "
-                f"{self.mip_level}.\n\n" + super().markdown() + "\n\n" + FIG7_DIFFERENCES)
+                f"{self.mip_level}"
+                + (f", MSE the mean over {self.inputs} independent sequences (seeds "
+                   f"{FIG7_SEED0}-{FIG7_SEED0 + self.inputs - 1})" if self.inputs > 1 else "")
+                + ".\n\n")
+        return head + super().markdown() + self._split_markdown() + "\n\n" + FIG7_DIFFERENCES
+
+    def _split_markdown(self) -> str:
+        if not self.split:
+            return ""
+        cols = ["weights", "upsampling"]
+        for i in self.ref_frames:
+            cols += [f"frame {i}: bias^2", "variance"]
+        lines = ["", "", f"The same MSE split over the {self.inputs} sequences: variance = "
+                 "the unbiased variance over them per pixel, bias^2 = (their mean - "
+                 "reference)^2 - variance / K (it holds the reference's own noise).", "",
+                 "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        for (weight, mode), per_frame in self.split.items():
+            cells = [weight, mode]
+            for e in per_frame:
+                cells += [f"{e.bias2:.3g}", f"{e.variance:.3g}"]
+            lines.append("| " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict:
+        return {"size": list(self.size), "frames": self.frames, "ref_spp": self.ref_spp,
+                "ref_frames": list(self.ref_frames), "inputs": self.inputs,
+                "mse": {f"{w} / {m}": v for (w, m), v in self.mse.items()},
+                "ms": {f"{w} / {m}": v for (w, m), v in self.ms.items()},
+                "split": {f"{w} / {m}": [{"bias2": e.bias2, "variance": e.variance,
+                                          "per_input": e.per_input} for e in v]
+                          for (w, m), v in self.split.items()}}
+
+
+#: the first seed of fig. 7's independent sequences when there are several (one sequence:
+#: the renderer's own seed, as the quick run)
+FIG7_SEED0 = 1
 
 
 def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256,
          ref_frames: tuple[int, ...] | None = None, factor: int = 2,
          progress: Callable[[str], None] | None = None, cluster=None,
-         cache=None) -> Fig7Results:
+         cache=None, inputs: int = 1) -> Fig7Results:
     """Tokuyoshi 2015 fig. 7 analogue (sec. 5.3): spatio-temporal upsampling of 1 spp
     jittered 1/``factor`` resolution indirect light on the normal-mapped glossy scene with
     Toksvig-filtered roughness (:data:`FIG7_SCENE`, :data:`FIG7_DIFFERENCES`): spatial only,
@@ -257,9 +309,12 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
     weights; MSE of the indirect light against ``ref_spp`` references at ``ref_frames``
     (default: the middle and the last frame), rendered on ``cluster`` and kept in ``cache``
     (:func:`glossrt.render.blocks.references`; a built-in scene, so workers load it by
-    name)."""
+    name). ``inputs`` >= 2: that many independent 1 spp sequences (seeds
+    :data:`FIG7_SEED0` + k), the MSE their mean and split into bias^2 and variance
+    (:attr:`Fig7Results.split`); the times are the first sequence's."""
     from ..denoise.upsampling import SpatioTemporalUpsampler, upsample
     from ..scenes.library import NORMAL_MAPPED_TOKSVIG_LEVEL
+    from .lobes import BiasVariance
 
     w, h = size
     if frames < 1:
@@ -272,18 +327,35 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
         raise GlossrtError(f"fig7: reference frames {list(ref_frames)} outside 0..{frames - 1}")
     if ref_spp < 1:
         raise GlossrtError(f"fig7: ref_spp must be >= 1, got {ref_spp}")
+    if inputs < 1:
+        raise GlossrtError(f"fig7: inputs must be >= 1, got {inputs}")
     say = progress or (lambda _m: None)
-    refs, seq = _sequence(FIG7_SCENE, size, factor, frames, ref_frames, ref_spp, cluster,
-                          say, cache)
+    refs, fulls, low_r = _sequence(FIG7_SCENE, size, factor, frames, ref_frames, ref_spp,
+                                   cluster, say, cache)
     res = Fig7Results(size, factor, frames, ref_spp, list(ref_frames),
-                      mip_level=NORMAL_MAPPED_TOKSVIG_LEVEL)
-    for weight in ("normal", "lobe"):
-        for mode, history in FIG7_MODES:
-            step = ((lambda full, low, weight=weight: upsample(full, low, weight=weight))
-                    if history is None
-                    else SpatioTemporalUpsampler(weight=weight, history=history))
-            res.mse[(weight, mode)], res.ms[(weight, mode)] = _upsample_sequence(
-                seq, refs, step)
+                      mip_level=NORMAL_MAPPED_TOKSVIG_LEVEL, inputs=inputs)
+    seeds = [None] if inputs == 1 else [FIG7_SEED0 + k for k in range(inputs)]
+    acc: dict = {}
+    for k, seed in enumerate(seeds):
+        if inputs > 1:
+            say(f"independent sequence {k + 1} of {inputs} (seed {seed})")
+        seq = list(zip(fulls, _lows(low_r, factor, frames, seed), strict=True))
+        for weight in ("normal", "lobe"):
+            for mode, history in FIG7_MODES:
+                step = ((lambda full, low, weight=weight: upsample(full, low, weight=weight))
+                        if history is None
+                        else SpatioTemporalUpsampler(weight=weight, history=history))
+                errs, ms, outs = _upsample_sequence(seq, refs, step)
+                key = (weight, mode)
+                res.mse[key] = [a + e / inputs for a, e in
+                                zip(res.mse.get(key, [0.0] * len(errs)), errs, strict=True)]
+                res.ms.setdefault(key, ms)
+                if inputs > 1:
+                    bv = acc.setdefault(key, {i: BiasVariance(refs[i], {"image": None})
+                                              for i in ref_frames})
+                    for i in ref_frames:
+                        bv[i].add(outs[i])
+    res.split = {key: [bv[i].split("image") for i in ref_frames] for key, bv in acc.items()}
     return res
 
 
@@ -293,6 +365,9 @@ def fig7(size: tuple[int, int] = (160, 90), frames: int = 16, ref_spp: int = 256
 FIG7_PAPER_SIZE = (640, 360)
 FIG7_PAPER_FRAMES = 16
 FIG7_PAPER_REF_SPP = 4096
+#: independent 1 spp sequences at paper scale, for the bias / variance split (glossrt's
+#: choice; the paper shows one)
+FIG7_PAPER_INPUTS = 8
 
 
 @register_experiment("fig7", "Tokuyoshi 2015 fig. 7 analogue: spatio-temporal upsampling "
@@ -303,17 +378,17 @@ FIG7_PAPER_REF_SPP = 4096
 def run_fig7(out, size, args) -> int:
     """:func:`fig7` at ``size`` with ``--spp`` references and ``--frames`` frames; ``--scale
     paper``: :data:`FIG7_PAPER_SIZE`, :data:`FIG7_PAPER_FRAMES` and
-    :data:`FIG7_PAPER_REF_SPP` where the option was not given. Writes fig7.md / .json."""
+    :data:`FIG7_PAPER_REF_SPP` where the option was not given, and
+    :data:`FIG7_PAPER_INPUTS` independent sequences. Writes fig7.md / .json."""
     size = tuple(paper_value(args, "size", size, FIG7_PAPER_SIZE))
     frames = int(paper_value(args, "frames", args.frames, FIG7_PAPER_FRAMES))
     spp = int(paper_value(args, "spp", args.spp, FIG7_PAPER_REF_SPP))
+    inputs = FIG7_PAPER_INPUTS if experiment_scale(args) == "paper" else 1
     t0 = time.perf_counter()
     res = fig7(size=size, frames=frames, ref_spp=spp, cluster=experiment_cluster(args),
-               progress=lambda m: print(m, flush=True), cache=out / "references")
+               progress=lambda m: print(m, flush=True), cache=out / "references",
+               inputs=inputs)
     seconds = time.perf_counter() - t0
     md = (f"## Tokuyoshi 2015 fig. 7 analogue ({seconds:.0f} s)\n\n{res.markdown()}")
-    data = {"size": list(size), "frames": frames, "ref_spp": spp,
-            "ref_frames": list(res.ref_frames), "seconds": seconds,
-            "mse": {f"{w} / {m}": v for (w, m), v in res.mse.items()},
-            "ms": {f"{w} / {m}": v for (w, m), v in res.ms.items()}}
-    return finish_experiment(out, "fig7", md, "fig7.json", data)
+    return finish_experiment(out, "fig7", md, "fig7.json",
+                             {**res.as_dict(), "seconds": seconds})
