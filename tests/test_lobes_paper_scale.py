@@ -267,3 +267,18 @@ def test_paper_run_end_to_end(tmp_path, monkeypatch, capsys):
     assert le.claims(f4, f5, f6) == stored
     assert all(f"- {c}" in md for c in stored)
     assert f4.k == 3 and f4.size == (48, 36) and list(f6) == list(le.PAPER_INPUT_SPP)
+    # the references were kept: a rerun renders none and reaches the same claims
+    assert len(list((out / "references").glob("*.exr"))) == 2
+    from glossrt.render import Renderer
+
+    real = Renderer.render_reference
+
+    def no_reference(self, frame, spp, *a, **k):  # (the 4 spp inputs are render_reference's)
+        if spp == 16:
+            pytest.fail("reference rendered again")
+        return real(self, frame, spp, *a, **k)
+
+    monkeypatch.setattr(Renderer, "render_reference", no_reference)
+    assert cli.main(["experiment", "--which", "lobes", "--scale", "paper", "--out", str(out),
+                     "--size", "48x36", "--spp", "16"]) == 0
+    assert json.loads((out / "lobes-paper.json").read_text())["claims"] == stored

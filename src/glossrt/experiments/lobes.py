@@ -127,10 +127,11 @@ class Rendered:
     seconds: float
 
 
-def render_scene(scene: str, size: tuple[int, int], ref_spp: int, cluster=None) -> Rendered:
+def render_scene(scene: str, size: tuple[int, int], ref_spp: int, cluster=None,
+                 cache=None) -> Rendered:
     """Render ``scene``'s frame 0 at ``size``: the 1 spp frame and the reference of
     ``ref_spp`` samples, on ``cluster`` (:func:`glossrt.render.blocks.references`: None, in
-    this process)."""
+    this process), kept in the folder ``cache`` (None: not kept) and read back from it."""
     from .. import render, scenes
     from ..render import blocks
 
@@ -141,7 +142,7 @@ def render_scene(scene: str, size: tuple[int, int], ref_spp: int, cluster=None) 
     r = render.Renderer(setup)
     frame = r.render(0)
     ref = blocks.references(r, blocks.reference_job(scene, size), [0], int(ref_spp), cluster,
-                            desc=f"reference {scene} {ref_spp} spp")[0]
+                            desc=f"reference {scene} {ref_spp} spp", cache=cache)[0]
     return Rendered(scene, tuple(size), int(ref_spp), setup, r, frame, ref,
                     time.perf_counter() - t0)
 
@@ -938,7 +939,8 @@ def claims(f4: PaperStudy | None = None, f5: PaperStudy | None = None,
 
 def run_paper(out, size, args) -> int:
     """``glossrt experiment --which lobes --scale paper``: figs. 4-6 at :data:`PAPER_SIZE`
-    (or ``--size`` when given), references of ``--spp`` (default :data:`PAPER_REF_SPP`),
+    (or ``--size`` when given), references of ``--spp`` (default :data:`PAPER_REF_SPP`, kept
+    in ``OUT/references`` and read back by a rerun),
     inputs at :data:`PAPER_INPUT_SPP`, :data:`PAPER_K` inputs per noise level, fig. 6 over
     :data:`PAPER_FIG6_INPUTS` inputs per noise level. Writes ``lobes-paper.md`` / ``.json``
     and ``fig6-{spp}spp.png``."""
@@ -965,10 +967,12 @@ def run_paper(out, size, args) -> int:
 
     print("fig. 4 (roughness-map) ...", flush=True)
     b = bar("fig. 4 filters")
-    f4 = fig4_paper(size, spp, k=PAPER_K, progress=b, cluster=cluster)
+    cache = out / "references"  # (a rerun reads the references back)
+    checker = render_scene("roughness-map", size, spp, cluster, cache=cache)
+    f4 = fig4_paper(size, spp, k=PAPER_K, progress=b, rendered=checker)
     b.close()
     print("fig. 5 (glossy-spheres) ...", flush=True)
-    spheres = render_scene("glossy-spheres", size, spp, cluster)
+    spheres = render_scene("glossy-spheres", size, spp, cluster, cache=cache)
     b = bar("fig. 5 filters")
     f5 = fig5_paper(size, spp, k=PAPER_K, progress=b, rendered=spheres)
     b.close()
@@ -987,7 +991,7 @@ def run_paper(out, size, args) -> int:
               f"{r.markdown()}" for s, r in f6.items()]
     parts.append("## Which claims hold\n\n" + "\n".join(f"- {c}" for c in claims(f4, f5, f6)))
     wall = time.perf_counter() - t0
-    parts.append(f"Wall time {wall:.0f} s (reference renders {f4.seconds['render']:.0f} + "
+    parts.append(f"Wall time {wall:.0f} s (reference renders {checker.seconds:.0f} + "
                  f"{spheres.seconds:.0f} s).")
     data = paper_json(f4, f5, f6, size=list(size), ref_spp=spp, k=PAPER_K, wall_s=wall)
     return finish_experiment(out, "lobes-paper", "\n\n".join(parts),
