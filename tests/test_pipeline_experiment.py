@@ -337,6 +337,8 @@ def test_taa_check_scores_both_references(tmp_path, monkeypatch):
         b = res.scores[(scene, f"{box} reference", centre)]
         assert a["rmse"] == pytest.approx(b["rmse"], rel=1e-6) and a["rmse"] > 0
         assert (scene, f"{centre} reference", centre) not in res.scores
+        assert list(res.images[scene]) == [ep.FLOOR, *ep.TAA_RUNS, f"{centre} reference",
+                                           f"{box} reference"]
         stem = f"mitsuba-path-{ep._file_name(scene)}-48x27-64spp-"
         assert sorted(p.name for p in tmp_path.glob(stem + "*.exr")) == [
             stem + "0002.exr", stem + "0003.exr"]
@@ -387,3 +389,14 @@ def test_taa_experiment_command(tmp_path, monkeypatch):
     ep.run_taa(tmp_path, (32, 18), quick)
     assert (seen["size"], seen["spp"], seen["frames"], seen["ref_frames"]) == (
         (32, 18), 4, 6, 3)
+
+
+def test_taa_montage(tmp_path):
+    """The taa run's picture: every pipeline and both references of a scene's last frame,
+    and each one's distance to the box-filtered reference."""
+    rng = np.random.default_rng(2)
+    res = ep.TaaResults((20, 12), 4, 4, 2)
+    labels = [ep.FLOOR, *ep.TAA_RUNS, *(f"{r} reference" for r in ep.TAA_REFERENCES)]
+    res.images["glossy-cornell"] = {k: rng.uniform(0, 1, (12, 20, 3)) for k in labels}
+    path = res.montage(tmp_path / "taa.png", "glossy-cornell")
+    assert path.stat().st_size > 10_000

@@ -417,7 +417,25 @@ class TaaResults:
     #: (scene, label, reference) -> RMSE / SSIM / FLIP / temporal; label includes the 1 spp
     #: input (:data:`FLOOR`) and the other reference (``"other reference"``)
     scores: dict[tuple[str, str, str], dict] = field(default_factory=dict)
+    #: scene -> label -> the last frame (colour; both references included)
+    images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     seconds: float = 0.0
+
+    def montage(self, path: str | Path, scene: str) -> Path:
+        """One scene's last frame: every pipeline and both references, and under each its
+        distance to the box-filtered reference ``|x - box|``."""
+        from ..report.figures import Panel, montage
+        from ..report.page import tonemap
+
+        imgs = self.images[scene]
+        ref = imgs[f"{TAA_REFERENCES[1]} reference"]
+        scale = max(float(np.percentile(np.abs(ref), 99.5)), 1e-6)
+        grid: list[list[Panel | None]] = [
+            [Panel(tonemap(v), k, fontsize=7) for k, v in imgs.items()],
+            [Panel(np.abs(v - ref).mean(axis=-1), f"|{k} - box|", "magma", 0, 0.25 * scale,
+                   fontsize=6) for k, v in imgs.items()]]
+        h, w = ref.shape[:2]
+        return montage(path, grid, (2.6 * len(imgs), 2 * 2.6 * h / w + 0.5), dpi=100)
 
     def markdown(self) -> str:
         cols = ["scene", "pipeline"] + [f"{m} ({r})" for m in ("RMSE", "SSIM", "temporal")
@@ -507,6 +525,7 @@ def taa_check(size=(96, 72), spp: int = 256, frames: int = 6, ref_frames: int = 
             runs[label] = seq["colours"]
         for ref in TAA_REFERENCES:  # each reference against the other
             runs[f"{ref} reference"] = refs[ref]
+        res.images[scene] = {label: colours[-1] for label, colours in runs.items()}
         for label, colours in runs.items():
             for ref in TAA_REFERENCES:
                 if label == f"{ref} reference":
@@ -944,8 +963,11 @@ def run_taa(out, size, args) -> int:
     res = taa_check(size=size, spp=spp, frames=frames, ref_frames=ref_frames,
                     cluster=experiment_cluster(args), cache=out / "references",
                     progress=lambda m: print(m, flush=True))
+    for scene in res.images:
+        res.montage(out / f"taa_{_file_name(scene)}.png", scene)
     w, h = size
     md = (f"## TAA against pixel-centre and box-filtered references ({w}x{h}, {frames} "
           f"frames, the last {ref_frames} referenced at {spp} spp, {res.seconds:.0f} s)\n\n"
           f"{res.markdown()}")
-    return finish_experiment(out, "taa", md, "taa.json", res.as_dict())
+    shown = next(iter(res.images), TAA_SCENES[0])
+    return finish_experiment(out, "taa", md, f"taa_{_file_name(shown)}.png", res.as_dict())
