@@ -2,8 +2,10 @@
 
 import mitsuba as mi
 import numpy as np
+import pytest
 
 from glossrt.denoise import taa
+from glossrt.errors import GlossrtError
 
 
 def _t(a):
@@ -121,3 +123,63 @@ def test_mesh_ids_must_come_in_pairs():
     img, ids, motion = _moving_square(0)
     with pytest.raises(GlossrtError, match="both"):
         taa(_t(img), _t(img), _t(motion), mesh_id=_t(ids))
+
+
+def _radical_inverse_digits(k: int, base: int) -> float:
+    """Independent of glossrt's loop: k's digits in ``base`` as a string, mirrored after the
+    radix point."""
+    digits = np.base_repr(k, base)[::-1]
+    return sum(int(d, base) * base ** -(i + 1) for i, d in enumerate(digits))
+
+
+def test_taa_jitter_is_halton_2_3():
+    """Karis 2014's jitter: points 1..8 of the Halton (2, 3) sequence, centred on the pixel
+    and cycled; one point per 1/8 column and per 1/9 row band (stratified), never the
+    pixel centre itself."""
+    from glossrt.denoise import taa_jitter
+    from glossrt.denoise.svgf import TAA_JITTER_COUNT
+
+    assert TAA_JITTER_COUNT == 8
+    pts = [taa_jitter(i) for i in range(8)]
+    for i, (x, y) in enumerate(pts):
+        assert x == pytest.approx(_radical_inverse_digits(i + 1, 2) - 0.5, abs=1e-15)
+        assert y == pytest.approx(_radical_inverse_digits(i + 1, 3) - 0.5, abs=1e-15)
+        assert -0.5 <= x < 0.5 and -0.5 <= y < 0.5 and (x, y) != (0.0, 0.0)
+    assert sorted(int((x + 0.5) * 8) for x, _ in pts) == list(range(8))
+    assert len({int((y + 0.5) * 9 + 1e-9) for _, y in pts}) == 8  # (thirds: not exact)
+    assert [taa_jitter(i + 8) for i in range(8)] == pts
+    with pytest.raises(GlossrtError, match="count"):
+        taa_jitter(0, count=0)
+
+
+def test_jittered_taa_resolves_edges_towards_the_box_filtered_image():
+    """The pipeline's TAA with its sub-pixel jitter converges, on geometric edges, towards
+    the pixel-area (box-filtered) image, which Mitsuba's own ``direct`` integrator renders
+    through the scene's box pixel filter: polygon-light's visible light against the black
+    sky, noise-free shading (LTC, no indirect light), 16 frames (two jitter cycles).
+    Measured at 48x27 on the light's edge pixels away from the image border: RMSE 1.33
+    with jitter, 4.53 without TAA, the same without jitter (TAA without jitter sees one
+    point per pixel: nothing to resolve). With a consistency test on the pixel's own
+    surface only, jittered TAA dropped its history there: 5.97."""
+    from glossrt import scenes as scn
+    from glossrt.pipeline import Pipeline
+    from glossrt.render import Renderer
+
+    setup = scn.load_static("polygon-light", size=(48, 27))
+    r = Renderer(setup, max_depth=2)
+    box = np.array(r.render_mitsuba(0, 256, integrator="direct"))[..., :3]
+    centre = r.render_reference(0, 16).numpy("color")
+    edge = np.abs(box - centre).max(-1) > 1.0  # where the pixel filter matters: the edge
+    edge[[0, -1], :] = False
+    edge[:, [0, -1]] = False  # (at the border the 3x3 clamp is one-sided)
+    assert edge.sum() >= 10
+    err = {}
+    for name, opts in (("off", {"taa": False}), ("no jitter", {"taa": True, "taa_jitter": False}),
+                       ("jitter", {"taa": True})):
+        p = Pipeline(setup, direct="ltc", indirect="none", max_depth=2, progress=False, **opts)
+        for i in range(16):
+            f = p.render(i)
+        err[name] = float(np.sqrt(np.mean((f.numpy("color") - box)[edge] ** 2)))
+        assert (f.meta.get("jitter") is not None) == (name == "jitter")
+    assert err["jitter"] < 0.5 * err["off"], err
+    assert err["no jitter"] == pytest.approx(err["off"], rel=0.01), err

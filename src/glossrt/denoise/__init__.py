@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from ..errors import GlossrtError
 from .bilateral import bilateral  # the function; the module stays importable
-from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa
+from .svgf import SVGF, ATrousTemporal, SVGFParams, atrous_filter, taa, taa_jitter
 from .upsampling import (  # module glossrt.denoise.upsampling
     SpatioTemporalUpsampler,
     adaptive_resample,
@@ -59,4 +59,4 @@ def make(method: str, **params):
 
 __all__ = ["METHODS", "SVGF", "ATrousTemporal", "SVGFParams", "SpatioTemporalUpsampler",
            "adaptive_resample", "atrous_filter", "bilateral", "jitter_sequence", "make", "taa",
-           "upsample"]
+           "taa_jitter", "upsample"]

@@ -325,6 +325,9 @@ class Pipeline:
             self._gbuffer.renderer.primary_exclude = exclude
             self._gbuffer.exclude = exclude
             self._gbuffer.reset()
+        # TAA's sub-pixel jitter: an opaque input of the frozen trace (turning it on or off
+        # records the trace once more, a new cycle point does not)
+        self._gbuffer.jitter = bool(opts["taa"] and opts["taa_jitter"])
         stages: dict[str, Stage] = {"gbuffer": self._gbuffer}
         prev = self.stages
         stages["specaa"] = (prev["specaa"] if same("specaa") and "specaa" in prev

@@ -52,6 +52,7 @@ OPTIONS: dict[str, Any] = {
     "resample_spp": int,
     "taa": bool,
     "taa_alpha": float,
+    "taa_jitter": bool,
     "exposure": float,
     "tonemap": TONEMAPS,
     "bspvt_mode": BSPVT_MODES,
@@ -85,6 +86,10 @@ DEFAULTS: dict[str, Any] = {
     "resample_spp": 4,
     "taa": False,
     "taa_alpha": 0.1,
+    # with taa: the full-resolution primary rays jittered over the pixel (Halton (2, 3), 8
+    # frames; glossrt.denoise.taa_jitter), so that TAA resolves geometric edges (Schied 2017,
+    # sec. 3: TAA "filters aliasing along the geometric edges" the reconstruction keeps)
+    "taa_jitter": True,
     "exposure": 0.0,
     "tonemap": "filmic",
     "bspvt_mode": "vertex",

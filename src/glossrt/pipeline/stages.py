@@ -199,6 +199,10 @@ class GBufferStage(Stage):
         self.spp = int(opts["spp"])
         self.seed = int(opts["seed"])
         self.specaa: SpecAAStage | None = None
+        #: TAA's sub-pixel jitter of the full-resolution primary rays (set by the pipeline:
+        #: ``taa`` and ``taa_jitter``; :func:`glossrt.denoise.taa_jitter`); not while
+        #: accumulating the converged reference, which traces pixel centres
+        self.jitter = False
         #: what the frames leave out: :data:`OMIT`, and on isotropic scenes the anisotropy
         #: channels (``tangent``, ``roughness_uv``: no stage reads them there; 48 MiB at
         #: 1920x1080)
@@ -217,23 +221,31 @@ class GBufferStage(Stage):
         low = self.low.frozen_functions() if self.low is not None else []
         return self.renderer.frozen_functions() + low
 
-    def _filtered_roughness(self, index: int):
+    def _filtered_roughness(self, index: int, jitter):
         """The specaa stage's filtered roughness of frame ``index`` from a G-buffer pass
-        (None when no specaa stage filters)."""
+        through the same rays as the light pass (None when no specaa stage filters)."""
         spec = self.specaa
         if spec is None or not spec.filters:
             return None
         return spec.filter(self.renderer.render_gbuffer(
-            index, omit=GBUFFER_PASS_OMIT + self._aniso_omit))
+            index, omit=GBUFFER_PASS_OMIT + self._aniso_omit, jitter=jitter))
+
+    def _jitter(self, index: int) -> tuple[float, float]:
+        if not self.jitter or self.accumulate:
+            return (0.0, 0.0)
+        from ..denoise import taa_jitter
+
+        return taa_jitter(index)
 
     def run(self, index: int, ctx: dict) -> dict:
-        alpha = self._filtered_roughness(index)
+        jitter = self._jitter(index)
+        alpha = self._filtered_roughness(index, jitter)
         if self.low is not None:
             from ..denoise.upsampling import jitter_sequence
 
             # the motion vectors' previous pose, when the pipeline sets one (explicit posing)
             self.low.previous_pose = getattr(self.renderer, "previous_pose", None)
-            f = self.renderer.render(index, roughness=alpha, omit=self.omit)
+            f = self.renderer.render(index, jitter=jitter, roughness=alpha, omit=self.omit)
             jit = jitter_sequence(self.scale, index)
             low_alpha = None
             if alpha is not None:  # the full-resolution pixel each low sample lands on
@@ -248,7 +260,8 @@ class GBufferStage(Stage):
             f.meta["indirect_scale"] = self.scale
             return {"frame": f, "frame_low": low}
         if not self.accumulate:
-            return {"frame": self.renderer.render(index, roughness=alpha, omit=self.omit)}
+            return {"frame": self.renderer.render(index, jitter=jitter, roughness=alpha,
+                                                  omit=self.omit)}
         pose = index if self.setup.animated else 0
         if pose != self._pose:
             self.reset()

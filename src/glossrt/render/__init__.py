@@ -457,16 +457,18 @@ class Renderer:
             f.meta["primary_roughness"] = "override"
         return f
 
-    def render_gbuffer(self, frame: int, omit: Collection[str] = ()) -> Frame:
+    def render_gbuffer(self, frame: int, omit: Collection[str] = (),
+                       jitter: tuple[float, float] = (0.0, 0.0)) -> Frame:
         """The G-buffer of frame ``frame`` alone (path depth 1: every G-buffer channel and
         the motion vectors exactly as :meth:`render` gives them, the emission seen by the
         camera, no other light): a cheap first pass whose G-buffer a per-pixel roughness
         (specular antialiasing) is computed from before :meth:`render` traces the light
         with it. Frozen like :meth:`render` (its own recording). Its ``direct_*`` and
         ``indirect_*`` are zero constants (:meth:`zero_channels`); ``omit`` as
-        :meth:`render`'s."""
+        :meth:`render`'s; ``jitter`` as :meth:`render`'s (the same rays as a jittered light
+        pass)."""
         t0 = time.perf_counter()
-        channels, bad = self._trace_frame(frame, self.seed, (0.0, 0.0), 0.5, None, 1, omit)
+        channels, bad = self._trace_frame(frame, self.seed, jitter, 0.5, None, 1, omit)
         f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
         f.meta["max_depth"] = 1
         if omit:
