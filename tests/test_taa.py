@@ -153,10 +153,11 @@ def test_taa_jitter_is_halton_2_3():
 
 
 def test_jittered_taa_resolves_edges_towards_the_box_filtered_image():
-    """The pipeline's TAA with its sub-pixel jitter converges, on geometric edges, towards
-    the pixel-area (box-filtered) image, which Mitsuba's own ``direct`` integrator renders
-    through the scene's box pixel filter: polygon-light's visible light against the black
-    sky, noise-free shading (LTC, no indirect light), 16 frames (two jitter cycles).
+    """The pipeline's TAA with its sub-pixel jitter (``taa_jitter``) converges, on geometric
+    edges, towards the pixel-area (box-filtered) image, which Mitsuba's own ``direct``
+    integrator renders through the scene's box pixel filter: polygon-light's visible light
+    against the black sky, noise-free shading (LTC, no indirect light), 16 frames (two
+    jitter cycles).
     Measured at 48x27 on the light's edge pixels away from the image border: RMSE 1.33
     with jitter, 4.53 without TAA, the same without jitter (TAA without jitter sees one
     point per pixel: nothing to resolve). With a consistency test on the pixel's own
@@ -175,7 +176,7 @@ def test_jittered_taa_resolves_edges_towards_the_box_filtered_image():
     assert edge.sum() >= 10
     err = {}
     for name, opts in (("off", {"taa": False}), ("no jitter", {"taa": True, "taa_jitter": False}),
-                       ("jitter", {"taa": True})):
+                       ("jitter", {"taa": True, "taa_jitter": True})):
         p = Pipeline(setup, direct="ltc", indirect="none", max_depth=2, progress=False, **opts)
         for i in range(16):
             f = p.render(i)

@@ -397,6 +397,7 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
 TAA_SCENES = ("glossy-cornell", "polygon-light" + DIRECT_ONLY)
 TAA_RUNS: dict[str, tuple[str, dict]] = {
     "schied2017 (SVGF + TAA)": ("schied2017", {}),
+    "schied2017, TAA with jitter": ("schied2017", {"taa_jitter": True}),
     "schied2017, taa off": ("schied2017", {"taa": False}),
 }
 #: the two references: glossrt's (every sample through the pixel centre) and Mitsuba's own

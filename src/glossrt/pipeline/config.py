@@ -88,8 +88,12 @@ DEFAULTS: dict[str, Any] = {
     "taa_alpha": 0.1,
     # with taa: the full-resolution primary rays jittered over the pixel (Halton (2, 3), 8
     # frames; glossrt.denoise.taa_jitter), so that TAA resolves geometric edges (Schied 2017,
-    # sec. 3: TAA "filters aliasing along the geometric edges" the reconstruction keeps)
-    "taa_jitter": True,
+    # sec. 3: TAA "filters aliasing along the geometric edges" the reconstruction keeps).
+    # Off by default: it resolves still edges (docs/RESULTS.md: edge RMSE against the
+    # box-filtered image 1.33 against 4.53), but on the animated 1280x720 sequences it did
+    # not help (glossy-cornell) or made the frames worse (polygon-light@direct, whose light
+    # moves about 20 pixels a frame: RMSE 0.159 against 0.102); the cause is open
+    "taa_jitter": False,
     "exposure": 0.0,
     "tonemap": "filmic",
     "bspvt_mode": "vertex",
