@@ -147,10 +147,11 @@ def render_scene(scene: str, size: tuple[int, int], ref_spp: int, cluster=None,
                     time.perf_counter() - t0)
 
 
-def _reuse(rendered: Rendered | None, scene: str, size, ref_spp: int, cluster) -> Rendered:
+def _reuse(rendered: Rendered | None, scene: str, size, ref_spp: int, cluster,
+           cache=None) -> Rendered:
     """``rendered`` when it is ``scene`` at ``size`` and ``ref_spp``, else a new render."""
     if rendered is None:
-        return render_scene(scene, size, ref_spp, cluster)
+        return render_scene(scene, size, ref_spp, cluster, cache=cache)
     want = (scene, tuple(size), int(ref_spp))
     if (rendered.scene, tuple(rendered.size), rendered.ref_spp) != want:
         raise GlossrtError(f"rendered is {rendered.scene} {rendered.size} {rendered.ref_spp} "
@@ -771,7 +772,7 @@ class PaperStudy:
 def _study(scene: str, size, ref_spp: int, input_spp: Sequence[int], k: int,
            regions: Callable[[Rendered], dict[str, np.ndarray | None]], methods: Sequence[str],
            kw: dict, progress: Progress | None, cluster, seeds, keep_samples: bool,
-           rendered: Rendered | None) -> PaperStudy:
+           rendered: Rendered | None, cache=None) -> PaperStudy:
     input_spp = tuple(int(s) for s in input_spp)
     _check_counts(k=k, **{f"input_spp[{i}]": s for i, s in enumerate(input_spp)})
     seeds = tuple(range(INPUT_SEED0, INPUT_SEED0 + int(k))) if seeds is None else \
@@ -779,7 +780,7 @@ def _study(scene: str, size, ref_spp: int, input_spp: Sequence[int], k: int,
     if len(seeds) < 2 or not input_spp:
         raise GlossrtError(f"need >= 2 inputs per noise level and >= 1 noise level, got "
                            f"{len(seeds)} seeds and input_spp {input_spp}")
-    rd = _reuse(rendered, scene, size, ref_spp, cluster)
+    rd = _reuse(rendered, scene, size, ref_spp, cluster, cache)
     target = rd.reference.numpy(CHANNEL)
     # a region without pixels (no interior at a tiny size and a wide window) is left out
     masks = {k_: m for k_, m in regions(rd).items() if m is None or m.any()}
@@ -828,9 +829,11 @@ def fig4_paper(size: tuple[int, int] = PAPER_SIZE, ref_spp: int = PAPER_REF_SPP,
                input_spp: Sequence[int] = PAPER_INPUT_SPP, k: int = PAPER_K,
                filter_kwargs: Mapping[str, Any] | None = None,
                progress: Progress | None = None, cluster=None, seeds=None,
-               keep_samples: bool = False, rendered: Rendered | None = None) -> PaperStudy:
+               keep_samples: bool = False, rendered: Rendered | None = None,
+               cache=None) -> PaperStudy:
     """Tokuyoshi 2015, fig. 4 at paper scale (issue 28): ``roughness-map`` frame 0 at
-    ``size``, the reference of ``ref_spp`` samples rendered once (on ``cluster``), ``k``
+    ``size``, the reference of ``ref_spp`` samples rendered once (on ``cluster``; kept in the
+    folder ``cache`` and read back from it), ``k``
     independent inputs (seeds ``INPUT_SEED0``.., or ``seeds``) per noise level in
     ``input_spp``, each filtered by every method of :data:`FIG4_METHODS`; the error of
     each split into bias^2 and variance (:class:`ErrorSplit`) over the image, the band around
@@ -845,7 +848,7 @@ def fig4_paper(size: tuple[int, int] = PAPER_SIZE, ref_spp: int = PAPER_REF_SPP,
         return {"image": None, "band": band, "interior": hit & ~band}
 
     return _study("roughness-map", size, ref_spp, input_spp, k, regions, FIG4_METHODS, kw,
-                  progress, cluster, seeds, keep_samples, rendered)
+                  progress, cluster, seeds, keep_samples, rendered, cache)
 
 
 def fig5_paper(size: tuple[int, int] = PAPER_SIZE, ref_spp: int = PAPER_REF_SPP,
@@ -968,8 +971,7 @@ def run_paper(out, size, args) -> int:
     print("fig. 4 (roughness-map) ...", flush=True)
     b = bar("fig. 4 filters")
     cache = out / "references"  # (a rerun reads the references back)
-    checker = render_scene("roughness-map", size, spp, cluster, cache=cache)
-    f4 = fig4_paper(size, spp, k=PAPER_K, progress=b, rendered=checker)
+    f4 = fig4_paper(size, spp, k=PAPER_K, progress=b, cluster=cluster, cache=cache)
     b.close()
     print("fig. 5 (glossy-spheres) ...", flush=True)
     spheres = render_scene("glossy-spheres", size, spp, cluster, cache=cache)
@@ -991,7 +993,7 @@ def run_paper(out, size, args) -> int:
               f"{r.markdown()}" for s, r in f6.items()]
     parts.append("## Which claims hold\n\n" + "\n".join(f"- {c}" for c in claims(f4, f5, f6)))
     wall = time.perf_counter() - t0
-    parts.append(f"Wall time {wall:.0f} s (reference renders {checker.seconds:.0f} + "
+    parts.append(f"Wall time {wall:.0f} s (reference renders {f4.seconds['render']:.0f} + "
                  f"{spheres.seconds:.0f} s).")
     data = paper_json(f4, f5, f6, size=list(size), ref_spp=spp, k=PAPER_K, wall_s=wall)
     return finish_experiment(out, "lobes-paper", "\n\n".join(parts),
