@@ -947,8 +947,9 @@ def _file_name(scene: str) -> str:
 
 
 @register_experiment("taa", "is TAA's cost in the measured pipeline an artefact of the "
-                     "references? schied2017 with and without TAA (and the 1 spp input) "
-                     "against pixel-centre references and Mitsuba's box-filtered path "
+                     "references? schied2017 with TAA, with TAA and its jitter, without "
+                     "TAA (and the 1 spp input) against pixel-centre references and "
+                     "Mitsuba's box-filtered path "
                      "integrator (--size, --spp, --frames); --scale paper: 1280x720, 12 "
                      "frames, the last 3 referenced at 1024 spp", order=71)
 def run_taa(out, size, args) -> int:
