@@ -641,7 +641,8 @@ def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
             n = fetch(cur, grid.index(grid.x + dx, grid.y + dy))
             lo = [dr.minimum(a, b) for a, b in zip(lo, n, strict=True)]
             hi = [dr.maximum(a, b) for a, b in zip(hi, n, strict=True)]
-    px, py = previous_position(grid, split(motion))
+    mv = split(motion)
+    px, py = previous_position(grid, mv)
     x0, y0 = mi.Int32(dr.floor(px)), mi.Int32(dr.floor(py))
     fx, fy = px - mi.Float(x0), py - mi.Float(y0)
     prev = finite(split(history))[0]
@@ -651,7 +652,7 @@ def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
     was_ids = split(prev_mesh_id)[0] if mesh_id is not None else None
     if mesh_id is not None:
         cur_id = split(mesh_id)[0]
-        mx, my = split(motion)[:2]
+        mx, my = mv[0], mv[1]
         near_ids = [cur_id]  # the pixel's own surface, and each neighbour's that moves with it
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):

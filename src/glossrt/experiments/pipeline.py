@@ -331,9 +331,6 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
     last ``ref_frames`` frames of each motion sequence (None: every frame referenced, the
     second half scored). ``cluster``, ``cache``: where the references are rendered and kept
     (:func:`glossrt.render.blocks.references`; None: in this process, not kept)."""
-    from .. import render
-    from .. import scenes as scn
-    from ..render import blocks
 
     scenes, presets = tuple(scenes), tuple(presets)
     check_args(size, spp, frames, scenes, presets, ref_frames)
@@ -344,21 +341,16 @@ def evaluate(size=(96, 72), spp: int = 256, frames: int = 6, scenes=SCENES, pres
     res = PipelineResults(tuple(size), spp, frames, scenes, presets, ref_frames=ref_frames,
                           variants=dict(table) if variants else {})
     for scene in scenes:
-        name, depth = scene_case(scene)
+        depth = scene_case(scene)[1]
         depth_choice = {} if depth is None else {"max_depth": depth}
         runs = [(p, p, {}) for p in presets]
         if variants and (isinstance(variants, dict) or scene == INTERACTION_SCENE):
             runs += [(label, p, c) for label, (p, c) in table.items()]
         for motion in ((True, False) if static else (True,)):
-            setup = (scn.load(name, size=size, frames=frames) if motion
-                     else scn.load_static(name, size=size))
-            rend = render.Renderer(setup, max_depth=depth)
             say(f"{scene} ({'with' if motion else 'without'} motion): references, {spp} spp")
-            job = (blocks.reference_job(name, size, frames=frames, max_depth=depth) if motion
-                   else blocks.reference_job(name, size, static=True, max_depth=depth))
             wanted = res.referenced() if motion else [0]
-            got = blocks.references(rend, job, wanted, spp, cluster, cache=cache,
-                                    desc=f"references {scene} {spp} spp")
+            setup, rend, got = _references(scene, size, frames, wanted, spp, cluster, cache,
+                                           static=not motion)
             if motion:
                 refs = [None] * frames
                 for i, f in zip(wanted, got, strict=True):
@@ -415,8 +407,9 @@ class TaaResults:
     spp: int
     frames: int
     ref_frames: int
-    #: (scene, label, reference) -> RMSE / SSIM / FLIP / temporal; label includes the 1 spp
-    #: input (:data:`FLOOR`) and the other reference (``"other reference"``)
+    #: (scene, label, reference) -> RMSE / SSIM / FLIP / temporal; the labels include the 1
+    #: spp input (:data:`FLOOR`) and each reference (``"pixel centre reference"``, scored
+    #: against the box filter, and the other way round)
     scores: dict[tuple[str, str, str], dict] = field(default_factory=dict)
     #: scene -> label -> the last frame (colour; both references included)
     images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
@@ -465,22 +458,18 @@ def box_references(renderer, scene: str, frames, spp: int, cache=None) -> list[n
     (H, W, 3); with ``cache``, each frame is kept there as an EXR and read back by a later
     call for the same scene, size, sample count and frame."""
     from ..frame import Frame
+    from ..render.blocks import cached_frames
 
-    out = []
-    for i in frames:
-        path = (None if cache is None else Path(cache) /
-                f"mitsuba-path-{_file_name(scene)}-{renderer.width}x{renderer.height}-"
-                f"{spp}spp-{int(i):04d}.exr")
-        if path is not None and path.is_file():
-            out.append(Frame.load(path).numpy("color"))
-            continue
-        img = np.array(renderer.render_mitsuba(int(i), spp))
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            Frame(channels={"color": img}, index=int(i),
-                  meta={"scene": scene, "spp": spp, "reference": "mitsuba-path"}).save(path)
-        out.append(img)
-    return out
+    paths = None if cache is None else {
+        int(i): Path(cache) / (f"mitsuba-path-{_file_name(scene)}-{renderer.width}x"
+                               f"{renderer.height}-{spp}spp-{int(i):04d}.exr") for i in frames}
+
+    def make(todo):
+        for i in todo:
+            yield Frame(channels={"color": np.array(renderer.render_mitsuba(i, spp))}, index=i,
+                        meta={"scene": scene, "spp": spp, "reference": "mitsuba-path"})
+
+    return [f.numpy("color") for f in cached_frames(frames, paths, make)]
 
 
 def taa_check(size=(96, 72), spp: int = 256, frames: int = 6, ref_frames: int = 3,
@@ -493,25 +482,18 @@ def taa_check(size=(96, 72), spp: int = 256, frames: int = 6, ref_frames: int = 
     (:func:`glossrt.render.blocks.references`, on ``cluster``) and Mitsuba's box-filtered
     (:func:`box_references`), both kept in ``cache``. Each reference is also scored
     against the other (how much of the image the pixel filter changes)."""
-    from .. import render
-    from .. import scenes as scn
-    from ..render import blocks
-
     scenes = tuple(scenes)
     check_args(size, spp, frames, scenes, ("schied2017",), ref_frames)
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     res = TaaResults(tuple(size), spp, frames, ref_frames)
-    wanted = list(range(frames - ref_frames, frames))
     first = frames - ref_frames
+    wanted = list(range(first, frames))
     for scene in scenes:
-        name, depth = scene_case(scene)
-        setup = scn.load(name, size=size, frames=frames)
-        rend = render.Renderer(setup, max_depth=depth)
+        depth = scene_case(scene)[1]
+        choices = {} if depth is None else {"max_depth": depth}
         say(f"{scene}: pixel-centre references, {spp} spp")
-        job = blocks.reference_job(name, size, frames=frames, max_depth=depth)
-        got = blocks.references(rend, job, wanted, spp, cluster, cache=cache,
-                                desc=f"references {scene} {spp} spp")
+        setup, rend, got = _references(scene, size, frames, wanted, spp, cluster, cache)
         say(f"{scene}: box-filtered references (Mitsuba path), {spp} spp")
         refs = {TAA_REFERENCES[0]: [f.numpy("color") for f in got],
                 TAA_REFERENCES[1]: box_references(rend, scene, wanted, spp, cache)}
@@ -519,7 +501,6 @@ def taa_check(size=(96, 72), spp: int = 256, frames: int = 6, ref_frames: int = 
         runs = {FLOOR: [rend.render(i).numpy("color") for i in range(frames)]}
         for label, (preset, extra) in TAA_RUNS.items():
             say(f"{scene}: {label}")
-            choices = {} if depth is None else {"max_depth": depth}
             seq = _sequence(setup, preset, {**choices, **extra}, frames)
             if "skipped" in seq:
                 raise GlossrtError(f"taa check: {label} refused on {scene}: {seq['skipped']}")
@@ -534,6 +515,27 @@ def taa_check(size=(96, 72), spp: int = 256, frames: int = 6, ref_frames: int = 
                 res.scores[(scene, label, ref)] = _score(colours, refs[ref], first)
     res.seconds = time.perf_counter() - t0
     return res
+
+
+def _references(scene: str, size, frames: int, wanted, spp: int, cluster, cache,
+                static: bool = False):
+    """``(setup, renderer, reference frames)`` of an experiment scene (:func:`scene_case`):
+    its animation of ``frames`` frames (``static``: the still copy), the references of
+    ``wanted`` at ``spp`` samples (:func:`glossrt.render.blocks.references`, on ``cluster``,
+    kept in ``cache``)."""
+    from .. import render
+    from .. import scenes as scn
+    from ..render import blocks
+
+    name, depth = scene_case(scene)
+    setup = (scn.load_static(name, size=size) if static
+             else scn.load(name, size=size, frames=frames))
+    rend = render.Renderer(setup, max_depth=depth)
+    job = (blocks.reference_job(name, size, static=True, max_depth=depth) if static
+           else blocks.reference_job(name, size, frames=frames, max_depth=depth))
+    got = blocks.references(rend, job, wanted, spp, cluster, cache=cache,
+                            desc=f"references {scene} {spp} spp")
+    return setup, rend, got
 
 
 def _notes(res: PipelineResults) -> str:

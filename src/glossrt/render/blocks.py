@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -265,23 +265,33 @@ def references(renderer: Renderer, job: dict, frames: Sequence[int], spp: int,
     experiment keeps the references it had finished."""
     frames = [int(i) for i in frames]
     paths = ({i: _cache_path(cache, job, spp, cluster is not None, i) for i in frames}
-             if cache is not None else {})
-    out = {i: Frame.load(p) for i, p in paths.items() if p.is_file()}
-    todo = [i for i in frames if i not in out]
+             if cache is not None else None)
 
-    def keep(f: Frame) -> None:
-        out[int(f.index)] = f
-        if cache is not None:
-            paths[int(f.index)].parent.mkdir(parents=True, exist_ok=True)
-            f.save(paths[int(f.index)])
-
-    if todo and cluster is None:
-        for i in todo:
-            keep(renderer.render_reference(i, spp))
-    elif todo:
+    def make(todo: list[int]) -> Iterator[Frame]:
+        if cluster is None:
+            yield from (renderer.render_reference(i, spp) for i in todo)
+            return
         if job.get("size") and tuple(job["size"]) != (renderer.width, renderer.height):
             raise GlossrtError(f"reference job size {job['size']} is not the renderer's "
                                f"{renderer.width}x{renderer.height}")
-        for f in reference_frames(renderer, job, todo, spp, cluster=cluster, desc=desc):
-            keep(f)
+        yield from reference_frames(renderer, job, todo, spp, cluster=cluster, desc=desc)
+
+    return cached_frames(frames, paths, make)
+
+
+def cached_frames(frames: Sequence[int], paths: dict | None,
+                  make: Callable[[list[int]], Iterable[Frame]]) -> list[Frame]:
+    """Frames ``frames`` read from their files ``paths[i]`` where those exist, the others
+    made by ``make(todo)`` (it yields them in ``todo``'s order) and each written to its file
+    as soon as it is made (atomically, :meth:`Frame.save`), so that a killed run keeps what
+    it had finished. ``paths`` None: nothing read or kept."""
+    frames = [int(i) for i in frames]
+    out = {i: Frame.load(p) for i, p in (paths or {}).items() if p.is_file()}
+    todo = [i for i in frames if i not in out]
+    if todo:
+        for i, f in zip(todo, make(todo), strict=True):
+            out[i] = f
+            if paths is not None:
+                paths[i].parent.mkdir(parents=True, exist_ok=True)
+                f.save(paths[i])
     return [out[i] for i in frames]
