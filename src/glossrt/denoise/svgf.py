@@ -501,6 +501,14 @@ class SVGF:
                              for rad, _ in SIGNAL_SETS[self.params.signals]]}
 
     def __call__(self, frame) -> mi.TensorXf:
+        """The filtered frame, ``H x W x C`` (C = 3, or 3 per signal set with
+        ``output="illumination"``)."""
+        return merge(self.planes(frame), frame.height, frame.width)
+
+    def planes(self, frame) -> list:
+        """What :meth:`__call__` returns, as its evaluated channel planes (``C`` arrays of
+        ``H * W`` floats): a caller that splits the image anyway (the pipeline's
+        reduced-resolution indirect light) skips the interleaved copy."""
         if not isinstance(frame, Frame):
             raise GlossrtError(
                 f"{type(self).__name__} takes a glossrt.Frame (from Renderer.render or "
@@ -551,7 +559,7 @@ class SVGF:
         self.nonfinite += int(bad[0]) + int(dr.sum(bad_e)[0])
         self._camera = frame.camera
         self.frames += 1
-        return merge(out, h, w)
+        return list(out)
 
 
 def atrous_filter(frame, levels: int = 5, sigma_rt: float = 0.5, sigma_n: float = 0.3,

@@ -100,13 +100,18 @@ ALPHA = 0.2
 WEIGHTS = ("normal", "lobe")
 #: default threshold on the normalised weight sum below which pixels are re-rendered
 THRESHOLD = 0.05
-#: pixels per row tile of :class:`SpatioTemporalUpsampler`, rounded down to whole rows
-#: (see "row tiles" below).
-#: Images up to this size (320x180, 640x360) run untiled; 1920x1080 runs 8 tiles of 136
-#: rows. Measured on 2 CPU cores at 1920x1080, ``full`` on polygon-light (see the report /
-#: docs/PERFORMANCE.md): the transient of the upsampler's frozen call scales with the
-#: tile's pixels (~300 bytes per pixel).
+#: images of more pixels than this run :class:`SpatioTemporalUpsampler` in row tiles (see
+#: "row tiles" below) of at most :data:`TILE_SIZE` pixels, rounded down to whole rows.
+#: Images up to this size (320x180, 640x360) run untiled: at 640x360 four tiles of 2^16
+#: pixels cost about 20 ms a frame more on 2 CPU cores (87 -> 106 and 78 -> 98 ms, ``full``
+#: on polygon-light, alternating fresh processes)
 PIXELS_PER_TILE = TILE_PIXELS
+#: the most pixels of one row tile: 1920x1080 runs 32 tiles of 34 rows. The transient of
+#: the upsampler's frozen call scales with the tile's pixels (~300 bytes per pixel): at
+#: 1920x1080, ``full`` on polygon-light, tiles of 2^16 instead of 2^18 pixels lower the
+#: indirect stage's peak by about 34 MiB (docs/PERFORMANCE.md); the frame time moved within
+#: the machine's noise (medians 760 / 815 ms over three alternating pairs)
+TILE_SIZE = 1 << 16
 #: guide weights are floored at this fraction of the spatial weight (the spatial fallback)
 _FLOOR = 1e-6
 #: the histories of :class:`SpatioTemporalUpsampler`: glossrt's simplified exponential
@@ -484,11 +489,13 @@ class SpatioTemporalUpsampler:
         self.weight, self.channels, self.alpha = weight, tuple(channels), float(alpha)
         self.params = _params("SpatioTemporalUpsampler", params)
         self.frozen = frozen
-        #: images of more pixels run in row tiles (:data:`PIXELS_PER_TILE`)
+        #: images of more pixels run in row tiles of at most this many pixels and
+        #: :data:`TILE_SIZE` (:data:`PIXELS_PER_TILE`)
         self.tile_pixels = int(tile_pixels)
         self._fn = dr.freeze(_temporal) if frozen else _temporal
         self._prepare = dr.freeze(_temporal_prepare) if frozen else _temporal_prepare
         self._tile = dr.freeze(_temporal_tile) if frozen else _temporal_tile
+        self._geometry = dr.freeze(_temporal_geometry) if frozen else _temporal_geometry
         self._zero = None
         self.reset()
 
@@ -496,15 +503,17 @@ class SpatioTemporalUpsampler:
     def n_recordings(self) -> int:
         if not self.frozen:
             return 0
-        return sum(int(f.n_recordings) for f in (self._fn, self._prepare, self._tile))
+        return sum(int(f.n_recordings)
+                   for f in (self._fn, self._prepare, self._tile, self._geometry))
 
     def frozen_functions(self) -> list:
         """The ``dr.freeze`` functions a frame of the last size replays (the untiled one,
-        or the row tiles' two; empty when not frozen)."""
+        or the row tiles' three; empty when not frozen)."""
         if not self.frozen:
             return []
         size = self._size or (0, 0)
-        return ([self._prepare, self._tile] if size[0] * size[1] > self.tile_pixels
+        return ([self._prepare, self._tile, self._geometry]
+                if size[0] * size[1] > self.tile_pixels
                 else [self._fn])
 
     def reset(self) -> None:
@@ -531,7 +540,9 @@ class SpatioTemporalUpsampler:
         else:
             prev = self._history
         if size[0] * size[1] > self.tile_pixels:
-            img = self._tiled(frame, low, channels, albedo_of, use_lobe, prev)
+            self._history = prev
+            del prev  # (_tiled lets the old history go before it writes the new geometry)
+            img = self._tiled(frame, low, channels, albedo_of, use_lobe)
         else:
             static = _static(frame, low, channels, albedo_of, use_lobe, self.params,
                              self.alpha)
@@ -563,27 +574,31 @@ class SpatioTemporalUpsampler:
         self._size = size
         return img
 
-    def _tiled(self, frame, low, channels, albedo_of, use_lobe, prev) -> mi.TensorXf:
+    def _tiled(self, frame, low, channels, albedo_of, use_lobe) -> mi.TensorXf:
         """One frame in row tiles (the same values as the untiled call; see
-        :data:`PIXELS_PER_TILE`): new full-size buffers for the image and the history, the
-        previous history read as it is."""
+        :data:`PIXELS_PER_TILE`): new full-size buffers for the image and the history's
+        colours and lengths, the previous history (``self._history``) read as it is. The new
+        history's geometry (normal, 1/z, mesh id: the frame's own G-buffer) is written after
+        the previous history is let go, so that the two histories' geometry are never held
+        at once (40 MiB at 1920x1080); its 1/z is the full-frame 1/z the tiles read."""
         from .svgf import History
 
         w, h = frame.width, frame.height
         n = w * h
-        rows = tile_rows(w, h, self.tile_pixels)
+        rows = tile_rows(w, h, min(self.tile_pixels, TILE_SIZE))
         static = _static(frame, low, channels, albedo_of, use_lobe, self.params, self.alpha,
                          rows)
         if self._zero is None or dr.width(self._zero) != n:
             # the history's moments: the upsampler keeps none (zeros for reproject's reads)
             self._zero = dr.zeros(mi.Float, n)
             dr.make_opaque(self._zero)
-        prev = History(color=prev.color, moments=[[self._zero, self._zero] for _ in channels],
-                       length=prev.length, normal=prev.normal, inv_z=prev.inv_z,
-                       mesh=prev.mesh)
+        old = self._history
+        prev = History(color=old.color, moments=[[self._zero, self._zero] for _ in channels],
+                       length=old.length, normal=old.normal, inv_z=old.inv_z, mesh=old.mesh)
+        del old
         fch, lch = _arrays(frame, _FULL), _arrays(low, _FULL)
         terms = _camera_terms(frame, low, use_lobe)
-        out = {"history": [dr.empty(mi.Float, n) for _ in range(3 * len(channels) + 6)],
+        out = {"history": [dr.empty(mi.Float, n) for _ in range(3 * len(channels) + 1)],
                "image": dr.empty(mi.Float, 3 * n)}
         dr.eval(out)
         with no_gc():
@@ -599,12 +614,14 @@ class SpatioTemporalUpsampler:
                     dr.scatter(out["image"], img[k], idx * 3 + k)
                 dr.eval(out)
                 del values, img
-        del taps, inv_z
+            del taps, prev
+            self._history = None  # (the previous history goes here)
+            normal, mesh = self._geometry(fch, static)
         hist = out["history"]
         k = 3 * len(channels)
         self._history = History(color=[hist[3 * j:3 * j + 3] for j in range(len(channels))],
-                                moments=None, length=hist[k], normal=hist[k + 1:k + 4],
-                                inv_z=hist[k + 4], mesh=hist[k + 5])
+                                moments=None, length=hist[k], normal=normal, inv_z=inv_z,
+                                mesh=mesh)
         return mi.TensorXf(out["image"], (h, w, 3))
 
 
@@ -723,6 +740,9 @@ def _temporal_herzog(fch, lch, terms, prev, static, decay, sigma_c, floor):
 # full-resolution 1/z (whose neighbours the depth gradient reads) are computed once, before
 # the tiles. The last tile is moved up to end at the last row (overlapping the one before:
 # the same pixels get the same values), so every tile has one shape and one recording.
+# The new history's geometry (normal, mesh id: the frame's own G-buffer; its 1/z is the
+# full-resolution one above) is written after the tiles, once the previous history is let
+# go, so that the two histories' geometry planes are never held together.
 
 
 
@@ -758,6 +778,17 @@ def _temporal_prepare(fch, lch, terms, static):
     inv_z = gbuffer(_Channels(fch, fw, fh), Grid(fw, fh), with_roughness=use_lobe).inv_z
     dr.eval(inv_z)
     return list(packed.arrays), inv_z
+
+
+def _temporal_geometry(fch, static):
+    """After the tiles: the new history's normal and mesh id, the frame's G-buffer
+    (:func:`glossrt.denoise.common.gbuffer`, as each tile computes it for its pixels)."""
+    from .common import gbuffer
+
+    fw, fh, use_lobe = static[0], static[1], static[6]
+    gb = gbuffer(_Channels(fch, fw, fh), Grid(fw, fh), with_roughness=use_lobe)
+    dr.eval(gb.normal, gb.mesh)
+    return list(gb.normal), gb.mesh
 
 
 def _packed_taps(arrays: list, channels: tuple, use_lobe: bool) -> tuple:
@@ -811,7 +842,7 @@ def _temporal_tile(fch, lch, terms, prev, taps, inv_z_full, offset, static):
     length = dr.select(hit, length, 0.0)
     dr.eval(blended, length)
     img = _compose(frame, channels, albedo_of, blended, hit)
-    values = [c for bl in blended for c in bl] + [length, *gb.normal, gb.inv_z, gb.mesh]
+    values = [c for bl in blended for c in bl] + [length]  # (the geometry: _temporal_geometry)
     img = [img[k] for k in range(3)]
     dr.eval(values, img)
     return values, img

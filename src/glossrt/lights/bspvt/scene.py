@@ -697,7 +697,12 @@ class FrozenShader:
 
     ``f0``: the frame's material image (:class:`MaterialImage`, or a
     :func:`glossrt.lights.shading.fresnel_image` / F0 tensor); ``exact`` materials at the
-    vertices when it has :data:`MATERIAL_ROW` columns, as :func:`shade_bspvt`."""
+    vertices when it has :data:`MATERIAL_ROW` columns, as :func:`shade_bspvt`. ``f0`` may
+    also be the :class:`MaterialImage` itself, called only where the pixels' materials are
+    read: ``vertex`` mode's fused kernel reads the vertices' materials from the scene's table
+    and never the pixels', so it then shades with the exact materials and no material image
+    at all (the pipeline's direct stage: 128 MiB less at 1920x1080, docs/PERFORMANCE.md),
+    the same values as with one."""
 
     def __init__(self, scene: mi.Scene, trees, mode: str = "vertex",
                  materials: MaterialTable | None = None):
@@ -750,15 +755,21 @@ class FrozenShader:
         if frame.camera is None:
             raise FrameError(f"{frame.where}: BSPVT shading needs the camera")
         cache = {} if textures is None else textures
+        lazy = isinstance(f0, MaterialImage)
         if not lights or any(prefiltered(lt, cache) is not None for lt in lights):
+            if lazy:
+                f0 = f0(frame)
             img = shade_bspvt(self.scene, frame, self.trees, lights, self.mode, f0=f0,
                               textures=cache, frozen=True)
             return mi.TensorXf(img)
         self._prepare(meshes, offsets)
         dev = shade.DeviceTrees.of(self.trees)
         ch = shading_channels(frame)
-        ch["f0"] = f0_tensor(frame, f0)
-        exact = ch["f0"].shape[-1] == MATERIAL_ROW
+        if lazy and self.mode == "vertex":
+            exact = True  # (the kernel reads the vertices' exact materials from the table)
+        else:
+            ch["f0"] = f0_tensor(frame, f0(frame) if lazy else f0)
+            exact = ch["f0"].shape[-1] == MATERIAL_ROW
         dl, two = _device_lights(lights)
         static = (self.mode, exact, (frame.height, frame.width), dev.n_vertices, two)
         with no_gc():
