@@ -285,6 +285,9 @@ def cmd_render(args) -> int:
     reference = args.reference or args.mitsuba or args.spp > 1
     if args.pipeline is not None:
         return _render_pipeline(args, size)
+    if args.outputs is not None:
+        raise GlossrtError("--outputs (the channels a composed frame keeps) goes with "
+                           "--pipeline")
     if args.bspvt is not None:
         raise GlossrtError("--bspvt (prebuilt BSPVT trees) goes with --pipeline")
     if args.specaa is not None:
@@ -419,6 +422,8 @@ def _render_pipeline(args, size) -> int:
             raise GlossrtError(f"--pipeline composes 1 spp frames: {flag} does not apply "
                                "(the reference preset accumulates converged frames)")
     preset, choices = pipeline.parse(args.pipeline)  # a bad name or file fails here
+    outputs = (pipeline.check_outputs([k.strip() for k in args.outputs.split(",") if k.strip()])
+               if args.outputs is not None else None)
     choices.setdefault("seed", args.seed)
     if args.max_depth is not None:
         choices.setdefault("max_depth", args.max_depth)
@@ -431,7 +436,8 @@ def _render_pipeline(args, size) -> int:
     if size is None:
         _check_memory(setup.size, "the scene's film size")
     # every refusal before work (a --bspvt file of another scene too)
-    pipe = pipeline.Pipeline(setup, preset=preset, bspvt=args.bspvt, **choices)
+    pipe = pipeline.Pipeline(setup, preset=preset, bspvt=args.bspvt, outputs=outputs,
+                             **choices)
     out = _writable_dir(args.out)
     desc = f"pipeline {preset} {setup.name} {setup.size[0]}x{setup.size[1]}"
     with Progress(len(todo), desc) as p:
@@ -966,6 +972,11 @@ COMMANDS: tuple[Command, ...] = (
                      help="--pipeline with direct=ltc+bspvt: prebuilt trees (`glossrt bspvt "
                           "build`) instead of building them; refused unless they fit the "
                           "scene"),
+                _arg("--outputs", default=None, metavar="NAMES",
+                     help="--pipeline: write only these channels, comma-separated (color "
+                          "always; e.g. direct,indirect,normal); the others are freed as "
+                          "soon as no later stage reads them (default: every channel and "
+                          "layer)"),
             ), more_help=_builtin_scenes_help),
     Command("light", cmd_light,
             "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",

@@ -8,6 +8,7 @@
 >>> pipe.set_camera(position=(0, 1, 4), target=(0, 0.5, 0))  # explicit pose  # doctest: +SKIP
 >>> pipe.set_transform("light", matrix)  # a polygon light, object or point light  # doctest: +SKIP
 >>> frame = pipe.render(1)   # posed explicitly, the rest from the animation  # doctest: +SKIP
+>>> pipe.outputs = ("color", "direct")  # keep only these; the rest freed early  # doctest: +SKIP
 
 Posing: a frame is posed by its index (the scene's animation) or explicitly
 (:meth:`Pipeline.set_camera`, :meth:`Pipeline.set_transform`, :meth:`Pipeline.clear_pose`):
@@ -36,6 +37,11 @@ No double counting, nothing lost: the lights an analytic ``direct`` stage shades
 polygon lights, and the point and directional lights) are removed from the path tracer at
 the primary hit only (:class:`glossrt.render.Renderer`'s ``primary_exclude``); they still
 light every deeper bounce. Presets and options: :mod:`glossrt.pipeline.config`.
+
+Memory: ``Pipeline(outputs=("color",))`` (the render graph's marked outputs, settable between
+frames) returns only the channels asked for and frees every other one after the last stage
+that reads it (:meth:`stages.Stage.reads`), with the same values; with ``release_memory``
+that is what keeps ``full`` at 1920x1080 under 600 MB (docs/PERFORMANCE.md).
 
 Every refusal (unknown option, a specaa method that is unknown or filters per light, BSPVT
 with a moving occluder, highlights or LTC modes in a scene without polygon lights,
@@ -142,6 +148,44 @@ def _matrix(m):
     return to_matrix(m) if hasattr(m, "matrix") else m
 
 
+def check_outputs(names) -> tuple[str, ...] | None:
+    """:attr:`Pipeline.outputs` checked: None, or the names (a string: one name) with
+    ``color`` first and no repeats; an unknown name is one GlossrtError listing the
+    channels a pipeline frame has."""
+    from ..frame import CHANNELS
+
+    if names is None:
+        return None
+    if isinstance(names, str):
+        names = (names,)
+    try:
+        names = tuple(names)
+    except TypeError:
+        raise GlossrtError(f"outputs must be channel names or None, got {names!r}") from None
+    known = tuple(k for k in CHANNELS if k != "color") + ("roughness_material",) + LAYERS
+    bad = [k for k in names if k not in known]
+    if bad:
+        raise GlossrtError(f"unknown output channel(s) {', '.join(map(str, bad))}; a "
+                           f"pipeline frame has {', '.join(known)}")
+    return ("color",) + tuple(dict.fromkeys(k for k in names if k != "color"))
+
+
+def _free(ctx: dict, keep: dict) -> None:
+    """Drop from the frame's context what ``keep`` (:meth:`Pipeline._liveness`) does not
+    hold: whole entries, and a frame's channels outside its set. ``frame`` itself stays (the
+    returned frame's cameras and meta)."""
+    for name in list(ctx):
+        if name not in keep:
+            if name != "frame":
+                del ctx[name]
+            continue
+        chans = keep[name]
+        if chans is not None and isinstance(ctx[name], Frame):
+            f = ctx[name]
+            for k in [k for k in f.names if k not in chans]:
+                del f.channels[k]
+
+
 def _check_every(n) -> None:
     if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
         raise GlossrtError(f"timing_every must be an integer >= 1, got {n!r}")
@@ -170,8 +214,10 @@ class Pipeline:
 
     def __init__(self, setup_or_scene, preset: str = "schied2017", size=None,
                  progress: bool = True, bspvt=None, bspvt_cache=None,
-                 timing: str = "kernels", timing_every: int = 8, **choices: Any):
+                 timing: str = "kernels", timing_every: int = 8, outputs=None,
+                 **choices: Any):
         check_stage_timing(timing)
+        self.outputs = outputs  # (checked: the setter)
         self.timing_every = timing_every
         _check_every(timing_every)
         if preset not in PRESETS:
@@ -197,6 +243,41 @@ class Pipeline:
         self._apply(self.opts, trees)
 
     # -- configuration ---------------------------------------------------------------------
+    @property
+    def outputs(self) -> tuple[str, ...] | None:
+        """The channels the frames :meth:`render` returns hold (the render graph's marked
+        outputs): None (default) every G-buffer channel and every layer (:data:`LAYERS`);
+        else these names, ``color`` always among them. A channel that is neither asked for
+        nor read by a later stage is freed as soon as the last stage that reads it has run
+        (:meth:`glossrt.pipeline.stages.Stage.reads`), which lowers a frame's peak memory
+        (docs/PERFORMANCE.md); the values are the same. Settable between frames (no
+        re-recording). Names the scene's frames do not have (``tangent`` in an isotropic
+        scene) are not in the frame."""
+        return self._outputs
+
+    @outputs.setter
+    def outputs(self, names) -> None:
+        self._outputs = check_outputs(names)
+
+    def _liveness(self) -> list[dict[str, set | None]]:
+        """Per stage, what the context must still hold after it: context entry -> the frame
+        channels still read or asked for (None: all of it); entries absent are freed."""
+        want = self._outputs
+        final: dict[str, set | None] = {"frame": None if want is None else set(want)}
+        for layer in LAYERS:
+            if want is None or layer in want:
+                final[layer] = None
+        out = []
+        need = final
+        for stage in reversed(list(self.stages.values())):
+            out.append(need)
+            need = dict(need)
+            for name, chans in stage.reads().items():
+                if name in need and need[name] is None:
+                    continue  # (all of it already)
+                need[name] = None if chans is None else set(need.get(name) or ()) | set(chans)
+        return out[::-1]
+
     @property
     def preset(self) -> str:
         return self.opts["preset"]
@@ -498,9 +579,11 @@ class Pipeline:
         Memory: Dr.Jit's allocator keeps the blocks a stage frees for reuse, so a frame holds
         the sum of its stages' transient buffers, not their maximum. With the option
         ``release_memory`` the pipeline hands them back (``dr.flush_malloc_cache``) after
-        each stage and after the low-resolution denoiser: ``full`` at 1920x1080 on the CPU
-        peaks at 774 instead of 1088 MB, for 1.14-1.26x the frame time (the next frame
-        allocates its buffers anew; docs/PERFORMANCE.md); on a GPU the flush may wait for
+        each stage and after the low-resolution denoiser; with :attr:`outputs` it frees the
+        channels no later stage reads as soon as their last reader has run. ``full`` at
+        1920x1080 on the CPU peaks at 824 MiB as is, 627 MiB with ``release_memory`` and
+        563 MiB with it and ``outputs=("color",)`` (docs/PERFORMANCE.md); the flush costs
+        frame time (the next frame allocates its buffers anew), and on a GPU it may wait for
         the device (not measured)."""
         ctx: dict[str, Any] = {}
         check_stage_timing(self.timing)
@@ -520,9 +603,12 @@ class Pipeline:
             self._gbuffer.reset()  # (an accumulation starts anew; no history to drop else)
         # motion vectors point back to the previous frame rendered (None: index - 1)
         self._gbuffer.renderer.previous_pose = self._last_pose
+        live = self._liveness()
+        want = self._outputs
+        fold = want is not None and "direct" not in want and "emission" not in want
         clock.start()
         try:
-            for name, stage in self.stages.items():
+            for (name, stage), keep in zip(self.stages.items(), live, strict=True):
                 out = stage.run(index, ctx)
                 if set(out) != set(stage.outputs):
                     raise GlossrtError(f"pipeline stage {name} returned {sorted(out)}, "
@@ -530,6 +616,10 @@ class Pipeline:
                 ctx.update(out)
                 # a kernel boundary (no wait): the stage's own work is launched here
                 dr.eval([v for k, v in out.items() if not k.startswith("frame")])
+                del out  # (the context holds what is still read: _free)
+                if fold and name == "direct":
+                    CompositeStage.fold(ctx)
+                _free(ctx, keep)
                 clock.stage_done(name)
                 if release:
                     dr.flush_malloc_cache()
@@ -546,7 +636,8 @@ class Pipeline:
         gb: Frame = ctx["frame"]
         channels = {k: gb[k] for k in gb.names if k != "color"}
         for layer in LAYERS:
-            channels[layer] = ctx[layer]
+            if layer in ctx:
+                channels[layer] = ctx[layer]
         meta = dict(gb.meta)
         meta.pop("omitted", None)  # (the G-buffer frame's: this frame has its own color)
         meta["pipeline"] = {
@@ -557,7 +648,8 @@ class Pipeline:
             "primary_exclude": list(self._gbuffer.exclude),
             "stages": {n: {"inputs": list(s.inputs), "outputs": list(s.outputs)}
                        for n, s in self.stages.items()},
-            "layers": list(LAYERS),
+            "layers": [k for k in LAYERS if k in channels],
+            "outputs": "all" if self._outputs is None else list(self._outputs),
             "frame_ms": 1000.0 * (time.perf_counter() - t_all),
             "timing": self.timing,
             **times,
@@ -593,5 +685,6 @@ class Pipeline:
         return display(frame.numpy("color"), self.opts["exposure"], self.opts["tonemap"])
 
 
-__all__ = ["LAYERS", "OPTIONS", "PRESETS", "STAGES", "Pipeline", "display", "load_toml",
+__all__ = ["LAYERS", "OPTIONS", "PRESETS", "STAGES", "Pipeline", "check_outputs", "display",
+           "load_toml",
            "moving_occluders", "parse", "resolve"]

@@ -30,7 +30,7 @@ import numpy as np
 from ..backend import mi
 from ..errors import GlossrtError
 from ..frame import Frame
-from ..images import merge, split
+from ..images import merge
 from ..jit import no_gc, opaque
 from ..render import DIRECT_OUT, INDIRECT_OUT
 
@@ -49,6 +49,14 @@ def _with_channels(f: Frame, channels: dict, meta: dict | None = None) -> Frame:
                  meta=f.meta if meta is None else meta)
 
 
+def _taken(ctx: dict, name: str) -> Frame:
+    """Frame ``name`` taken out of ``ctx`` as this stage's own copy (the same channel
+    arrays in a new Frame): the stage may drop channels from it without touching the frame
+    its caller holds, and once the caller's context lets go, what it drops is freed."""
+    f = ctx.pop(name)
+    return _with_channels(f, dict(f.channels))
+
+
 def _tensor(img) -> mi.TensorXf:
     if isinstance(img, mi.TensorXf):
         return img
@@ -57,11 +65,20 @@ def _tensor(img) -> mi.TensorXf:
 
 class Stage:
     """A pipeline stage: ``name``, the ``inputs`` it reads from the context and the
-    ``outputs`` it returns from :meth:`run`."""
+    ``outputs`` it returns from :meth:`run`; :meth:`reads` narrows an input frame down to
+    the channels the stage reads (the pipeline frees what no later stage reads and the
+    caller did not ask for: ``Pipeline.outputs``)."""
 
     name = ""
     inputs: tuple[str, ...] = ()
     outputs: tuple[str, ...] = ()
+
+    def reads(self) -> dict[str, tuple[str, ...] | None]:
+        """Input -> the channels of it this stage reads (a frame's channel names), None:
+        all of it. Default: every input whole. A stage must not read a channel it does not
+        list (tests/test_pipeline_outputs.py renders every preset with the fewest outputs
+        against every output)."""
+        return dict.fromkeys(self.inputs)
 
     def run(self, index: int, ctx: dict) -> dict:
         raise NotImplementedError
@@ -537,6 +554,9 @@ class DirectStage(Stage):
         #: ``_textures`` (:meth:`_stable_textures`)
         self._stable: dict = {}
 
+    def reads(self) -> dict[str, tuple[str, ...] | None]:
+        return {} if self.mode == "pathtraced" else {"frame": None}
+
     def frozen(self) -> list:
         out = [self.points._fn] if self.points is not None else []
         if self.materials is not None:
@@ -563,12 +583,15 @@ class DirectStage(Stage):
 
         polys = self._stable_textures(polygon_lights(self.setup, index))
         points = analytic_lights(self.setup, index)
-        # every pixel's material (lights.shading.fresnel_image), computed on the device
-        f0 = self.materials(gb)
+        # every pixel's material (lights.shading.fresnel_image, 16 floats a pixel), computed
+        # on the device where it is read: BSPVT's vertex mode reads the vertices' instead
+        # (FrozenShader takes the MaterialImage and calls it only when it needs it)
+        f0 = self.materials(gb) if self.mode != "ltc+bspvt" or points else None
         if self.mode == "ltc":
             out = self._ltc(gb, polys, f0)
         elif self.mode == "ltc+bspvt":
-            out = self.bspvt(gb, polys, f0, textures=self._textures)
+            out = self.bspvt(gb, polys, self.materials if f0 is None else f0,
+                             textures=self._textures)
         elif self.mode == "ltc+ratio":
             from ..lights.ratio import render_ratio
 
@@ -756,6 +779,17 @@ class IndirectStage(Stage):
                                   **lobe)
                         if self.upsampler is None or self.resample else None)
 
+    def reads(self) -> dict[str, tuple[str, ...] | None]:
+        """The guides (``position`` only for ``atrous``, whose edge-stopping reads it), the
+        path-traced light it denoises: all of it at scale 1; at scale 2 or 4 the
+        full-resolution direct light the path tracer keeps (if any) and the whole
+        ``frame_low``'s guides and indirect light (this stage consumes it: :meth:`run`)."""
+        guides = tuple(k for k in GUIDES if k != "position" or self.method == "atrous")
+        if self.scale == 1:
+            return {"frame": guides + RADIANCE_PT}
+        return {"frame": guides + (DIRECT_PT if self.direct_pt else ()),
+                "frame_low": guides + INDIRECT_PT}
+
     def reset(self) -> None:
         for d in (self.denoiser, self.low_denoiser, self.direct_denoiser, self.upsampler):
             if d is not None:
@@ -797,7 +831,10 @@ class IndirectStage(Stage):
         gb: Frame = ctx["frame"]
         if self.scale == 1:
             return {"indirect": self._denoise(self._input(gb, RADIANCE_PT), self.denoiser)}
-        img = self._upsampled(index, gb, ctx["frame_low"])
+        # the low frame is read by this stage alone: taken out of the context, and its
+        # light dropped once denoised (_upsampled), so that it is not held through the
+        # upsampling (frame_low is never one of the pipeline's outputs)
+        img = self._upsampled(index, gb, _taken(ctx, "frame_low"))
         if self.direct_pt:
             img = img + self._denoise(self._input(gb, DIRECT_PT), self.direct_denoiser)
         return {"indirect": img}
@@ -807,7 +844,9 @@ class IndirectStage(Stage):
         component, with the albedo that demodulates it (1 where it already is)."""
         h, w = low.height, low.width
         if self.low_denoiser is not None:
-            chs = split(self.low_denoiser(self._input(low, INDIRECT_PT)))  # (h, w, 6)
+            chs = self.low_denoiser.planes(self._input(low, INDIRECT_PT))  # 6 planes
+            if self.release_memory:  # (the filter's freed blocks, before the images below)
+                dr.flush_malloc_cache()
             ones = dr.ones(mi.TensorXf, (h, w, 3))
             out = {c: merge(chs[3 * k:3 * k + 3], h, w) for k, c in enumerate(INDIRECT_PT)}
             out["albedo_diffuse"] = out["albedo_specular"] = ones
@@ -824,8 +863,10 @@ class IndirectStage(Stage):
         h, w = gb.height, gb.width
         lch = {k: low[k] for k in LOW_GUIDES if k in low}
         lch.update(self._low_light(low))
+        dr.eval(lch)
+        for k in [k for k in low.names if k not in LOW_GUIDES]:  # (read: the light is in lch)
+            del low.channels[k]
         if self.release_memory:
-            dr.eval(lch)
             dr.flush_malloc_cache()
         for k in ("emission",) + DIRECT_PT:
             lch[k] = _zeros(low.height, low.width)
@@ -877,7 +918,27 @@ class CompositeStage(Stage):
     inputs = ("frame", "direct", "indirect")
     outputs = ("composite",)
 
+    #: the context entry of ``emission + direct`` made early (:meth:`fold`)
+    FOLDED = "emission+direct"
+
+    def reads(self) -> dict[str, tuple[str, ...] | None]:
+        return {"frame": ("emission",), "direct": None, "indirect": None,
+                self.FOLDED: None}
+
+    @classmethod
+    def fold(cls, ctx: dict) -> None:
+        """The composite's first sum, ``emission + direct``, made as soon as the direct
+        layer exists, when neither is wanted on its own (``Pipeline.outputs``): the two
+        full-size images are freed before the indirect stage, one kept (32 MiB less held
+        through it at 1920x1080). The same values: :meth:`run` adds ``indirect`` to it, the
+        order of the unfolded sum."""
+        ctx[cls.FOLDED] = ctx["frame"]["emission"] + ctx.pop("direct")
+        dr.eval(ctx[cls.FOLDED])
+        del ctx["frame"].channels["emission"]
+
     def run(self, index: int, ctx: dict) -> dict:
+        if self.FOLDED in ctx:
+            return {"composite": ctx[self.FOLDED] + ctx["indirect"]}
         return {"composite": ctx["frame"]["emission"] + ctx["direct"] + ctx["indirect"]}
 
 
@@ -893,6 +954,11 @@ class TAAStage(Stage):
         self.enabled = bool(enabled)
         self.alpha = float(alpha)
         self.reset()
+
+    def reads(self) -> dict[str, tuple[str, ...] | None]:
+        if not self.enabled:
+            return {"composite": None}
+        return {"frame": ("mesh_id", "motion"), "composite": None}
 
     def reset(self) -> None:
         self.history = None
