@@ -203,7 +203,7 @@ def test_render_cli_outputs(tmp_path, capsys):
     from glossrt.cli import main
     from glossrt.frame import Frame
 
-    common = ["render", "polygon-light", "--pipeline", "full", "--frames", "2", "--size",
+    common = ["render", "polygon-light", "--pipeline", "tokuyoshi2015", "--frames", "2", "--size",
               "32x24"]
     assert main(common + ["--out", str(tmp_path / "all")]) == 0
     assert main(common + ["--out", str(tmp_path / "some"), "--outputs", "direct, normal"]) == 0

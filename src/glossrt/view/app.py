@@ -593,7 +593,8 @@ class Viewer:
         if self._reference is None:
             self._reference = Pipeline(self.pipe.setup, preset="reference", progress=False,
                                        spp=REFERENCE_SPP, seed=self.pipe.opts["seed"] + 7919,
-                                       max_depth=self.pipe.opts["max_depth"])
+                                       max_depth=self.pipe.opts["max_depth"],
+                                       outputs=("color",))  # (its colour is all it shows)
             self._reference.reset()
         f = self._reference.render(index)
         self._ref_color = f.numpy("color")
