@@ -91,3 +91,28 @@ def test_textured_light_prefiltered_once_across_frames():
         pipe.render(i)
     direct = pipe.stages["direct"]
     assert len(direct._textures) == 1 and len(direct._stable) == 1
+
+
+def test_oidn_time_counted_in_its_stage():
+    """``indirect=oidn`` filters on the host, where Dr.Jit's kernel history sees nothing: the
+    stage's ``stage_ms`` (``timing="kernels"``) holds the filter's own time
+    (``stage_external_ms``), measured inside ``oidn_denoise``; before, the stage read about
+    0 ms while OIDN took most of the frame."""
+    from glossrt.denoise.oidn import oidn_available
+    from glossrt.pipeline import Pipeline
+
+    if not oidn_available():
+        pytest.skip("pyoidn is not installed")
+    pipe = Pipeline(scn.load_static("glossy-cornell", size=(64, 48)), preset="schied2017",
+                    progress=False, indirect="oidn", timing_every=1)
+    for i in range(3):
+        meta = pipe.render(i).meta["pipeline"]
+    external = meta["stage_external_ms"]
+    assert set(external) == {"indirect"} and external["indirect"] > 0
+    kernels = meta["stage_ms"]["indirect"] - external["indirect"]
+    assert 0 <= kernels < meta["stage_ms"]["indirect"]
+    # no host time is invented: below the stage's wall time, which includes it
+    assert external["indirect"] <= meta["stage_host_ms"]["indirect"]
+    plain = Pipeline(scn.load_static("glossy-cornell", size=(64, 48)), preset="schied2017",
+                     progress=False, timing_every=1)
+    assert "stage_external_ms" not in plain.render(0).meta["pipeline"]

@@ -187,6 +187,8 @@ class StageClock:
         self.index_type = index_type  # the backend's UInt32 (the marker's type)
         self.names: list[str] = []
         self.host: list[float] = []
+        #: stage -> milliseconds computed outside Dr.Jit (:meth:`stage_done`)
+        self.external: dict[str, float] = {}
         self._was_on = False
         self._t = 0.0
 
@@ -211,8 +213,12 @@ class StageClock:
             if self.read:
                 self._mark()
 
-    def stage_done(self, name: str) -> None:
-        """After stage ``name`` launched its work (its outputs ``dr.eval``'d)."""
+    def stage_done(self, name: str, external_ms: float = 0.0) -> None:
+        """After stage ``name`` launched its work (its outputs ``dr.eval``'d).
+        ``external_ms``: what the stage computed outside Dr.Jit (Intel Open Image Denoise on
+        the host), which no kernel history sees: ``kernels`` adds it to the stage's
+        ``stage_ms`` and lists it in ``stage_external_ms`` (``sync`` already has it in its
+        wall time)."""
         import drjit as dr
 
         if self.mode == "none":
@@ -224,6 +230,8 @@ class StageClock:
         t = time.perf_counter()
         self.names.append(name)
         self.host.append(1000.0 * (t - self._t))
+        if external_ms:
+            self.external[name] = self.external.get(name, 0.0) + float(external_ms)
         self._t = t
 
     def finish(self) -> dict:
@@ -244,7 +252,13 @@ class StageClock:
         finally:
             if not self._was_on:
                 dr.set_flag(dr.JitFlag.KernelHistory, False)
-        return attribute(history, self.names, self.host)
+        out = attribute(history, self.names, self.host)
+        if self.external:
+            out["stage_external_ms"] = dict(self.external)
+            if out.get("stage_ms") is not None:
+                for name, ms in self.external.items():
+                    out["stage_ms"][name] += ms
+        return out
 
 
 def _is_marker(entry: dict) -> bool:

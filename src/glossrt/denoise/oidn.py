@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import atexit
 import threading
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -168,7 +169,8 @@ def _finite(a: np.ndarray, name: str, where: str) -> None:
 
 
 def oidn_denoise(
-    frame: Frame, quality: str = "high", use_aux: bool = True, separate_emission: bool = True
+    frame: Frame, quality: str = "high", use_aux: bool = True, separate_emission: bool = True,
+    timings: dict | None = None,
 ) -> mi.TensorXf:
     """Denoise ``frame``'s ``color`` with OIDN's ``RT`` filter and return it as (H, W, 3).
 
@@ -182,6 +184,10 @@ def oidn_denoise(
         separate_emission: when the frame has an ``emission`` channel, denoise
             ``color - emission`` and add ``emission`` back (see the module notes); frames without
             that channel are denoised as they are.
+        timings: a dict to which ``oidn_ms`` (added to what it holds) is the host time of
+            everything after the colour is read back: the NumPy checks and copies and the
+            filter, not the wait for the Dr.Jit work that makes the inputs (the pipeline adds
+            it to the stage's kernel time, ``timing.StageClock``).
 
     Returns:
         A new float32 :class:`mitsuba.TensorXf` of shape ``(H, W, 3)``: linear radiance.
@@ -207,7 +213,8 @@ def oidn_denoise(
     where = frame.where
     h, w = frame.height, frame.width
 
-    color = frame.numpy("color")
+    color = frame.numpy("color")  # (waits for the Dr.Jit work that makes the inputs)
+    t0 = time.perf_counter()
     _finite(color, "color", where)
     emission = None
     if separate_emission and "emission" in frame:
@@ -239,4 +246,6 @@ def oidn_denoise(
         out = slot.output.copy()
     if emission is not None:
         out += emission
+    if timings is not None:
+        timings["oidn_ms"] = timings.get("oidn_ms", 0.0) + 1000.0 * (time.perf_counter() - t0)
     return mi.TensorXf(out)

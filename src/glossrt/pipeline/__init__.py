@@ -620,7 +620,7 @@ class Pipeline:
                 if fold and name == "direct":
                     CompositeStage.fold(ctx)
                 _free(ctx, keep)
-                clock.stage_done(name)
+                clock.stage_done(name, getattr(stage, "external_ms", 0.0))
                 if release:
                     dr.flush_malloc_cache()
         finally:
@@ -630,6 +630,8 @@ class Pipeline:
             if read:
                 self._kernel_times = {k: times.get(k) for k in
                                       ("stage_ms", "stage_kernels", "kernel_ms")}
+                if "stage_external_ms" in times:  # (OIDN's host time, in stage_ms)
+                    self._kernel_times["stage_external_ms"] = times["stage_external_ms"]
                 self._kernel_times.update(_stages=names, stage_ms_frame=index)
             times.update({k: v for k, v in self._kernel_times.items() if k != "_stages"},
                          stage_ms_every=self.timing_every)

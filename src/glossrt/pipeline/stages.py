@@ -750,6 +750,8 @@ class IndirectStage(Stage):
         opts = opts or {}
         self.scale = int(opts.get("indirect_scale", 1))
         self.last_resampled = 0
+        #: what the host-side denoiser reports (``oidn_ms``: :attr:`external_ms`)
+        self.timings: dict = {}
         fp = filter_params(opts)
         if self.scale == 1:
             self.denoiser = _denoiser(method, **fp)
@@ -778,6 +780,12 @@ class IndirectStage(Stage):
         self.spatial = (Upsampler(weight=self.weight, channels=INDIRECT_PT, frozen=True,
                                   **lobe)
                         if self.upsampler is None or self.resample else None)
+
+    @property
+    def external_ms(self) -> float:
+        """Milliseconds of the last run's work outside Dr.Jit (OIDN on the host), which the
+        pipeline adds to the stage's kernel time."""
+        return float(self.timings.get("oidn_ms", 0.0))
 
     def reads(self) -> dict[str, tuple[str, ...] | None]:
         """The guides (``position`` only for ``atrous``, whose edge-stopping reads it), the
@@ -824,10 +832,11 @@ class IndirectStage(Stage):
         if self.method == "oidn":
             from ..denoise.oidn import oidn_denoise
 
-            return _tensor(oidn_denoise(f, quality="fast"))
+            return _tensor(oidn_denoise(f, quality="fast", timings=self.timings))
         return denoiser(f)
 
     def run(self, index: int, ctx: dict) -> dict:
+        self.timings.clear()  # (this run's alone: external_ms)
         gb: Frame = ctx["frame"]
         if self.scale == 1:
             return {"indirect": self._denoise(self._input(gb, RADIANCE_PT), self.denoiser)}
