@@ -12,7 +12,7 @@ from glossrt.errors import GlossrtError
 SIZE = (48, 36)
 
 
-def _frames(preset: str, scene: str, outputs, frames: int = 3, **choices):
+def _frames(preset: str, scene: str, outputs, frames: int = 2, **choices):
     pipe = pipeline.Pipeline(scenes.load(scene, size=SIZE), preset=preset, progress=False,
                              bspvt_resolution=8, outputs=outputs, **choices)
     return [pipe.render(i) for i in range(frames)]
