@@ -172,12 +172,11 @@ def check_outputs(names) -> tuple[str, ...] | None:
 
 def _free(ctx: dict, keep: dict) -> None:
     """Drop from the frame's context what ``keep`` (:meth:`Pipeline._liveness`) does not
-    hold: whole entries, and a frame's channels outside its set. ``frame`` itself stays (the
-    returned frame's cameras and meta)."""
+    hold: whole entries, and a frame's channels outside its set (``keep`` always holds
+    ``frame``: the returned frame's cameras and meta)."""
     for name in list(ctx):
         if name not in keep:
-            if name != "frame":
-                del ctx[name]
+            del ctx[name]
             continue
         chans = keep[name]
         if chans is not None and isinstance(ctx[name], Frame):
@@ -620,7 +619,7 @@ class Pipeline:
                 if fold and name == "direct":
                     CompositeStage.fold(ctx)
                 _free(ctx, keep)
-                clock.stage_done(name, getattr(stage, "external_ms", 0.0))
+                clock.stage_done(name, stage.external_ms)
                 if release:
                     dr.flush_malloc_cache()
         finally:

@@ -72,6 +72,9 @@ class Stage:
     name = ""
     inputs: tuple[str, ...] = ()
     outputs: tuple[str, ...] = ()
+    #: milliseconds of the last run's work outside Dr.Jit, which no kernel history sees
+    #: (the pipeline adds it to the stage's time: ``timing.StageClock.stage_done``)
+    external_ms = 0.0
 
     def reads(self) -> dict[str, tuple[str, ...] | None]:
         """Input -> the channels of it this stage reads (a frame's channel names), None:
