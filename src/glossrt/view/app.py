@@ -38,6 +38,7 @@ from ..errors import GlossrtError
 from . import layers
 from .camera import ViewerCamera, from_pipeline, gizmo_matrix, to_pipeline
 from .inbox import Inbox
+from .meter import ErrorMeter
 
 #: frames without any change before the reference starts accumulating
 STILL_FRAMES = 2
@@ -173,6 +174,7 @@ class Viewer:
         self._reference = None
         self._ref_color: np.ndarray | None = None
         self._ref_spp = 0
+        self._meter = ErrorMeter()  # the loop's: RMSE per frame, FLIP in a helper process
         self._still = 0
         self._sent_camera: ViewerCamera | None = None
         self._syncing_clients: dict[int, float] = {}
@@ -602,14 +604,9 @@ class Viewer:
 
     def _reference_reset(self) -> None:
         self._ref_color, self._ref_spp, self._still = None, 0, 0
+        self._meter.reset()
         if self._reference is not None:
             self._reference.reset()
-
-    def _errors(self, color: np.ndarray) -> dict[str, float]:
-        """RMSE and FLIP of ``color`` against the accumulated reference (there must be one)."""
-        from ..metrics import flip, rmse
-
-        return {"rmse": rmse(color, self._ref_color), "flip": flip(color, self._ref_color)}
 
     def _image(self, frame) -> np.ndarray:
         name = self.layer
@@ -637,7 +634,8 @@ class Viewer:
             channels["reference"] = self._ref_color.astype(np.float32)
         meta = dict(frame.meta)
         meta["viewer"] = {"layer": self.layer, "reference_spp": self._ref_spp,
-                          **{k: v for k, v in self.stats.items() if k in ("rmse", "flip")}}
+                          **{k: v for k, v in self.stats.items()
+                             if k in ("rmse", "flip", "flip_spp")}}
         return Frame(channels=channels, camera=frame.camera, prev_camera=frame.prev_camera,
                      index=frame.index, meta=meta)
 
@@ -686,23 +684,34 @@ class Viewer:
         s["recordings"] = self.pipe.recordings()
         s["reference_spp"] = self._ref_spp
         if self._ref_color is not None:
-            s.update(self._errors(frame.numpy("color")))
+            for k in ("flip", "flip_spp"):
+                s.pop(k, None)
+            s.update(self._meter.measure(frame.numpy("color"), self._ref_color, self._ref_spp))
         else:
-            s.pop("rmse", None)
-            s.pop("flip", None)
+            for k in ("rmse", "flip", "flip_spp"):
+                s.pop(k, None)
         s["index"] = self.index
         s["direct"] = p["direct"]
         self.stats = s
         rows = "\n".join(f"| {k} | {v:.1f} |" for k, v in s["stage_ms"].items())
-        err = (f"RMSE **{s['rmse']:.4g}**, FLIP **{s['flip']:.4g}** against "
-               f"{self._ref_spp} spp" if "rmse" in s else
-               "reference: accumulates when the view stands still")
+        if "rmse" not in s:
+            err = "reference: accumulates when the view stands still"
+        else:
+            err = f"RMSE **{s['rmse']:.4g}** against {self._ref_spp} spp; " + (
+                f"FLIP **{s['flip']:.4g}** against {s['flip_spp']} spp" if "flip" in s else
+                (self._meter.error or "FLIP: measuring"))
         self._stats_md.content = (
             f"**{s['fps']:.1f} fps** ({s['frame_ms']:.0f} ms), frame {self.index}, "
             f"{s['frames']} rendered, {s['recordings']} recordings, direct: {p['direct']}\n\n"
             f"{err}\n\n| stage | ms |\n|---|---|\n{rows}")
 
     def _loop(self) -> None:
+        try:
+            self._frames()
+        finally:
+            self._meter.close()
+
+    def _frames(self) -> None:
         failures = 0
         self._set_status("recording kernels")
         while not self._stop.is_set():

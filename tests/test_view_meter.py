@@ -1,0 +1,101 @@
+"""The viewer's error meter (glossrt.view.meter): RMSE now, FLIP from a helper process."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from glossrt.metrics import flip, rmse
+from glossrt.view.meter import ErrorMeter
+
+
+def _pair(w, h, seed=0):
+    rng = np.random.default_rng(seed)
+    ref = rng.random((h, w, 3)).astype(np.float32) * 4.0
+    return (ref * rng.uniform(0.7, 1.3, ref.shape)).astype(np.float32), ref
+
+
+def test_rmse_now_flip_from_the_helper_with_its_spp():
+    img, ref = _pair(48, 27)
+    m = ErrorMeter()
+    try:
+        first = m.measure(img, ref, spp=16)
+        assert first == {"rmse": rmse(img, ref)}  # FLIP is still being evaluated
+        assert m.wait(120)
+        out = m.measure(img * 2.0, ref, spp=20)  # a later frame: the value is the 16 spp one
+        # independent of the helper: FLIP evaluated here, in this process
+        assert out["flip"] == flip(img, ref) and out["flip_spp"] == 16
+        assert out["rmse"] == rmse(img * 2.0, ref)
+        assert m.error is None
+    finally:
+        m.close()
+
+
+def test_reset_drops_the_value_measured_against_the_old_reference():
+    img, ref = _pair(48, 27, seed=1)
+    m = ErrorMeter()
+    try:
+        m.measure(img, ref, spp=8)
+        m.reset()  # the reference moved while the helper evaluated
+        assert m.wait(120)
+        assert "flip" not in m.measure(img, ref, spp=4)
+    finally:
+        m.close()
+
+
+def test_close_ends_the_helper_process():
+    img, ref = _pair(16, 9)
+    m = ErrorMeter()
+    m.measure(img, ref, spp=1)
+    procs = list(m._pool._pool)
+    assert procs and all(p.is_alive() for p in procs)
+    m.close()
+    for p in procs:
+        p.join(10)
+    assert not any(p.is_alive() for p in procs)
+
+
+def _longest_stall(work) -> tuple[float, float]:
+    """Run ``work()`` while another thread ticks every 5 ms: (the longest gap between ticks,
+    work's seconds)."""
+    gaps = [0.0]
+    done = threading.Event()
+
+    def tick():
+        last = time.perf_counter()
+        while not done.is_set():
+            time.sleep(0.005)
+            now = time.perf_counter()
+            gaps.append(now - last)
+            last = now
+
+    t = threading.Thread(target=tick)
+    t.start()
+    t0 = time.perf_counter()
+    try:
+        work()
+    finally:
+        seconds = time.perf_counter() - t0
+        done.set()
+        t.join()
+    return max(gaps), seconds
+
+
+def test_flip_never_holds_the_render_loop():
+    """The point of the helper: flip-evaluator's C++ keeps Python's lock for the whole
+    evaluation, so in-process it froze every other thread (viser's websocket, the signal
+    handler) for its duration. Here a ticking thread must keep ticking while it runs."""
+    img, ref = _pair(640, 360, seed=2)
+    m = ErrorMeter()
+    try:
+        m.measure(img, ref, spp=1)  # starts the helper (spawn) and the evaluation
+        stall, seconds = _longest_stall(lambda: m.wait(300))
+        assert "flip" in m.measure(img, ref, spp=2)
+    finally:
+        m.close()
+    # the contrast: the same FLIP in this process stalls the ticking thread throughout
+    stall_here, seconds_here = _longest_stall(lambda: flip(img, ref))
+    assert stall_here > 0.5 * seconds_here > 0.05, (stall_here, seconds_here)
+    assert seconds > 0.05 and stall < 0.25, (stall, seconds)
