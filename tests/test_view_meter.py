@@ -49,12 +49,10 @@ def test_close_ends_the_helper_process():
     img, ref = _pair(16, 9)
     m = ErrorMeter()
     m.measure(img, ref, spp=1)
-    procs = list(m._pool._pool)
-    assert procs and all(p.is_alive() for p in procs)
+    proc = m._proc
+    assert proc.poll() is None
     m.close()
-    for p in procs:
-        p.join(10)
-    assert not any(p.is_alive() for p in procs)
+    assert proc.wait(10) is not None and m._proc is None
 
 
 def _longest_stall(work) -> tuple[float, float]:
@@ -99,3 +97,42 @@ def test_flip_never_holds_the_render_loop():
     stall_here, seconds_here = _longest_stall(lambda: flip(img, ref))
     assert stall_here > 0.5 * seconds_here > 0.05, (stall_here, seconds_here)
     assert seconds > 0.05 and stall < 0.25, (stall, seconds)
+
+
+def test_a_users_unguarded_script_runs_once(tmp_path):
+    """The helper must not re-import the caller's ``__main__`` (a spawned multiprocessing
+    child does, and so re-ran a viewer script without ``if __name__ == "__main__"``)."""
+    import subprocess
+    import sys
+
+    log = tmp_path / "runs.txt"
+    script = tmp_path / "user.py"
+    script.write_text(
+        "import numpy as np\n"
+        "from glossrt.view.meter import ErrorMeter\n"
+        f"open({str(log)!r}, 'a').write('ran\\n')\n"
+        "m = ErrorMeter()\n"
+        "a = np.ones((9, 16, 3), np.float32)\n"
+        "m.measure(a, a * 1.1, spp=1)\n"
+        "assert m.wait(120)\n"
+        "print(m.measure(a, a, spp=2)['flip'])\n"
+        "m.close()\n")
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert 0.0 < float(p.stdout) < 1.0
+    assert log.read_text() == "ran\n"
+
+
+def test_a_helper_that_dies_is_reported_not_raised():
+    m = ErrorMeter()
+    try:
+        a = np.ones((9, 16, 3), np.float32)
+        m.measure(a, a * 1.1, spp=1)
+        m._proc.kill()  # as an out-of-memory kill would
+        assert m.wait(120)
+        out = m.measure(a, a, spp=2)
+        assert "flip" not in out and "helper ended" in m.error and m._proc is None
+        assert "rmse" in out  # the panel keeps its RMSE
+    finally:
+        m.close()

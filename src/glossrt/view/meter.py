@@ -12,8 +12,13 @@ and is reported with the reference's sample count it was measured against.
 
 from __future__ import annotations
 
+import io
 import os
+import select
+import subprocess
+import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,9 +28,27 @@ import numpy as np
 MIN_INTERVAL_S = 0.5
 
 
-def _helper_init() -> None:
-    """Run in the helper before ``flip_evaluator`` loads: OpenMP reads this at load time."""
-    os.environ["OMP_NUM_THREADS"] = "1"
+def _helper_main() -> None:
+    """The helper process: read (image, reference) pairs as ``.npy`` from stdin, answer each
+    with one line, FLIP's mean or ``error: ...``; end at end of input."""
+    from ..metrics import flip
+
+    class _Pipe:  # read() only: NumPy's reader then never asks a pipe for its position
+        read = sys.stdin.buffer.read
+
+    inp, out = _Pipe(), sys.stdout
+    while True:
+        try:
+            img = np.lib.format.read_array(inp)
+            ref = np.lib.format.read_array(inp)
+        except (EOFError, ValueError, OSError):  # the viewer closed the pipe or ended
+            return
+        try:
+            line = repr(flip(img, ref))
+        except Exception as e:  # noqa: BLE001 - reported to the viewer's panel
+            line = f"error: {type(e).__name__}: {e}".replace("\n", " ")
+        out.write(line + "\n")
+        out.flush()
 
 
 class ErrorMeter:
@@ -36,11 +59,15 @@ class ErrorMeter:
     {'rmse': 0.012}                    # FLIP is being evaluated
     >>> m.measure(color, reference, spp=68)                 # doctest: +SKIP
     {'rmse': 0.011, 'flip': 0.043, 'flip_spp': 64}
+
+    The helper is a plain ``python -c`` child fed through a pipe, not ``multiprocessing``:
+    a spawned ``multiprocessing`` child re-imports the parent's ``__main__``, which re-ran
+    a user's unguarded viewer script in the helper.
     """
 
     def __init__(self) -> None:
-        self._pool = None
-        self._job = None  # (AsyncResult, generation, spp)
+        self._proc: subprocess.Popen | None = None
+        self._job: tuple[int, int] | None = None  # (generation, spp) of the running one
         self._generation = 0
         self._started = -np.inf
         self._flip: tuple[float, int] | None = None
@@ -60,7 +87,7 @@ class ErrorMeter:
         from ..metrics import rmse
 
         out: dict[str, Any] = {"rmse": rmse(color, reference)}
-        self._collect()
+        self._collect(0.0)
         if self._job is None and self.error is None and \
                 time.monotonic() - self._started >= MIN_INTERVAL_S:
             self._submit(color, reference, spp)
@@ -70,43 +97,59 @@ class ErrorMeter:
 
     def wait(self, timeout: float = 60.0) -> bool:
         """Block until the running FLIP evaluation (if any) is collected (for tests)."""
-        if self._job is not None:
-            self._job[0].wait(timeout)
-        self._collect()
+        self._collect(timeout)
         return self._job is None
 
     def close(self) -> None:
         """End the helper process now (a running evaluation is abandoned)."""
-        if self._pool is not None:
-            self._pool.terminate()
-            self._pool = None
-        self._job = None
+        p, self._proc, self._job = self._proc, None, None
+        if p is not None:
+            p.kill()
+            p.wait()
+            for f in (p.stdin, p.stdout):
+                f.close()
 
     def _submit(self, color: np.ndarray, reference: np.ndarray, spp: int) -> None:
-        from ..metrics import flip
+        if self._proc is None:
+            import glossrt
 
-        if self._pool is None:
-            import multiprocessing
-
-            # spawn: a fork would copy Dr.Jit's and viser's threads' state mid-flight
-            self._pool = multiprocessing.get_context("spawn").Pool(1, _helper_init)
-        job = self._pool.apply_async(flip, (np.array(color, np.float32),
-                                            np.array(reference, np.float32)))
-        self._job = (job, self._generation, int(spp))
+            env = dict(os.environ, OMP_NUM_THREADS="1")  # OpenMP reads it when FLIP loads
+            root = str(Path(glossrt.__file__).resolve().parent.parent)
+            env["PYTHONPATH"] = os.pathsep.join(
+                [root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+            self._proc = subprocess.Popen(
+                [sys.executable, "-c",
+                 "from glossrt.view.meter import _helper_main; _helper_main()"],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+        try:
+            for a in (color, reference):  # .npy, written whole (no file position needed)
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, np.ascontiguousarray(a, np.float32))
+                self._proc.stdin.write(buf.getbuffer())
+            self._proc.stdin.flush()
+        except OSError as e:  # the helper died
+            self._failed(f"FLIP helper ended ({e})")
+            return
+        self._job = (self._generation, int(spp))
         self._started = time.monotonic()
 
-    def _collect(self) -> None:
-        if self._job is None or not self._job[0].ready():
+    def _collect(self, timeout: float) -> None:
+        if self._job is None:
             return
-        job, generation, spp = self._job
+        fd = self._proc.stdout
+        if not select.select([fd], [], [], timeout)[0]:
+            return
+        line = fd.readline().decode().strip()
+        generation, spp = self._job
         self._job = None
-        try:
-            value = float(job.get(0))
-        except Exception as e:  # noqa: BLE001 - shown in the panel instead of FLIP
-            self.error = f"FLIP failed: {type(e).__name__}: {e}"
-            return
-        if generation == self._generation:
-            self._flip = (value, spp)
+        if not line or line.startswith("error:"):
+            self._failed(f"FLIP {line or 'helper ended'}")
+        elif generation == self._generation:
+            self._flip = (float(line), spp)
+
+    def _failed(self, why: str) -> None:
+        self.error = why
+        self.close()
 
 
 __all__ = ["ErrorMeter", "MIN_INTERVAL_S"]
