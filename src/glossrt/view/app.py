@@ -738,7 +738,9 @@ class Viewer:
                     self._layer.options = shown
                 img = self._image(frame)
                 self.last_frame, self.last_image = frame, img
-                self.server.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
+                if not self._stop.is_set():  # (a stopped server warns of an undelivered image)
+                    self.server.scene.set_background_image(img, format="jpeg",
+                                                           jpeg_quality=90)
                 self._captures(frame, actions)
                 self._show_stats(frame, seconds)
                 recorded = self.pipe.recordings() - rec0
