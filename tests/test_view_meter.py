@@ -88,7 +88,7 @@ def test_flip_never_holds_the_render_loop():
     img, ref = _pair(640, 360, seed=2)
     m = ErrorMeter()
     try:
-        m.measure(img, ref, spp=1)  # starts the helper (spawn) and the evaluation
+        m.measure(img, ref, spp=1)  # starts the helper process and the evaluation
         stall, seconds = _longest_stall(lambda: m.wait(300))
         assert "flip" in m.measure(img, ref, spp=2)
     finally:

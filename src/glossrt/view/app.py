@@ -40,6 +40,8 @@ from .camera import ViewerCamera, from_pipeline, gizmo_matrix, to_pipeline
 from .inbox import Inbox
 from .meter import ErrorMeter
 
+#: the stats measured against the reference (ErrorMeter.measure), kept in a capture's meta
+ERROR_KEYS = ("rmse", "flip", "flip_spp")
 #: frames without any change before the reference starts accumulating
 STILL_FRAMES = 2
 #: samples per pixel the reference adds per loop iteration, and where it stops
@@ -634,8 +636,7 @@ class Viewer:
             channels["reference"] = self._ref_color.astype(np.float32)
         meta = dict(frame.meta)
         meta["viewer"] = {"layer": self.layer, "reference_spp": self._ref_spp,
-                          **{k: v for k, v in self.stats.items()
-                             if k in ("rmse", "flip", "flip_spp")}}
+                          **{k: v for k, v in self.stats.items() if k in ERROR_KEYS}}
         return Frame(channels=channels, camera=frame.camera, prev_camera=frame.prev_camera,
                      index=frame.index, meta=meta)
 
@@ -683,13 +684,10 @@ class Viewer:
         s["stage_ms"] = dict(p["stage_ms"])
         s["recordings"] = self.pipe.recordings()
         s["reference_spp"] = self._ref_spp
+        for k in ERROR_KEYS:
+            s.pop(k, None)
         if self._ref_color is not None:
-            for k in ("flip", "flip_spp"):
-                s.pop(k, None)
             s.update(self._meter.measure(frame.numpy("color"), self._ref_color, self._ref_spp))
-        else:
-            for k in ("rmse", "flip", "flip_spp"):
-                s.pop(k, None)
         s["index"] = self.index
         s["direct"] = p["direct"]
         self.stats = s
