@@ -85,21 +85,32 @@ def _screen(page) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(page.screenshot())).convert("RGB"))
 
 
-def test_the_page_shows_the_rendered_frame(viewer, page):
+def test_the_page_shows_the_rendered_frame(viewer, page, tmp_path):
     viewer.inbox.post("layer", "normal")  # the G-buffer: the same image every frame
     assert viewer.wait(until=lambda: viewer.layer == "normal", timeout=60)
     assert viewer.wait(3, timeout=60)
-    page.wait_for_timeout(1500)
-    shot = _gray(_screen(page))
-    img = _gray(viewer.last_image)
-    ys = (np.arange(shot.shape[0]) * SIZE[1] // shot.shape[0])
-    xs = (np.arange(shot.shape[1]) * SIZE[0] // shot.shape[1])
-    big = img[ys][:, xs]
     # the region free of the panel (right), the notice (top left) and the light's gizmo
     region = (slice(200, 520), slice(40, 580))
-    err = np.abs(shot[region] - big[region]).mean()
-    flipped = np.abs(shot[region] - big[::-1][region]).mean()
-    assert err < 20.0, err  # JPEG and the browser's scaling
+    # A loaded machine (CI runs two test workers on two cores) can take seconds to deliver
+    # and decode the image: look again until the page shows it, for at most 45 s.
+    t_end = time.monotonic() + 45
+    while True:
+        page.wait_for_timeout(1500)
+        shot = _gray(_screen(page))
+        img = _gray(viewer.last_image)
+        ys = (np.arange(shot.shape[0]) * SIZE[1] // shot.shape[0])
+        xs = (np.arange(shot.shape[1]) * SIZE[0] // shot.shape[1])
+        big = img[ys][:, xs]
+        err = np.abs(shot[region] - big[region]).mean()
+        flipped = np.abs(shot[region] - big[::-1][region]).mean()
+        if (err < 20.0 and flipped > 2.0 * err) or time.monotonic() > t_end:
+            break
+    if err >= 20.0:
+        from PIL import Image
+
+        Image.fromarray(np.clip(shot, 0, 255).astype(np.uint8)).save(tmp_path / "shot.png")
+        Image.fromarray(np.clip(big, 0, 255).astype(np.uint8)).save(tmp_path / "frame.png")
+    assert err < 20.0, (err, str(tmp_path))  # JPEG and the browser's scaling
     assert flipped > 2.0 * err, (err, flipped)  # the picture, not just its mean
     viewer.inbox.post("layer", "color")
 

@@ -96,7 +96,10 @@ def test_flip_never_holds_the_render_loop():
     # the contrast: the same FLIP in this process stalls the ticking thread throughout
     stall_here, seconds_here = _longest_stall(lambda: flip(img, ref))
     assert stall_here > 0.5 * seconds_here > 0.05, (stall_here, seconds_here)
-    assert seconds > 0.05 and stall < 0.25, (stall, seconds)
+    # Held, the thread would wait the whole evaluation. Free, its longest wait is the OS's
+    # scheduling: under 0.25 s on an idle machine, and a small part of an evaluation that a
+    # loaded machine (two test workers, stolen CPU time) stretches to seconds.
+    assert seconds > 0.05 and stall < max(0.25, 0.1 * seconds), (stall, seconds)
 
 
 def test_a_users_unguarded_script_runs_once(tmp_path):
