@@ -174,6 +174,19 @@ def test_captures_must_be_a_folder(tmp_path):
         gv.open("polygon-light", port=0, captures=tmp_path / "a" / "b", verbose=False)
 
 
+def test_a_relative_captures_folder_is_the_one_under_the_folder_at_open(tmp_path,
+                                                                      monkeypatch):
+    """The render loop may write a capture after ``stop`` returned: a relative folder must not
+    follow the caller's later change of directory (the README test's capture once landed in
+    the repository's ./captures after the test had changed back)."""
+    from glossrt.view.app import _check_captures
+
+    monkeypatch.chdir(tmp_path)
+    caps = _check_captures("caps")
+    monkeypatch.chdir(tmp_path.parent)
+    assert caps == tmp_path / "caps" and caps.is_absolute()
+
+
 def _free_port() -> int:
     import socket
 

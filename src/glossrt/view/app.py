@@ -99,16 +99,18 @@ def _free_port(host: str) -> int:
 
 
 def _check_captures(path) -> Path:
-    """The captures folder: it may not exist yet (made at the first capture), but what is
-    there must be a writable folder, and its parent must exist."""
-    p = Path(os.fspath(path)).expanduser()
+    """The captures folder, made absolute: a relative one is the folder under the working
+    directory at open time (the render loop may still write a capture after ``stop``
+    returns, when the caller may have changed directory). It may not exist yet (made at the
+    first capture), but what is there must be a writable folder, and its parent must exist."""
+    p = Path(os.fspath(path)).expanduser().absolute()
     if p.exists():
         if not p.is_dir():
             raise GlossrtError(f"captures: {p} exists and is not a folder")
         if not os.access(p, os.W_OK):
             raise GlossrtError(f"captures: folder {p} is not writable")
     else:
-        parent = p.parent if str(p.parent) else Path(".")
+        parent = p.parent
         if not parent.is_dir():
             raise GlossrtError(f"captures: the folder above {p} does not exist")
         if not os.access(parent, os.W_OK):
