@@ -742,11 +742,12 @@ class Viewer:
                     self.server.scene.set_background_image(img, format="jpeg",
                                                            jpeg_quality=90)
                 self._captures(frame, actions)
-                self._show_stats(frame, seconds)
                 recorded = self.pipe.recordings() - rec0
+                # the status first: once the stats show the new state, the status says so too
                 self._set_status(f"recorded {recorded} kernel(s)" if recorded else
                                  ("playing" if self.playing else
                                   "converging reference" if self._ref_spp else "live"))
+                self._show_stats(frame, seconds)
                 if self.playing:
                     self.index += 1
                 failures = 0
