@@ -105,6 +105,8 @@ def test_light_gizmo_moves_the_light(viewer):
 def test_reference_accumulates_on_pause_and_is_the_truth(viewer):
     import mitsuba as mi
 
+    import glossrt.view as gv
+
     viewer.inbox.act("reset_pose")
     # FLIP comes from the meter's helper process, a frame or more behind
     assert viewer.wait(until=lambda: viewer.stats.get("reference_spp", 0) >= 64 and
@@ -116,7 +118,8 @@ def test_reference_accumulates_on_pause_and_is_the_truth(viewer):
     # independent: Mitsuba's own path integrator on the same scene and pose
     setup = viewer.pipe.setup
     r = viewer.pipe._gbuffer.renderer
-    img = np.asarray(r.render_mitsuba(0, 256, seed=5))
+    with gv.DRJIT_LOCK:  # (the viewer's loop renders meanwhile)
+        img = np.asarray(r.render_mitsuba(0, 256, seed=5))
     assert isinstance(img, np.ndarray) or isinstance(img, mi.TensorXf)
     lum = lambda x: (np.asarray(x)[..., :3] @ [0.2126, 0.7152, 0.0722])  # noqa: E731
     assert lum(ref).mean() == pytest.approx(lum(img).mean(), rel=0.05)
@@ -185,6 +188,46 @@ def test_a_relative_captures_folder_is_the_one_under_the_folder_at_open(tmp_path
     caps = _check_captures("caps")
     monkeypatch.chdir(tmp_path.parent)
     assert caps == tmp_path / "caps" and caps.is_absolute()
+
+
+def test_two_viewers_take_turns_and_a_frame_after_stop_writes_nothing(viewer, tmp_path):
+    """Two viewers in one process both render (their loops' frozen kernels at once once
+    deadlocked: DRJIT_LOCK). ``stop`` returns within its timeout while a long frame goes on;
+    when that frame ends, the loop must not write to the panel or the scene (viser warns of,
+    and never delivers, a message queued after the server stopped: the README test showed
+    that warning)."""
+    import threading
+    import warnings
+
+    import glossrt.view as gv
+
+    v = gv.open("polygon-light", pipeline="schied2017", size=(16, 9), port=0,
+                captures=tmp_path / "c", verbose=False)
+    try:
+        assert v.wait(3, timeout=240), v.message  # new kernels (another size) ...
+        _settle(viewer, 3)  # ... while the fixture's viewer renders too
+        rendering, render = threading.Event(), v.pipe.render
+
+        def slow(index):  # a frame longer than stop's timeout
+            rendering.set()
+            time.sleep(3.0)
+            return render(index)
+
+        v.pipe.render = slow
+        v.inbox.act("step", 1)  # a change: the loop renders again now
+        assert rendering.wait(60)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            t0 = time.monotonic()
+            v.stop(timeout=1.0)
+            assert time.monotonic() - t0 < 1.5
+            assert v._thread.is_alive()  # the frame goes on after stop returned
+            v._thread.join(60)
+        assert not v._thread.is_alive()
+        assert not [w for w in caught if "closed connection" in str(w.message)], \
+            [str(w.message) for w in caught]
+    finally:
+        v.stop()
 
 
 def _free_port() -> int:

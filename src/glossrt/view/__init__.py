@@ -11,8 +11,12 @@ Built on viser (its websocket server, camera callbacks, GUI widgets and streamed
 images): :mod:`glossrt.view.app` runs the server and the render loop,
 :mod:`~glossrt.view.inbox` coalesces the browser's events, :mod:`~glossrt.view.camera`
 converts cameras and light gizmos, :mod:`~glossrt.view.layers` turns layers into images.
+
+Viewers in one process take turns: each frame's Dr.Jit work holds :data:`DRJIT_LOCK` (two
+threads recording or replaying frozen kernels at once deadlock). Hold it too for Dr.Jit work
+of your own while a viewer runs.
 """
 
-from .app import Viewer, open, serve
+from .app import DRJIT_LOCK, Viewer, open, serve
 
-__all__ = ["Viewer", "open", "serve"]
+__all__ = ["DRJIT_LOCK", "Viewer", "open", "serve"]

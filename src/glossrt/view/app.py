@@ -55,6 +55,10 @@ SYNC_SECONDS = 10.0
 #: direction, up and fov in radians) is an echo, not a move: a user's drag moves it by far
 #: more, and clients report our camera back through float32 and their own orbit maths
 ECHO_TOL = 1e-3
+#: every viewer's Dr.Jit work in this process, one at a time: two render loops recording or
+#: replaying frozen kernels at once deadlock (one thread holds the GIL waiting for Dr.Jit's
+#: lock, the other holds that lock waiting for the GIL) or crash
+DRJIT_LOCK = threading.RLock()
 
 #: GUI ranges of the numeric pipeline options (slider: min, max, step); others are numbers
 SLIDERS: dict[str, tuple[float, float, float]] = {
@@ -146,18 +150,23 @@ class Viewer:
         pl.resolve(preset, **choices)  # names and values, before the scene loads
         self.captures = _check_captures(captures)
         self.verbose = verbose
-        from ..scenes import load
-
-        setup = load(scene, size=size)
-        self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
-                                **choices)
         import drjit as dr
 
-        dr.sync_thread()  # the render loop's thread takes over every Dr.Jit array
+        from ..scenes import load
+
+        with DRJIT_LOCK:  # (another viewer's loop may be rendering)
+            setup = load(scene, size=size)
+            self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
+                                    **choices)
+            dr.sync_thread()  # the render loop's thread takes over every Dr.Jit array
         self.size = tuple(setup.size)
         self.inbox = Inbox()
         self._lock = threading.Lock()  # the snapshot the API reads (stats, last images)
         self._save_lock = threading.Lock()
+        # the render loop's writes to the panel and the scene, and the server's stop: viser
+        # warns of (and never delivers) a message queued after it stopped
+        self._gui_lock = threading.RLock()
+        self._gui_open = True
         self._stop = threading.Event()
         self._syncing = False
         self.index = 0
@@ -462,10 +471,14 @@ class Viewer:
         self.inbox.wake()
         self._thread.join(max(0.0, t_end - time.monotonic() - 0.3))
         got = self._save_lock.acquire(timeout=max(0.0, t_end - time.monotonic() - 0.2))
+        got_gui = self._gui_lock.acquire(timeout=max(0.0, t_end - time.monotonic() - 0.1))
         try:
+            self._gui_open = False  # the loop, still finishing a frame, writes nothing more
             if stop_server:
                 self.server.stop()
         finally:
+            if got_gui:
+                self._gui_lock.release()
             if got:
                 self._save_lock.release()
 
@@ -498,14 +511,25 @@ class Viewer:
             return  # (every frame sets it: no GUI update, no repeats in the log)
         self.status = text
         self.status_log.append(text)
-        self._status_md.content = f"**{text}**"
+        self._show(self._status_md, "content", f"**{text}**")
 
     def _set_message(self, text: str) -> None:
         self.message = text
-        self._message_md.content = text
+        self._show(self._message_md, "content", text)
+
+    def _show(self, handle, prop: str, value) -> None:
+        """Set a panel handle's property, unless the server is stopping."""
+        with self._gui_lock:
+            if self._gui_open:
+                setattr(handle, prop, value)
 
     def _sync_widgets(self) -> None:
         """Show the pipeline's options in the panel (after a refusal or a preset change)."""
+        with self._gui_lock:
+            if self._gui_open:
+                self._sync_open_widgets()
+
+    def _sync_open_widgets(self) -> None:
         self._syncing = True
         try:
             self._preset.value = self.pipe.preset
@@ -528,8 +552,8 @@ class Viewer:
         """Light ``sid``'s gizmo back at the light's rest pose."""
         g = self._gizmos.get(sid)
         if g is not None:
-            g.position = tuple(float(v) for v in self._lights[sid][0])
-            g.wxyz = (1.0, 0.0, 0.0, 0.0)
+            self._show(g, "position", tuple(float(v) for v in self._lights[sid][0]))
+            self._show(g, "wxyz", (1.0, 0.0, 0.0, 0.0))
 
     def _apply(self, values: dict[str, Any], actions) -> bool:
         """Apply what was posted; True when the pose or the pipeline changed."""
@@ -580,8 +604,9 @@ class Viewer:
             self._camera = self._scene_camera()
             for sid in self._gizmos:
                 self._reset_gizmo(sid)
-            for client in self.server.get_clients().values():
-                self._send_camera(client, self._camera)
+            with self._gui_lock:
+                for client in self.server.get_clients().values() if self._gui_open else ():
+                    self._send_camera(client, self._camera)
             changed = True
         if actions.get("play", 0) % 2:
             self.playing = not self.playing
@@ -700,10 +725,10 @@ class Viewer:
             err = f"RMSE **{s['rmse']:.4g}** against {self._ref_spp} spp; " + (
                 f"FLIP **{s['flip']:.4g}** against {s['flip_spp']} spp" if "flip" in s else
                 (self._meter.error or "FLIP: measuring"))
-        self._stats_md.content = (
+        self._show(self._stats_md, "content", (
             f"**{s['fps']:.1f} fps** ({s['frame_ms']:.0f} ms), frame {self.index}, "
             f"{s['frames']} rendered, {s['recordings']} recordings, direct: {p['direct']}\n\n"
-            f"{err}\n\n| stage | ms |\n|---|---|\n{rows}")
+            f"{err}\n\n| stage | ms |\n|---|---|\n{rows}"))
 
     def _loop(self) -> None:
         try:
@@ -721,35 +746,8 @@ class Viewer:
             if self._stop.is_set():
                 break
             try:
-                self._rebuilt = False
-                if self._apply(values, actions) or self.playing:
-                    self._reference_reset()
-                if self._rebuilt:  # a rebuilt stage records its kernels on this frame
-                    self._set_status("recording kernels")
-                t0 = time.perf_counter()
-                rec0 = self.pipe.recordings()
-                frame = self.pipe.render(self.index)
-                seconds = time.perf_counter() - t0
-                self._still += 1
-                if self._still > STILL_FRAMES and self._ref_spp < REFERENCE_MAX_SPP:
-                    self._reference_step(self.index)
-                shown = layers.names(frame.names)
-                if list(self._layer.options) != shown:  # every channel of this pipeline's frame
-                    self._layer.options = shown
-                img = self._image(frame)
-                self.last_frame, self.last_image = frame, img
-                if not self._stop.is_set():  # (a stopped server warns of an undelivered image)
-                    self.server.scene.set_background_image(img, format="jpeg",
-                                                           jpeg_quality=90)
-                self._captures(frame, actions)
-                recorded = self.pipe.recordings() - rec0
-                # the status first: once the stats show the new state, the status says so too
-                self._set_status(f"recorded {recorded} kernel(s)" if recorded else
-                                 ("playing" if self.playing else
-                                  "converging reference" if self._ref_spp else "live"))
-                self._show_stats(frame, seconds)
-                if self.playing:
-                    self.index += 1
+                with DRJIT_LOCK:
+                    self._frame(values, actions)
                 failures = 0
             except Exception as e:  # noqa: BLE001 - shown in the panel, the loop goes on
                 failures += 1
@@ -759,6 +757,39 @@ class Viewer:
                     self._set_status("stopped after 3 failed frames")
                     return
                 time.sleep(0.5)
+
+    def _frame(self, values: dict[str, Any], actions) -> None:
+        """One iteration of the loop: apply what was posted, render, show, capture."""
+        self._rebuilt = False
+        if self._apply(values, actions) or self.playing:
+            self._reference_reset()
+        if self._rebuilt:  # a rebuilt stage records its kernels on this frame
+            self._set_status("recording kernels")
+        t0 = time.perf_counter()
+        rec0 = self.pipe.recordings()
+        frame = self.pipe.render(self.index)
+        seconds = time.perf_counter() - t0
+        self._still += 1
+        if self._still > STILL_FRAMES and self._ref_spp < REFERENCE_MAX_SPP:
+            self._reference_step(self.index)
+        shown = layers.names(frame.names)
+        if list(self._layer.options) != shown:  # every channel of this pipeline's frame
+            self._show(self._layer, "options", shown)
+        img = self._image(frame)
+        self.last_frame, self.last_image = frame, img
+        with self._gui_lock:
+            if self._gui_open:
+                self.server.scene.set_background_image(img, format="jpeg",
+                                                       jpeg_quality=90)
+        self._captures(frame, actions)
+        recorded = self.pipe.recordings() - rec0
+        # the status first: once the stats show the new state, the status says so too
+        self._set_status(f"recorded {recorded} kernel(s)" if recorded else
+                         ("playing" if self.playing else
+                          "converging reference" if self._ref_spp else "live"))
+        self._show_stats(frame, seconds)
+        if self.playing:
+            self.index += 1
 
 
 def open(scene, pipeline: str = "full", size=(320, 180), host: str = "127.0.0.1",
