@@ -210,7 +210,7 @@ def test_two_viewers_take_turns_and_a_frame_after_stop_writes_nothing(viewer, tm
 
         def slow(index):  # a frame longer than stop's timeout
             rendering.set()
-            time.sleep(3.0)
+            time.sleep(5.0)
             return render(index)
 
         v.pipe.render = slow
@@ -220,7 +220,7 @@ def test_two_viewers_take_turns_and_a_frame_after_stop_writes_nothing(viewer, tm
             warnings.simplefilter("always")
             t0 = time.monotonic()
             v.stop(timeout=1.0)
-            assert time.monotonic() - t0 < 1.5
+            assert time.monotonic() - t0 < 3.0  # (1 s, and a loaded machine's slack)
             assert v._thread.is_alive()  # the frame goes on after stop returned
             v._thread.join(60)
         assert not v._thread.is_alive()
