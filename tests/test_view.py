@@ -191,7 +191,7 @@ def test_a_relative_captures_folder_is_the_one_under_the_folder_at_open(tmp_path
 
 
 def test_two_viewers_take_turns_and_a_frame_after_stop_writes_nothing(viewer, tmp_path):
-    """Two viewers in one process both render (their loops' frozen kernels at once once
+    """Two viewers in one process both render (their loops running frozen kernels at once
     deadlocked: DRJIT_LOCK). ``stop`` returns within its timeout while a long frame goes on;
     when that frame ends, the loop must not write to the panel or the scene (viser warns of,
     and never delivers, a message queued after the server stopped: the README test showed

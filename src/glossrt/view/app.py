@@ -158,15 +158,15 @@ class Viewer:
             setup = load(scene, size=size)
             self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
                                     **choices)
+            self.size = tuple(setup.size)
+            self._lights = self._light_rests()
+            self._camera = self._scene_camera()
             dr.sync_thread()  # the render loop's thread takes over every Dr.Jit array
-        self.size = tuple(setup.size)
         self.inbox = Inbox()
         self._lock = threading.Lock()  # the snapshot the API reads (stats, last images)
         self._save_lock = threading.Lock()
-        # the render loop's writes to the panel and the scene, and the server's stop: viser
-        # warns of (and never delivers) a message queued after it stopped
+        # the render loop's writes to the panel and the scene (see _gui), and stop()
         self._gui_lock = threading.RLock()
-        self._gui_open = True
         self._stop = threading.Event()
         self._syncing = False
         self.index = 0
@@ -191,8 +191,6 @@ class Viewer:
         self._still = 0
         self._sent_camera: ViewerCamera | None = None
         self._syncing_clients: dict[int, float] = {}
-        self._lights = self._light_rests()
-        self._camera = self._scene_camera()
         self._start_server(host, port)
         self._build_gui()
         self._thread = threading.Thread(target=self._loop, name="glossrt-view", daemon=True)
@@ -379,8 +377,7 @@ class Viewer:
             return
         cam = self._camera
         new = ViewerCamera(cam.position, cam.look_at, cam.up, math.radians(self._fov.value))
-        for client in self.server.get_clients().values():
-            self._send_camera(client, new)
+        self._send_cameras(new)
         self.inbox.post("camera", new)
 
     def _on_preset(self, ev) -> None:
@@ -471,9 +468,10 @@ class Viewer:
         self.inbox.wake()
         self._thread.join(max(0.0, t_end - time.monotonic() - 0.3))
         got = self._save_lock.acquire(timeout=max(0.0, t_end - time.monotonic() - 0.2))
+        # a write of the loop (still finishing a frame) in progress ends first; later ones are
+        # skipped, as _stop is set (see _gui)
         got_gui = self._gui_lock.acquire(timeout=max(0.0, t_end - time.monotonic() - 0.1))
         try:
-            self._gui_open = False  # the loop, still finishing a frame, writes nothing more
             if stop_server:
                 self.server.stop()
         finally:
@@ -511,25 +509,29 @@ class Viewer:
             return  # (every frame sets it: no GUI update, no repeats in the log)
         self.status = text
         self.status_log.append(text)
-        self._show(self._status_md, "content", f"**{text}**")
+        self._gui(setattr, self._status_md, "content", f"**{text}**")
 
     def _set_message(self, text: str) -> None:
         self.message = text
-        self._show(self._message_md, "content", text)
+        self._gui(setattr, self._message_md, "content", text)
 
-    def _show(self, handle, prop: str, value) -> None:
-        """Set a panel handle's property, unless the server is stopping."""
+    def _gui(self, write, *args, **kwargs) -> None:
+        """The render loop's every write to the panel or the scene: ``write(*args,
+        **kwargs)``, unless :meth:`stop` has begun (viser warns of, and never delivers, a
+        message queued after its server stopped; stop() waits for a write in progress)."""
         with self._gui_lock:
-            if self._gui_open:
-                setattr(handle, prop, value)
+            if not self._stop.is_set():
+                write(*args, **kwargs)
+
+    def _send_cameras(self, cam: ViewerCamera) -> None:
+        for client in self.server.get_clients().values():
+            self._send_camera(client, cam)
 
     def _sync_widgets(self) -> None:
         """Show the pipeline's options in the panel (after a refusal or a preset change)."""
-        with self._gui_lock:
-            if self._gui_open:
-                self._sync_open_widgets()
+        self._gui(self._write_widgets)
 
-    def _sync_open_widgets(self) -> None:
+    def _write_widgets(self) -> None:
         self._syncing = True
         try:
             self._preset.value = self.pipe.preset
@@ -552,8 +554,8 @@ class Viewer:
         """Light ``sid``'s gizmo back at the light's rest pose."""
         g = self._gizmos.get(sid)
         if g is not None:
-            self._show(g, "position", tuple(float(v) for v in self._lights[sid][0]))
-            self._show(g, "wxyz", (1.0, 0.0, 0.0, 0.0))
+            self._gui(setattr, g, "position", tuple(float(v) for v in self._lights[sid][0]))
+            self._gui(setattr, g, "wxyz", (1.0, 0.0, 0.0, 0.0))
 
     def _apply(self, values: dict[str, Any], actions) -> bool:
         """Apply what was posted; True when the pose or the pipeline changed."""
@@ -604,9 +606,7 @@ class Viewer:
             self._camera = self._scene_camera()
             for sid in self._gizmos:
                 self._reset_gizmo(sid)
-            with self._gui_lock:
-                for client in self.server.get_clients().values() if self._gui_open else ():
-                    self._send_camera(client, self._camera)
+            self._gui(self._send_cameras, self._camera)
             changed = True
         if actions.get("play", 0) % 2:
             self.playing = not self.playing
@@ -725,7 +725,7 @@ class Viewer:
             err = f"RMSE **{s['rmse']:.4g}** against {self._ref_spp} spp; " + (
                 f"FLIP **{s['flip']:.4g}** against {s['flip_spp']} spp" if "flip" in s else
                 (self._meter.error or "FLIP: measuring"))
-        self._show(self._stats_md, "content", (
+        self._gui(setattr, self._stats_md, "content", (
             f"**{s['fps']:.1f} fps** ({s['frame_ms']:.0f} ms), frame {self.index}, "
             f"{s['frames']} rendered, {s['recordings']} recordings, direct: {p['direct']}\n\n"
             f"{err}\n\n| stage | ms |\n|---|---|\n{rows}"))
@@ -774,13 +774,10 @@ class Viewer:
             self._reference_step(self.index)
         shown = layers.names(frame.names)
         if list(self._layer.options) != shown:  # every channel of this pipeline's frame
-            self._show(self._layer, "options", shown)
+            self._gui(setattr, self._layer, "options", shown)
         img = self._image(frame)
         self.last_frame, self.last_image = frame, img
-        with self._gui_lock:
-            if self._gui_open:
-                self.server.scene.set_background_image(img, format="jpeg",
-                                                       jpeg_quality=90)
+        self._gui(self.server.scene.set_background_image, img, format="jpeg", jpeg_quality=90)
         self._captures(frame, actions)
         recorded = self.pipe.recordings() - rec0
         # the status first: once the stats show the new state, the status says so too
