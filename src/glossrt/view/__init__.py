@@ -12,9 +12,9 @@ images): :mod:`glossrt.view.app` runs the server and the render loop,
 :mod:`~glossrt.view.inbox` coalesces the browser's events, :mod:`~glossrt.view.camera`
 converts cameras and light gizmos, :mod:`~glossrt.view.layers` turns layers into images.
 
-Viewers in one process take turns: each frame's Dr.Jit work holds :data:`DRJIT_LOCK` (two
-threads recording or replaying frozen kernels at once deadlock). Hold it too for Dr.Jit work
-of your own while a viewer runs.
+One viewer runs per process (a second is refused until the first is stopped: two render
+loops in one process deadlock in Dr.Jit). Its frames' Dr.Jit work holds :data:`DRJIT_LOCK`;
+hold it too for Dr.Jit work of your own while the viewer runs.
 """
 
 from .app import DRJIT_LOCK, Viewer, open, serve

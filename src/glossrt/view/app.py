@@ -55,10 +55,28 @@ SYNC_SECONDS = 10.0
 #: direction, up and fov in radians) is an echo, not a move: a user's drag moves it by far
 #: more, and clients report our camera back through float32 and their own orbit maths
 ECHO_TOL = 1e-3
-#: every viewer's Dr.Jit work in this process, one at a time: two render loops recording or
-#: replaying frozen kernels at once deadlock (one thread holds the GIL waiting for Dr.Jit's
-#: lock, the other holds that lock waiting for the GIL) or crash
+#: the viewer's Dr.Jit work in this process: a frame of its render loop, its start-up; hold it
+#: for Dr.Jit work of your own while a viewer runs (a thread running frozen kernels holds
+#: Dr.Jit's lock and waits for the GIL; another thread's Dr.Jit call waits for that lock with
+#: the GIL held: a deadlock, or a crash)
 DRJIT_LOCK = threading.RLock()
+#: the viewer of this process (one at a time: two render loops deadlocked even with each
+#: frame under DRJIT_LOCK, since any thread's freeing of a Dr.Jit array takes Dr.Jit's lock)
+_CURRENT: list[Viewer] = []
+_CURRENT_LOCK = threading.Lock()
+
+
+def _claim(viewer: Viewer) -> None:
+    """Make ``viewer`` this process' viewer: refused while another one runs; one that was
+    stopped may still be finishing a frame, which is waited for."""
+    with _CURRENT_LOCK:
+        for old in _CURRENT:
+            if not old._stop.is_set():
+                raise GlossrtError(f"a viewer already runs in this process ({old.url}): stop "
+                                   "it first (two render loops in one process deadlock)")
+            if old._thread.is_alive():
+                old._thread.join()
+        _CURRENT[:] = [viewer]
 
 #: GUI ranges of the numeric pipeline options (slider: min, max, step); others are numbers
 SLIDERS: dict[str, tuple[float, float, float]] = {
@@ -150,11 +168,22 @@ class Viewer:
         pl.resolve(preset, **choices)  # names and values, before the scene loads
         self.captures = _check_captures(captures)
         self.verbose = verbose
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="glossrt-view", daemon=True)
+        _claim(self)
+        try:
+            self._start(scene, preset, choices, size, host, port, verbose, bspvt)
+        except BaseException:
+            self._stop.set()  # (the claim is given up: nothing runs)
+            raise
+
+    def _start(self, scene, preset, choices, size, host, port, verbose, bspvt) -> None:
         import drjit as dr
 
+        from .. import pipeline as pl
         from ..scenes import load
 
-        with DRJIT_LOCK:  # (another viewer's loop may be rendering)
+        with DRJIT_LOCK:  # (the caller's own Dr.Jit work may run meanwhile)
             setup = load(scene, size=size)
             self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
                                     **choices)
@@ -167,7 +196,6 @@ class Viewer:
         self._save_lock = threading.Lock()
         # the render loop's writes to the panel and the scene (see _gui), and stop()
         self._gui_lock = threading.RLock()
-        self._stop = threading.Event()
         self._syncing = False
         self.index = 0
         self.playing = False
@@ -193,7 +221,6 @@ class Viewer:
         self._syncing_clients: dict[int, float] = {}
         self._start_server(host, port)
         self._build_gui()
-        self._thread = threading.Thread(target=self._loop, name="glossrt-view", daemon=True)
         self._thread.start()
 
     # -- start-up -------------------------------------------------------------------------
