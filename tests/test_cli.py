@@ -183,11 +183,15 @@ def test_compare_json_never_overwrites_a_frame(tiny_sequence, tmp_path, capsys):
 
 
 def test_unsupported_plugin_exit_code(tmp_path, capsys):
+    """A plugin Mitsuba cannot load in the RGB variant: exit 2, one line naming it, nothing
+    written."""
     xml = tmp_path / "s.xml"
-    xml.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="dielectric"/>'
-                   '</shape></scene>')
+    xml.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="measured_polarized">'
+                   '<string name="filename" value="x.pbsdf"/></bsdf></shape></scene>')
     assert main(["render", str(xml), "--out", str(tmp_path / "o")]) == 2
-    assert "dielectric" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "measured_polarized" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
 
 
 def test_bench_json(tmp_path, capsys):

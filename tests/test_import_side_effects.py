@@ -78,7 +78,7 @@ def test_backend_use_after_the_imports_then_render_with_the_plugin_registered():
     assert out["variant"] == out["mitsuba"] == "llvm_ad_rgb"
     assert out["shape"] == [12, 16, 3] and out["finite"]
     # "glossrt" exists in the variant chosen after render.integrator was imported
-    assert out["plugin"].startswith("GlossrtIntegrator[max_depth=2]")
+    assert out["plugin"].startswith("GlossrtIntegrator[max_depth=2, rr_depth=5]")
     assert out["aovs"] > 3 and out["float"]
 
 

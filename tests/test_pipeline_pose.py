@@ -277,17 +277,24 @@ def test_built_trees_are_cached_by_geometry(tmp_path, monkeypatch):
 
 
 def test_moving_an_occluder_under_bspvt(tree_file, no_builds):
-    """Under direct=ltc+bspvt, moving an occluder is refused naming it (nothing changes);
-    under the full preset (direct=auto) the pipeline switches to ltc+ratio while it is away
-    and back to ltc+bspvt (the same trees, no build) when it returns."""
+    """Under direct=ltc+bspvt, moving an occluder makes its polygon lights take the ratio
+    estimator while it is away (the meta says which and why) and BSPVT again when it
+    returns; under the full preset (direct=auto) the pipeline switches to ltc+ratio while it
+    is away and back to ltc+bspvt (the same trees, no build) when it returns."""
+    def methods(f):
+        return {light["id"]: light["method"] for light in f.meta["pipeline"]["lights"]
+                if light["kind"] == "area"}
+
     pipe = pipeline.Pipeline("polygon-light", preset="okuno-iwasaki", size=SMALL,
                              progress=False, bspvt=tree_file)
-    with pytest.raises(GlossrtError, match="moving object 'teapot'.*invalidates the BSPVT "
-                                           "trees.*ltc\\+ratio"):
-        pipe.set_transform("teapot", scenes.translation((0.1, 0.0, 0.0)))
-    assert not pipe.setup.object_overrides
-    pipe.set_transform("teapot", np.eye(4))  # not a move
-    pipe.render(0)
+    assert set(methods(pipe.render(0)).values()) == {"ltc+bspvt"}
+    pipe.set_transform("teapot", scenes.translation((0.1, 0.0, 0.0)))
+    f = pipe.render(1)
+    assert set(methods(f).values()) == {"ltc+ratio"}
+    assert all("'teapot' moves" in light["why"] for light in f.meta["pipeline"]["lights"]
+               if light["kind"] == "area")
+    pipe.set_transform("teapot", np.eye(4))  # back at rest: BSPVT again
+    assert set(methods(pipe.render(2)).values()) == {"ltc+bspvt"}
     full = pipeline.Pipeline("polygon-light", preset="full", size=SMALL, progress=False,
                              bspvt=tree_file)
     assert full.direct_mode == "ltc+bspvt"
@@ -300,8 +307,9 @@ def test_moving_an_occluder_under_bspvt(tree_file, no_builds):
     assert full.direct_mode == "ltc+bspvt"
     assert full.stages["direct"].trees is trees
     full.render(1)
-    # an occluder that the animation moves: refused up front (naming it)
+    # an occluder that the animation moves: its lights take the ratio estimator up front
     setup = scenes.load("polygon-light", size=SMALL)
     setup.object_paths["sphere"] = lambda f: scenes.translation((0.01 * f, 0.0, 0.0))
-    with pytest.raises(GlossrtError, match="object 'sphere'.*moves.*ltc\\+ratio"):
-        pipeline.Pipeline(setup, preset="okuno-iwasaki", progress=False, bspvt=tree_file)
+    moving = pipeline.Pipeline(setup, preset="okuno-iwasaki", progress=False, bspvt=tree_file)
+    assert all(c.method == "ltc+ratio" and "'sphere' moves" in c.why
+               for c in moving.plan.lights if c.kind == "area")

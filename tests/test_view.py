@@ -60,6 +60,12 @@ def test_option_change_applies_and_records_once(viewer):
     _settle(viewer, 3)
     assert viewer.pipe.recordings() == rec  # steady state replays
     assert viewer.pipe.opts["direct"] == "ltc" and not viewer.message
+    # the stats say which method took which light, as the frame's meta does
+    lights = viewer.stats["lights"]
+    assert lights and all(light["method"] == "ltc" for light in lights
+                          if light["kind"] == "area")
+    assert viewer.stats["fallback_share"] == 0.0  # polygon-light: every material analytic
+    assert "lights: ltc:" in viewer._stats_md.content
 
 
 def test_refused_change_keeps_the_previous_state(viewer):

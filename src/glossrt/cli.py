@@ -82,6 +82,19 @@ def _check_memory(size: tuple[int, int], what: str = "--size") -> None:
             "available; choose a smaller size")
 
 
+def _defines(args, remote: bool = False, why: str = "--cluster") -> dict[str, str]:
+    """The scene parameters of ``-D NAME=VALUE`` (checked), refused with ``why`` where the
+    scene is loaded by other processes (``remote``: they read the file as it is)."""
+    from .scenes import parse_defines
+
+    params = parse_defines(getattr(args, "define", None))
+    if params and remote:
+        raise GlossrtError(f"-D (scene parameters) cannot be combined with {why}: the "
+                           "workers load the scene file as it is; give the values defaults "
+                           "in the file (<default name=... value=.../>)")
+    return params
+
+
 def _check_seed(seed: int) -> None:
     if not 0 <= seed <= SEED_MAX:
         raise GlossrtError(f"--seed must be in 0..{SEED_MAX} (a 32-bit seed: larger values "
@@ -310,10 +323,12 @@ def cmd_render(args) -> int:
         cluster.parse(args.cluster)  # a bad spec fails before any work
         if args.block_spp is not None and args.block_spp < 1:
             raise GlossrtError(f"--block-spp must be >= 1, got {args.block_spp}")
+    params = _defines(args, blocks and args.cluster is not None)
     todo = list(range(args.start, args.start + args.frames, args.every))
     _refuse_overwrite([Path(args.out) / frame_filename(i) for i in todo],
                       _scene_files(args.scene), "render --out")
-    setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
+    setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames,
+                        params=params)
     if size is None:
         _check_memory(setup.size, "the scene's film size")
     r = render.Renderer(setup, max_depth=args.max_depth, seed=args.seed)
@@ -428,11 +443,13 @@ def _render_pipeline(args, size) -> int:
     if args.max_depth is not None:
         choices.setdefault("max_depth", args.max_depth)
     pipeline.resolve(preset, **choices)
+    params = _defines(args)
     todo = list(range(args.start, args.start + args.frames, args.every))
     _refuse_overwrite([Path(args.out) / frame_filename(i) for i in todo],
                       _scene_files(args.scene) + ([Path(args.bspvt)] if args.bspvt else []),
                       "render --out")
-    setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames)
+    setup = scenes.load(args.scene, size=size, orbit=args.orbit, frames=args.frames,
+                        params=params)
     if size is None:
         _check_memory(setup.size, "the scene's film size")
     # every refusal before work (a --bspvt file of another scene too)
@@ -634,12 +651,13 @@ def cmd_light(args) -> int:
                       + [Path(args.out) / (n.rsplit(".", 1)[0] + ".png") for n in names],
                       _scene_files(args.scene) + ([Path(args.bspvt)] if args.bspvt else []),
                       "light --out")
-    setup = scenes.load(args.scene, size=size, frames=args.frames)
+    setup = scenes.load(args.scene, size=size, frames=args.frames, params=_defines(args))
     if size is None:
         _check_memory(setup.size, "the scene's film size")
     if args.method != "mc":  # the Monte Carlo reference shades anisotropic lobes
         check_isotropic(setup)  # before any work or output
-    r = render.Renderer(setup, seed=args.seed)
+    # the G-buffer alone: the scene's integrator (its path depth) plays no part
+    r = render.Renderer(setup, seed=args.seed, max_depth=1)
     out = _writable_dir(args.out)
     cache: dict = {}
     hl_state: dict = {}
@@ -731,10 +749,12 @@ def cmd_bspvt(args) -> int:
         raise GlossrtError(f"--chunk-vertices must be >= 1, got {args.chunk_vertices}")
     out = _output_file(args.out, "bspvt build --out", keep=tuple(_scene_files(args.scene)))
     cluster = _cluster_spec(args)
+    chunked = cluster is not None or args.chunk_vertices is not None
+    params = _defines(args, chunked, "--cluster or --chunk-vertices")
     # with a cluster (or --chunk-vertices) the build runs as vertex chunks that load the
     # scene by name or path themselves: the same trees, byte for byte
-    trees = build_scene_trees(scenes.load(args.scene).scene if cluster is None
-                              and args.chunk_vertices is None else args.scene,
+    trees = build_scene_trees(scenes.load(args.scene, params=params).scene if not chunked
+                              else args.scene,
                               resolution=args.resolution, epsilon=args.epsilon,
                               method=args.method, progress=True, engine=args.engine,
                               cluster=cluster, chunk_vertices=args.chunk_vertices)
@@ -833,7 +853,7 @@ def cmd_view(args) -> int:
     size = scenes.parse_size(args.size)
     _check_memory(size)
     v = Viewer(args.scene, pipeline=args.pipeline, size=size, host=args.host, port=args.port,
-               captures=args.captures, bspvt=args.bspvt)
+               captures=args.captures, bspvt=args.bspvt, params=_defines(args))
     print(f"glossrt view: {v.url}  ({args.scene}, {v.pipe.preset}, {size[0]}x{size[1]}; "
           f"captures into {v.captures}; Ctrl-C stops)", flush=True)
     # stopped within 1 s: the render loop ended or was left mid-frame, no capture half-written
@@ -914,6 +934,9 @@ class Command:
 
 
 _SEED = _arg("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
+_DEFINE = _arg("-D", "--define", action="append", default=None, metavar="NAME=VALUE",
+               help="a value for the scene file's $NAME parameter (as Mitsuba's -D), "
+                    "repeatable: -D spp=16 -D res=64")
 _CLUSTER = _arg("--cluster", default=None, metavar="SPEC",
                 help="run the work on Ray: local, local:N (N worker slots on this machine), "
                      "auto (the cluster `ray start --head` started here) or ray://HOST:PORT; "
@@ -927,6 +950,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("render", cmd_render, "render 1 spp frames (or converged references) to EXR",
             "glossrt render glossy-cornell --out out/cornell --frames 8 --size 320x240", (
                 _arg("scene", help="built-in scene name (listed below) or Mitsuba XML path"),
+                _DEFINE,
                 _arg("--out", required=True, help="output folder (one EXR per frame)"),
                 _arg("--frames", type=int, default=1),
                 _arg("--start", type=int, default=0, help="first frame index"),
@@ -982,6 +1006,7 @@ COMMANDS: tuple[Command, ...] = (
             "direct light from the scene's polygon lights: LTC or a Monte Carlo reference",
             "glossrt light polygon-light --method ltc --frames 8 --size 320x240 --out out/ltc", (
                 _arg("scene", help="built-in scene name or Mitsuba XML path"),
+                _DEFINE,
                 _arg("--method", choices=["ltc", "mc", "bspvt", "ratio", "highlight"],
                      default="ltc",
                      help="ltc: unshadowed LTC; mc: Monte Carlo reference; bspvt: LTC with "
@@ -1017,6 +1042,7 @@ COMMANDS: tuple[Command, ...] = (
             "glossrt bspvt build polygon-light --out teapot.bspvt.npz --resolution 32", (
                 _arg("action", choices=["build"]),
                 _arg("scene", help="built-in scene name or Mitsuba XML path"),
+                _DEFINE,
                 _arg("--out", required=True, help="output .npz"),
                 _arg("--resolution", type=int, default=64, help="cube-map face size (texels)"),
                 _arg("--epsilon", type=float, default=0.0,
@@ -1084,6 +1110,10 @@ COMMANDS: tuple[Command, ...] = (
                      help="bspvt: cube-map face size of the visibility maps"),
                 _arg("--polygons", type=int, default=2000,
                      help="ltc: random polygons for the accuracy statistics (0: skip)"),
+                _arg("--scenes", default=None, metavar="DIR",
+                     help="scenes: every .xml in DIR (e.g. mitsuba-data's docs/scenes; "
+                          "default: glossrt's trial scenes)"),
+                _DEFINE,
                 _arg("--published", default=None,
                      help="ltc: path to ltc_code's fit/results/ltc.js (Heitz et al.'s table, "
                           "not shipped) to score it the same way as glossrt's"),
@@ -1117,6 +1147,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("view", cmd_view, "live viewer: watch and steer the frame pipeline in a browser",
             "glossrt view polygon-light --pipeline full --size 320x180", (
                 _arg("scene", help="built-in scene name (listed below) or Mitsuba XML path"),
+                _DEFINE,
                 _arg("--pipeline", default="full", metavar="PRESET|FILE",
                      help="a preset (schied2017, okuno-iwasaki, kimura-tokoi, tokuyoshi2015, "
                           "full, reference) or a TOML pipeline file (default full)"),

@@ -4,7 +4,9 @@ evaluates them (``include/mitsuba/render/microfacet.h``, ``MicrofacetDistributio
 Mitsuba's ``roughconductor`` and ``roughplastic`` default to **Beckmann** when the scene sets no
 ``distribution``; glossrt reads the distribution of every BSDF
 (:func:`glossrt.render.materials.describe_bsdf`) and records it per pixel in the Frame's
-``distribution`` channel (:data:`GGX` = 0, :data:`BECKMANN` = 1; docs/FORMATS.md).
+``distribution`` channel (:data:`GGX` = 0, :data:`BECKMANN` = 1; :data:`NO_LOBE` = 2 where no
+GGX or Beckmann lobe describes the surface, e.g. smooth glass or a blend of unlike lobes;
+docs/FORMATS.md).
 
 Everything here is generic over the distribution: ``beckmann`` is a Python ``bool`` (one
 distribution, traced once) or a per-lane Dr.Jit ``Bool`` (both evaluated, selected per lane).
@@ -30,12 +32,18 @@ from typing import Any
 
 import drjit as dr
 
-__all__ = ["GGX", "BECKMANN", "NAMES", "code", "by_distribution", "D", "G1", "specular_cos",
+__all__ = ["GGX", "BECKMANN", "NO_LOBE", "NAMES", "code", "by_distribution", "D", "G1",
+           "specular_cos",
            "sample_h", "pdf_h", "aniso_specular_cos", "sample_h_aniso", "pdf_h_aniso"]
 
 #: ``distribution`` channel values
 GGX = 0
 BECKMANN = 1
+#: the ``distribution`` channel where no GGX or Beckmann lobe describes the surface ("no
+#: analytic lobe": smooth glass, ``principled``, a blend of unlike lobes, ...); shading code
+#: that reads a distribution treats it as GGX, and the analytic direct-light methods do not
+#: shade such pixels (the path tracer does)
+NO_LOBE = 2
 #: names as Mitsuba's ``distribution`` parameter spells them, by code
 NAMES = ("ggx", "beckmann")
 

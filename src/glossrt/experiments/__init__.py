@@ -11,6 +11,8 @@ and ``glossrt bench`` / ``glossrt experiment``:
 * :mod:`.specaa`: specular antialiasing (Kaplanyan et al. 2016, Tokuyoshi & Kaplanyan 2021);
 * :mod:`.pipeline`: the frame pipeline that composes them (issue 25), every preset against
   converged references;
+* :mod:`.scenes`: every preset on scenes no one here wrote (glossrt's trial scenes or a
+  folder of Mitsuba XML files), glossrt's path tracer against Mitsuba's;
 * :mod:`.paper_scale`: the report's links to the evaluations at the papers' scale (issue 28)
   in docs/RESULTS.md.
 
@@ -27,7 +29,7 @@ import importlib
 
 #: the experiment modules, one per paper (``upsampling`` is the second half of ``lobes``'s)
 MODULES = ("svgf", "lobes", "upsampling", "ltc", "bspvt", "highlights", "specaa",
-           "pipeline", "paper_scale")
+           "pipeline", "scenes", "paper_scale")
 
 
 def load_all() -> None:

@@ -20,10 +20,11 @@ Conventions (checked against Mitsuba 3.9 by ``tests/test_polygon_light_scene.py`
   loaded with ``filter_type="bilinear"`` (the default) and ``wrap_mode="clamp"``; with
   Mitsuba's default ``wrap_mode="repeat"`` they differ within half a texel of the border.
 
-Other emitters (``constant``, ``envmap``, ``point``) are not polygon lights and are left out;
-an area emitter on any other shape (sphere, disk, a non-planar or non-convex mesh, a planar
-convex mesh whose outline has more than 8 corners) raises :class:`GlossrtError` naming the
-shape and the reason.
+Other emitters (``constant``, ``envmap``, ``point``, ``spot``, ...) are not polygon lights and
+are left out; an area emitter on any other shape (sphere, disk, a non-planar or non-convex
+mesh, a planar convex mesh whose outline has more than 8 corners) raises
+:class:`GlossrtError` naming the shape and the reason (the pipeline path-traces such lights
+instead: :mod:`glossrt.pipeline.plan`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import numpy as np
 
 from ..backend import mi
 from ..errors import GlossrtError
-from ..scenes import _registry_id, stable_emitters, stable_shapes, to_matrix
+from ..scenes import _registry_id, render_shapes, stable_emitters, to_matrix
 
 #: most corners a polygon light may have (what the LTC / MC shaders take)
 MAX_VERTICES = 8
@@ -333,21 +334,27 @@ def polygon_light(emitter, mesh_id: int = 0, where: str = "") -> PolygonLight:
                         uv=uv, id=shape.id() or emitter.id(), mesh_id=mesh_id, shape=kind)
 
 
-def polygon_lights(setup, frame: int | None = None) -> list[PolygonLight]:
+def polygon_lights(setup, frame: int | None = None, skip: bool = False) -> list[PolygonLight]:
     """Every area light of ``setup`` (a :class:`glossrt.scenes.SceneSetup`, posed for
     ``frame`` first when given; or a bare ``mi.Scene``) as a :class:`PolygonLight`, in the
     scene's stable emitter order (:func:`glossrt.scenes.stable_emitters`). Non-area emitters
-    are left out; an area emitter that is not a polygon raises :class:`GlossrtError`."""
+    are left out; an area emitter that is not a polygon raises :class:`GlossrtError`, or with
+    ``skip`` is left out too (the path tracer renders it: :mod:`glossrt.pipeline.plan`)."""
     if frame is not None and hasattr(setup, "set_frame"):
         setup.set_frame(int(frame))
     scene = getattr(setup, "scene", setup)
     label = getattr(setup, "source", None) or getattr(setup, "name", None) or scene.id()
-    rank = {_registry_id(mi.ShapePtr, s): i + 1 for i, s in enumerate(stable_shapes(scene))}
+    rank = {_registry_id(mi.ShapePtr, s): i + 1 for i, s in enumerate(render_shapes(scene))}
     lights = []
     for k, e in enumerate(stable_emitters(scene)):
         shape = e.get_shape()
         if shape is None:
             continue
         where = f"emitter {k}" + (f" of scene {label!r}" if label else "")
-        lights.append(polygon_light(e, rank.get(_registry_id(mi.ShapePtr, shape), 0), where))
+        try:
+            lights.append(polygon_light(e, rank.get(_registry_id(mi.ShapePtr, shape), 0),
+                                        where))
+        except GlossrtError:
+            if not skip:
+                raise
     return lights

@@ -104,9 +104,9 @@ def _material_rows(setup, frame,
     diffuse-scale tables ``(n, DIFFUSE_SCALE_NODES, 3)`` of ``setup``'s materials
     (:func:`mesh_material_tables`), and the frame's mesh ids (H, W), checked against them."""
     from ..render.materials import DIFFUSE_SCALE_NODES
-    from ..scenes import stable_shapes
+    from ..scenes import render_shapes
 
-    shape_rows, shape_scales = mesh_material_tables(stable_shapes(setup.scene), with_scale)
+    shape_rows, shape_scales = mesh_material_tables(render_shapes(setup.scene), with_scale)
     rows = np.concatenate([np.zeros((1, ROW)), shape_rows])
     scales = (None if shape_scales is None else
               np.concatenate([np.ones((1, DIFFUSE_SCALE_NODES, 3)), shape_scales]))
@@ -169,12 +169,17 @@ def mesh_material_tables(meshes, with_scale: bool = True
     # a BSDF without a specular lobe (Mitsuba's ``diffuse``) gets the Fresnel term NONE
     # (F = 0): Schlick's form with F0 = 0 would give it a grazing (1 - wo.h)^5 lobe that
     # Mitsuba does not render
+    # a BSDF outside the analytic classes (glass, principled, ...: its pixels are the path
+    # tracer's) gets the Fresnel term NONE and a diffuse scale of 1 (never read)
     mats = [describe_bsdf(m.bsdf()) for m in meshes]
-    rows = np.array([(mt.fresnel if mt.has_specular else Fresnel(NONE)).row() for mt in mats],
+    rows = np.array([(mt.fresnel if mt.has_specular and not mt.sampled_albedo
+                      else Fresnel(NONE)).row() for mt in mats],
                     np.float64).reshape(len(meshes), ROW)
     if not with_scale:
         return rows, None
-    scales = np.array([_diffuse_scale_cached(m.bsdf()) for m in meshes],
+    scales = np.array([np.ones((DIFFUSE_SCALE_NODES, 3)) if mt.sampled_albedo
+                       else _diffuse_scale_cached(m.bsdf())
+                       for m, mt in zip(meshes, mats, strict=True)],
                       np.float64).reshape(len(meshes), DIFFUSE_SCALE_NODES, 3)
     return rows, scales
 

@@ -21,9 +21,9 @@ BSPVT trees (``direct=ltc+bspvt``) are built on first use with a progress bar an
 memory keyed by the occluders' geometry and the resolution (:func:`stages.scene_trees`;
 ``bspvt_cache=DIR`` also keeps them on disk); ``bspvt=FILE`` uses prebuilt trees
 (``glossrt bspvt build``), checked against the scene before any work. Moving an occluder
-invalidates them: :meth:`Pipeline.set_transform` refuses it under ``direct=ltc+bspvt`` and the
-``full`` preset (``direct=auto``) switches to ``ltc+ratio`` while an occluder is away from its
-rest pose (and back when it returns: the trees are still cached).
+invalidates them: under ``direct=ltc+bspvt`` the polygon lights take the ratio estimator and
+the ``full`` preset (``direct=auto``) switches to ``ltc+ratio`` while an occluder is away from
+its rest pose (and back when it returns: the trees are still cached).
 
 Stages (:mod:`glossrt.pipeline.stages`, each with declared input and output channels):
 ``gbuffer`` -> ``specaa`` -> ``direct`` -> ``indirect`` -> ``composite`` -> ``taa``
@@ -35,19 +35,23 @@ lobe; the gbuffer stage traces a G-buffer pass first to filter it:
 ``meta["pipeline"]["specaa"]``).
 No double counting, nothing lost: the lights an analytic ``direct`` stage shades (the
 polygon lights, and the point and directional lights) are removed from the path tracer at
-the primary hit only (:class:`glossrt.render.Renderer`'s ``primary_exclude``); they still
-light every deeper bounce. Presets and options: :mod:`glossrt.pipeline.config`.
+the primary hit only, and only on the surfaces the stage shades (:class:`glossrt.render.
+Renderer`'s ``primary_exclude`` and ``exclude_on``; the stage's image is 0 elsewhere); they
+still light every deeper bounce. Presets and options: :mod:`glossrt.pipeline.config`.
 
 Memory: ``Pipeline(outputs=("color",))`` (the render graph's marked outputs, settable between
 frames) returns only the channels asked for and frees every other one after the last stage
 that reads it (:meth:`stages.Stage.reads`), with the same values; with ``release_memory``
 that is what keeps ``full`` at 1920x1080 under 600 MB (docs/PERFORMANCE.md).
 
-Every refusal (unknown option, a specaa method that is unknown or filters per light, BSPVT
-with a moving occluder, highlights or LTC modes in a scene without polygon lights,
-anisotropic materials under analytic shading, OIDN missing)
-is one :class:`~glossrt.errors.GlossrtError` raised by the constructor or
-:meth:`Pipeline.configure` before any rendering.
+Every preset renders every scene the renderer renders: what a direct mode cannot shade (a
+light that is not a polygon, point or directional light; a surface whose material it does not
+represent; under BSPVT a light its visibility cannot see, or any while an occluder moves) falls
+back to the ratio estimator or the path tracer (:mod:`glossrt.pipeline.plan`), and the frames'
+``meta["pipeline"]`` says so. Every refusal (unknown option, a specaa method that is unknown
+or filters per light, BSPVT trees of another scene, OIDN missing, a size the reduced
+resolution does not divide) is one :class:`~glossrt.errors.GlossrtError` raised by the
+constructor or :meth:`Pipeline.configure` before any rendering.
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ from ..frame import Frame
 from ..timing import StageClock, check_stage_timing
 from . import config
 from .config import FILTER_OPTIONS, OPTIONS, PRESETS, load_toml, parse, resolve
+from .plan import POLYGON_MODES, DirectPlan, moving_occluders, plan
 from .stages import (
     CompositeStage,
     DirectStage,
@@ -78,7 +83,6 @@ from .stages import (
 STAGES = ("gbuffer", "specaa", "direct", "indirect", "composite", "taa", "display")
 #: the channels a pipeline frame adds to the G-buffer's (docs/FORMATS.md)
 LAYERS = ("direct", "indirect", "composite", "color")
-POLYGON_MODES = ("ltc", "ltc+bspvt", "ltc+ratio", "highlights")
 
 
 def _setup_of(scene_or_setup, size):
@@ -90,55 +94,6 @@ def _setup_of(scene_or_setup, size):
                                f"({scene_or_setup.size[0]}x{scene_or_setup.size[1]})")
         return scene_or_setup
     return load(scene_or_setup, size=size)
-
-
-def _is_occluder(setup, sid: str) -> bool:
-    shape = next((s for s in setup.shapes if s.id() == sid), None)
-    return shape is not None and not shape.is_emitter()
-
-
-def moving_occluders(setup) -> list[str]:
-    """Ids of the shapes that are not lights and move: in ``setup``'s animation, or placed
-    away from their rest pose explicitly (``SceneSetup.object_overrides``, not identity)."""
-    moved = list(setup.object_paths)
-    moved += [sid for sid, m in getattr(setup, "object_overrides", {}).items()
-              if sid not in moved and not np.array_equal(m, np.eye(4))]
-    return [sid for sid in moved if _is_occluder(setup, sid)]
-
-
-def bspvt_obstacles(setup, polys: list) -> list[str]:
-    """Why BSPVT's precomputed visibility cannot shade ``setup`` (empty: it can).
-
-    * Shapes that are not triangle meshes (an analytic sphere, ...): the trees live at mesh
-      vertices (Okuno & Iwasaki), so such a shape's pixels would get no direct light at all.
-    * A polygon light with geometry behind it (a ceiling light in a closed room): a visibility
-      texel is 1 only if its ray escapes the scene without the lights (the light moves, so the
-      maps cannot stop at it), so every ray through such a light reads as blocked. Found by
-      one ray from the light's centre away from its emitting side.
-    """
-    from ..backend import mi
-
-    out = [f"shape {s.id()!r} is not a triangle mesh (BSPVT's trees live at mesh vertices, "
-           "so its pixels would get no direct light)"
-           for s in setup.shapes if not s.is_emitter() and not s.is_mesh()]
-    for light in polys:
-        v = np.asarray(light.vertices, np.float64)
-        centre = v.mean(axis=0)
-        n = np.cross(v[1] - v[0], v[2] - v[0])
-        n /= np.linalg.norm(n)
-        size = float(np.max(np.linalg.norm(v - centre, axis=1)))
-        o = centre - n * 1e-4 * max(size, 1e-3)
-        ray = mi.Ray3f(mi.Point3f(*(float(x) for x in o)), mi.Vector3f(*(float(-x) for x in n)))
-        si = setup.scene.ray_intersect(ray)
-        if bool(si.is_valid()[0]):
-            key = dr.reinterpret_array(mi.UInt32, si.shape)[0]
-            hit = next((sh.id() for sh in setup.shapes
-                        if dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0] == key),
-                       "") or "geometry"
-            out.append(f"light {light.id or 'polygon'!r} has {hit!r} behind it (BSPVT's "
-                       "visibility rays through the light hit it, so the light reads as "
-                       "occluded)")
-    return out
 
 
 def _matrix(m):
@@ -232,6 +187,7 @@ class Pipeline:
         self.progress = progress
         self.stages: dict[str, Stage] = {}
         self._gbuffer: GBufferStage | None = None
+        self._shape_table = None
         self.frames = 0
         self._last_pose = None  # the pose of the previous frame rendered
         self.bspvt_trees = None
@@ -285,16 +241,42 @@ class Pipeline:
     def choices(self) -> dict[str, Any]:
         return {k: v for k, v in self.opts.items() if k != "preset"}
 
+    @property
+    def shape_table(self):
+        """The scene's :class:`glossrt.render.pathtracer.ShapeTable` (its materials), built
+        once."""
+        if self._shape_table is None:
+            from ..render.pathtracer import ShapeTable
+
+            self._shape_table = ShapeTable(self.setup.scene)
+        return self._shape_table
+
+    def _max_depth(self, opts: dict) -> int | None:
+        """The path depth the frames render (Mitsuba's convention), None where the
+        renderer's default applies."""
+        md = opts.get("max_depth")
+        return md if md is not None else self.setup.max_depth
+
     def _resolve_direct(self, opts: dict) -> str:
+        """``direct``, with ``auto`` (the ``full`` preset) resolved for the scene as it is
+        posed: ``ltc+bspvt`` when BSPVT's trees can shade at least one polygon light, else
+        ``ltc+ratio`` (an occluder away from its rest pose, no triangle meshes, every polygon
+        light with geometry behind it; :mod:`glossrt.pipeline.plan`). At path depth 1 (the
+        scene renders emission only) every mode is ``pathtraced``: there is no direct light
+        to shade."""
         mode = opts["direct"]
+        if self._max_depth(opts) == 1:
+            return "pathtraced"  # (emission only: no direct light to shade)
         if mode != "auto":
             return mode
         if moving_occluders(self.setup):
             return "ltc+ratio"
-        from ..lights.scene import polygon_lights
+        from ..lights.bspvt.scene import scene_meshes
 
-        return "ltc+ratio" if bspvt_obstacles(self.setup, polygon_lights(self.setup, 0)) \
-            else "ltc+bspvt"
+        if not scene_meshes(self.setup.scene):
+            return "ltc+ratio"
+        return "ltc+bspvt" if plan(self.setup, "ltc+bspvt", self.shape_table).bspvt \
+            else "ltc+ratio"
 
     @staticmethod
     def _load_trees(bspvt, opts: dict):
@@ -316,13 +298,12 @@ class Pipeline:
                                f"glossrt.lights.bspvt.BSPVT trees, got {type(bspvt).__name__}")
         return bspvt
 
-    def _check(self, opts: dict, direct: str, trees=None) -> tuple[list, list]:
-        """Every refusal of ``opts`` for this scene, before any work. Returns the polygon and
-        point/directional lights at frame 0. ``trees``: prebuilt BSPVT trees (checked
-        against the scene: :func:`glossrt.lights.bspvt.match_scene`)."""
-        from ..lights.analytic import analytic_lights
-        from ..lights.scene import polygon_lights
-
+    def _check(self, opts: dict, direct: str, trees=None) -> DirectPlan:
+        """Every refusal of ``opts`` for this scene, before any work (bad options and files,
+        never a light, material or integrator the path tracer renders), and the
+        :class:`~glossrt.pipeline.plan.DirectPlan` of ``direct`` at frame 0. ``trees``:
+        prebuilt BSPVT trees (checked against the scene:
+        :func:`glossrt.lights.bspvt.match_scene`)."""
         name = self.setup.name
         if opts["indirect_scale"] > 1:  # the reduced-resolution indirect light
             from .stages import check_scale
@@ -331,79 +312,49 @@ class Pipeline:
             if opts["accumulate"]:
                 raise GlossrtError("accumulate=true traces the converged reference at full "
                                    "resolution: use indirect_scale=1")
-        polys = polygon_lights(self.setup, 0) if direct != "pathtraced" else []
-        points = analytic_lights(self.setup, 0) if direct != "pathtraced" else []
-        if direct in POLYGON_MODES and not polys and (direct != "ltc" or not points):
-            raise GlossrtError(f"direct={direct}: scene {name!r} has no polygon (area) "
-                               "lights; use direct=pathtraced")
+        trees_ok = True
         if direct == "ltc+bspvt":
-            moving = moving_occluders(self.setup)
-            if moving:
-                raise GlossrtError(f"direct=ltc+bspvt: object {moving[0]!r} of scene "
-                                   f"{name!r} moves, which invalidates BSPVT's precomputed "
-                                   "visibility; use direct=ltc+ratio")
             from ..lights.bspvt.scene import scene_meshes
 
-            if not scene_meshes(self.setup.scene):
-                raise GlossrtError(f"direct=ltc+bspvt: scene {name!r} has no triangle "
-                                   "meshes to precompute visibility at; use direct=ltc+ratio")
-            if trees is not None:
+            trees_ok = bool(scene_meshes(self.setup.scene))
+            # (checked once: a later plan, e.g. an occluder away from its rest pose, keeps
+            # the trees of the rest pose)
+            if trees is not None and trees is not getattr(self, "_checked_trees", None):
                 from ..lights.bspvt import match_scene
 
                 try:
                     match_scene(self.setup.scene, trees)
                 except GlossrtError as e:
                     raise GlossrtError(f"bspvt: scene {name!r}: {e}") from None
-            obstacles = bspvt_obstacles(self.setup, polys)
-            if obstacles:
-                raise GlossrtError(f"direct=ltc+bspvt: scene {name!r}: {obstacles[0]}; use "
-                                   "direct=ltc+ratio")
-        if direct != "pathtraced":
-            from ..render.pathtracer import ShapeTable
-
-            if ShapeTable(self.setup.scene).any_anisotropic:
-                raise GlossrtError(f"direct={direct}: scene {name!r} has anisotropic "
-                                   "materials, which the analytic shading does not handle; "
-                                   "use direct=pathtraced")
         if opts["indirect"] == "oidn":
             from ..denoise.oidn import oidn_available
 
             if not oidn_available():
                 raise GlossrtError("indirect=oidn: Intel Open Image Denoise (pyoidn) is not "
                                    "installed; choose svgf, svgf-lobe, atrous or none")
-        return polys, points
-
-    def _exclude(self, direct: str, polys: list) -> tuple[int, ...]:
-        """Emitter indices of the lights the analytic direct stage shades."""
-        if direct == "pathtraced":
-            return ()
-        from ..render import emitter_index
-
-        shapes = {p.mesh_id for p in polys}
-        out = []
-        for index, _eid, kind, shape in emitter_index(self.setup):
-            if (kind == "area" and shape in shapes) or kind in ("point", "directional"):
-                out.append(index)
-        return tuple(out)
+        why = ("max_depth 1: the scene renders emission only" if self._max_depth(opts) == 1
+               else "direct=pathtraced")
+        return plan(self.setup, direct, self.shape_table, trees_ok, why=why)
 
     def _apply(self, opts: dict, trees=None) -> None:
         old = getattr(self, "_applied", None)
         direct = self._resolve_direct(opts)
         trees = self.bspvt_trees if trees is None else trees
-        polys, points = self._check(opts, direct, trees)
-        exclude = self._exclude(direct, polys)
+        the_plan = self._check(opts, direct, trees)
+        exclude, on = the_plan.exclude, the_plan.shapes
         self.bspvt_trees = trees
+        if direct == "ltc+bspvt":
+            self._checked_trees = trees
 
         def same(*keys: str) -> bool:
             return old is not None and all(old[k] == opts[k] for k in keys)
 
         if (not same("max_depth", "seed", "accumulate", "spp", "indirect_scale")
                 or self._gbuffer is None):
-            self._gbuffer = GBufferStage(self.setup, opts, exclude)
-        elif self._gbuffer.exclude != exclude:
+            self._gbuffer = GBufferStage(self.setup, opts, exclude, on)
+        elif self._gbuffer.exclude != exclude or self._gbuffer.exclude_on != on:
             # the frozen trace records once more (render.Renderer.primary_exclude)
-            self._gbuffer.renderer.primary_exclude = exclude
-            self._gbuffer.exclude = exclude
+            self._gbuffer.set_exclude(exclude, on)
             self._gbuffer.reset()
         # TAA's sub-pixel jitter: an opaque input of the frozen trace (turning it on or off
         # records the trace once more, a new cycle point does not)
@@ -414,20 +365,23 @@ class Pipeline:
                             else SpecAAStage(opts["specaa"]))
         # the path tracer's primary hit takes the filtered roughness (GBufferStage)
         self._gbuffer.specaa = stages["specaa"]
-        if (old is not None and old.get("_direct") == direct and old.get("_trees") is trees
+        same_plan = old is not None and old.get("_plan") == the_plan.key()
+        if (same_plan and old.get("_direct") == direct and old.get("_trees") is trees
                 and same("bspvt_mode", "bspvt_resolution", "ratio_spp", "highlight_samples",
                          "highlight_probes", "highlight_distribution")):
             stages["direct"] = prev["direct"]
         else:
             stages["direct"] = DirectStage(self.setup, opts, direct, self.progress,
-                                           trees=trees, cache_dir=self.bspvt_cache)
-        if (old is not None and old.get("_direct") == direct
+                                           trees=trees, cache_dir=self.bspvt_cache,
+                                           plan=the_plan)
+        if (same_plan and old.get("_direct") == direct
                 and same("indirect", "indirect_scale", "upsampling", "upsampling_weight",
                          "resample", "resample_threshold", "resample_spp", "max_depth",
                          "seed", *FILTER_OPTIONS)):
             stages["indirect"] = prev["indirect"]
         else:
-            stages["indirect"] = IndirectStage(opts["indirect"], opts, self.setup, exclude)
+            stages["indirect"] = IndirectStage(opts["indirect"], opts, self.setup,
+                                               the_plan.path_traced_direct)
         stages["composite"] = prev.get("composite") or CompositeStage()
         if old is not None and same("taa", "taa_alpha"):
             stages["taa"] = prev["taa"]
@@ -436,8 +390,12 @@ class Pipeline:
         stages["indirect"].release_memory = bool(opts["release_memory"])
         self.stages = stages
         self.opts = dict(opts)
-        self._applied = dict(opts, _direct=direct, _trees=trees)
+        self._applied = dict(opts, _direct=direct, _trees=trees, _plan=the_plan.key())
+        self._moving = bool(moving_occluders(self.setup))
         self.direct_mode = direct
+        #: which method shades which light, and the surfaces left to the path tracer
+        #: (:class:`glossrt.pipeline.plan.DirectPlan`)
+        self.plan = the_plan
         self.point_lights = ("analytic, one shadow ray each" if direct != "pathtraced"
                              else "path-traced")
 
@@ -510,9 +468,11 @@ class Pipeline:
         the analytic direct stage and for the path tracer's deeper bounces alike (the
         emitter's ``position`` parameter, an input of the frozen frame: no re-recording).
         Moving an occluder (a shape that is not a light) invalidates BSPVT's precomputed
-        visibility: refused under ``direct=ltc+bspvt`` (naming the object);
-        ``direct=auto`` (the ``full`` preset) switches to ``ltc+ratio`` while it is away
-        from its rest pose. Checked first: a GlossrtError changes nothing."""
+        visibility: under ``direct=ltc+bspvt`` its polygon lights take the ratio estimator
+        while it is away from its rest pose (``meta["pipeline"]["lights"]`` says so), and
+        ``direct=auto`` (the ``full`` preset) switches to ``ltc+ratio`` (no trees are
+        built); both switch back when it returns. Checked first: a GlossrtError changes
+        nothing."""
         from ..scenes import check_rigid
 
         setup = self.setup
@@ -529,13 +489,6 @@ class Pipeline:
             setup.set_light_override(name, m)
             self._pose_changed()
             return
-        moves = m is not None and not np.array_equal(m, np.eye(4))
-        if moves and self.opts["direct"] == "ltc+bspvt" and _is_occluder(setup, name):
-            raise GlossrtError(
-                f"set_transform: moving object {name!r} of scene {setup.name!r} invalidates "
-                "the BSPVT trees (visibility precomputed for static occluders); use "
-                "configure(direct=\"ltc+ratio\") (or the full preset, which switches by "
-                "itself)")
         setup.set_object_override(name, m)
         self._pose_changed()
 
@@ -546,8 +499,13 @@ class Pipeline:
         self._pose_changed()
 
     def _pose_changed(self) -> None:
-        if self.opts["direct"] == "auto" and self._resolve_direct(self.opts) != self.direct_mode:
-            self._apply(self.opts)  # full: ltc+bspvt <-> ltc+ratio as occluders move
+        # an occluder leaving or reaching its rest pose: BSPVT's trees stop or start to hold
+        # (auto: ltc+bspvt <-> ltc+ratio; ltc+bspvt: its lights' ratio fallback)
+        if self.opts["direct"] not in ("auto", "ltc+bspvt"):
+            return
+        moving = bool(moving_occluders(self.setup))
+        if moving != self._moving:
+            self._apply(self.opts)
 
     # -- frames --------------------------------------------------------------------------
     def frozen(self) -> list:
@@ -646,6 +604,8 @@ class Pipeline:
             "choices": self.choices,
             "direct": self.direct_mode,
             "point_lights": self.point_lights,
+            **self.plan.report(),
+            "fallback_share": self._fallback_share(gb),
             "primary_exclude": list(self._gbuffer.exclude),
             "stages": {n: {"inputs": list(s.inputs), "outputs": list(s.outputs)}
                        for n, s in self.stages.items()},
@@ -663,8 +623,8 @@ class Pipeline:
         note = config.PRESET_NOTES.get(self.preset)
         if note:
             meta["pipeline"]["note"] = note
-        if self.direct_mode == "ltc+bspvt":
-            trees = self.stages["direct"].trees
+        trees = getattr(self.stages["direct"], "trees", None)
+        if self.direct_mode == "ltc+bspvt" and trees is not None:
             meta["pipeline"]["bspvt"] = {
                 "trees": getattr(trees, "source", "") or "built (cached by geometry)",
                 "resolution": int(trees.resolution), "vertices": int(trees.vertex_count)}
@@ -680,12 +640,19 @@ class Pipeline:
         return Frame(channels=channels, camera=gb.camera, prev_camera=gb.prev_camera,
                      index=index, meta=meta)
 
+    @staticmethod
+    def _fallback_share(gb: Frame) -> float:
+        """The share of the frame's pixels whose direct light the path tracer computes for
+        every light although the analytic stage shades some (their surface is one it does
+        not represent: ``meta["pipeline"]["fallback_shapes"]``); 0 without analytic
+        lights."""
+        return float(gb.meta.get("fallback_pixels", 0)) / max(gb.width * gb.height, 1)
+
     def display(self, frame: Frame) -> Any:
         """The frame's ``color`` as 8-bit sRGB (H, W, 3) ``uint8`` (exposure and tonemap
         from the options)."""
         return display(frame.numpy("color"), self.opts["exposure"], self.opts["tonemap"])
 
 
-__all__ = ["LAYERS", "OPTIONS", "PRESETS", "STAGES", "Pipeline", "check_outputs", "display",
-           "load_toml",
-           "moving_occluders", "parse", "resolve"]
+__all__ = ["LAYERS", "OPTIONS", "POLYGON_MODES", "PRESETS", "STAGES", "DirectPlan", "Pipeline",
+           "check_outputs", "display", "load_toml", "moving_occluders", "parse", "resolve"]

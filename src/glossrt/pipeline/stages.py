@@ -160,7 +160,8 @@ class GBufferStage(Stage):
     """G-buffer plus 1 spp path tracing (:class:`glossrt.render.Renderer`), or with
     ``accumulate`` the running mean of converged estimates (``spp`` per frame) while the
     scene holds still. ``exclude``: emitter indices the analytic direct stage shades
-    (removed from the path tracer at the primary hit only).
+    (removed from the path tracer at the primary hit only), on the shapes ``exclude_on``
+    (mesh ids; None: all; :class:`glossrt.pipeline.plan.DirectPlan`).
 
     ``indirect_scale`` 2 or 4 (issue 25; Tokuyoshi 2015's pipeline, sec. 3): the
     full-resolution renderer traces the G-buffer and the direct light only (path depth 2:
@@ -194,7 +195,8 @@ class GBufferStage(Stage):
     name = "gbuffer"
     outputs = ("frame",)
 
-    def __init__(self, setup, opts: dict, exclude: tuple[int, ...] = ()):
+    def __init__(self, setup, opts: dict, exclude: tuple[int, ...] = (),
+                 exclude_on: tuple[int, ...] | None = None):
         from .. import render
 
         self.scale = int(opts.get("indirect_scale", 1))
@@ -212,9 +214,11 @@ class GBufferStage(Stage):
             md = 2 if full_md < 0 or full_md > 2 else full_md
             self.outputs = ("frame", "frame_low")
         self.renderer = render.Renderer(setup, max_depth=md, seed=opts["seed"],
-                                        primary_exclude=tuple(exclude))
+                                        primary_exclude=tuple(exclude),
+                                        exclude_on=exclude_on)
         self.setup = setup
         self.exclude = tuple(exclude)
+        self.exclude_on = exclude_on
         self.accumulate = bool(opts["accumulate"])
         self.spp = int(opts["spp"])
         self.seed = int(opts["seed"])
@@ -236,6 +240,13 @@ class GBufferStage(Stage):
         self._n = 0
         self._pose = None
         self._passes = 0
+
+    def set_exclude(self, exclude: tuple[int, ...], exclude_on: tuple[int, ...] | None) -> None:
+        """Another set of analytically shaded lights and the shapes they are shaded on (the
+        renderer's ``primary_exclude`` and ``exclude_on``; a set not used before records
+        the frozen trace once more)."""
+        self.renderer.set_exclusion(exclude, exclude_on)
+        self.exclude, self.exclude_on = tuple(exclude), exclude_on
 
     def frozen(self) -> list:
         low = self.low.frozen_functions() if self.low is not None else []
@@ -506,47 +517,81 @@ def scene_trees(scene, resolution: int, progress: bool = True, cache_dir=None):
     return trees
 
 
+def _mask_kernel(img: mi.TensorXf, mesh_id: mi.TensorXf, table: mi.Bool) -> mi.TensorXf:
+    """``img`` (H, W, 3) where the pixel's mesh id is marked in ``table`` (per mesh id), 0
+    elsewhere (a NaN there too)."""
+    h, w = img.shape[0], img.shape[1]
+    ids = mi.UInt32(mesh_id.array)
+    keep = dr.gather(mi.Bool, table, ids)
+    lane = dr.arange(mi.UInt32, h * w * 3)
+    on = dr.gather(mi.Bool, keep, lane // 3)
+    return mi.TensorXf(dr.select(on, img.array, 0.0), (h, w, 3))
+
+
 class DirectStage(Stage):
     """The direct light of the scene's lights (module docstring): ``pathtraced`` (0 here:
     the 1 spp estimate stays in the path-traced layers and is denoised with the rest), ``ltc``
     (Heitz et al. 2016, unshadowed), ``ltc+bspvt`` (Okuno & Iwasaki, eq. 2), ``ltc+ratio``
     (Heitz, Hill & McGuire 2018) or ``highlights`` (Kimura & Tokoi for the specular part,
     LTC for the diffuse part). Point and directional lights: analytic with shadow rays
-    whenever the mode is not ``pathtraced``."""
+    whenever the mode is not ``pathtraced``.
+
+    ``plan`` (:class:`glossrt.pipeline.plan.DirectPlan`) says which lights each method shades
+    (under ``ltc+bspvt`` some polygon lights may take the ratio estimator) and on which
+    surfaces: the image is 0 on every other pixel (the path tracer lights those with every
+    emitter)."""
 
     name = "direct"
     inputs = ("frame",)
     outputs = ("direct",)
 
     def __init__(self, setup, opts: dict, mode: str, progress: bool = True, trees=None,
-                 cache_dir=None):
+                 cache_dir=None, plan=None):
+        from .plan import plan as make_plan
+
         self.setup = setup
         self.mode = mode
         self.opts = opts
-        self.points = PointLights(setup) if mode != "pathtraced" else None
+        if plan is None:
+            from ..render.pathtracer import ShapeTable
+
+            plan = make_plan(setup, mode, ShapeTable(setup.scene))
+        self.plan = plan
+        analytic = mode != "pathtraced"
+        self.points = PointLights(setup) if analytic and plan.points else None
         self.trees = None
-        if mode == "ltc+bspvt":  # prebuilt ``trees`` (checked by the pipeline), else cached
+        if mode == "ltc+bspvt" and plan.bspvt:  # prebuilt ``trees`` (checked), else cached
             self.trees = trees if trees is not None else scene_trees(
                 setup.scene, int(opts["bspvt_resolution"]), progress, cache_dir)
         #: the frame's material image (fresnel_image) on the device, and BSPVT's frozen
         #: shading of the whole frame (lights.bspvt.scene.FrozenShader)
         self.materials = None
         self.bspvt = None
-        if mode != "pathtraced":
+        if analytic:
             from ..lights.bspvt.scene import FrozenShader, MaterialImage
 
             self.materials = MaterialImage(setup.scene)
-            if mode == "ltc+bspvt":
+            if self.trees is not None:
                 self.bspvt = FrozenShader(setup.scene, self.trees, opts["bspvt_mode"],
                                           materials=self.materials.table)
         self.highlights = None
-        if mode == "highlights":
+        if mode == "highlights" and plan.polygons:
             from ..lights.highlights import HighlightRenderer
 
             self.highlights = HighlightRenderer(
                 samples=int(opts["highlight_samples"]),
                 distribution=opts.get("highlight_distribution", "ellipsoidal"),
                 sampling="hash", cull=False, frozen=True)
+        # the surfaces the analytic methods shade (mesh ids; 0 the background): a mask only
+        # where some are left to the path tracer
+        self._mask_table = None
+        self._mask_fn = None
+        if analytic and len(plan.shapes) < plan.n_shapes:
+            table = np.zeros(plan.n_shapes + 1, bool)
+            table[list(plan.shapes)] = True
+            self._mask_table = mi.Bool(table)
+            dr.make_opaque(self._mask_table)
+            self._mask_fn = dr.freeze(_mask_kernel, warn_after=16)
         #: the highlights' light maps and what they were built from (:meth:`_highlights`)
         self._maps = None
         self._maps_key = None
@@ -557,8 +602,13 @@ class DirectStage(Stage):
         #: ``_textures`` (:meth:`_stable_textures`)
         self._stable: dict = {}
 
+    @property
+    def shades(self) -> bool:
+        """Whether the stage shades anything (an analytic mode with some analytic light)."""
+        return self.mode != "pathtraced" and bool(self.plan.polygons or self.plan.points)
+
     def reads(self) -> dict[str, tuple[str, ...] | None]:
-        return {} if self.mode == "pathtraced" else {"frame": None}
+        return {"frame": None} if self.shades else {}
 
     def frozen(self) -> list:
         out = [self.points._fn] if self.points is not None else []
@@ -568,42 +618,64 @@ class DirectStage(Stage):
             out += self.bspvt.frozen()
         # the polygon lights' shading kernels (module-wide frozen functions, shared with
         # every other user of LTC / BSPVT shading in the process)
-        if self.mode in ("ltc", "highlights"):
+        if self.mode in ("ltc", "highlights") and self.plan.polygons:
             from ..lights.ltc import shade as ltc_shade
 
             out.append(ltc_shade._shade_frozen)
         if self.highlights is not None:
             out += [self.highlights._frozen_grid]
+        if self._mask_fn is not None:
+            out.append(self._mask_fn)
         return out
 
     def run(self, index: int, ctx: dict) -> dict:
+        from .plan import lights_at
+
         gb: Frame = ctx["frame"]
         h, w = gb.height, gb.width
-        if self.mode == "pathtraced":
+        if not self.shades:
             return {"direct": _zeros(h, w)}
-        from ..lights.analytic import analytic_lights
-        from ..lights.scene import polygon_lights
-
-        polys = self._stable_textures(polygon_lights(self.setup, index))
-        points = analytic_lights(self.setup, index)
+        plan = self.plan
+        if gb.meta.get("anisotropic"):
+            # the isotropic methods refuse such frames; here the anisotropic shapes are not
+            # among the plan's (their pixels are the path tracer's, masked out below)
+            gb = _with_channels(gb, gb.channels,
+                                {k: v for k, v in gb.meta.items() if k != "anisotropic"})
+        points = lights_at(self.setup, plan.points, index)
         # every pixel's material (lights.shading.fresnel_image, 16 floats a pixel), computed
         # on the device where it is read: BSPVT's vertex mode reads the vertices' instead
         # (FrozenShader takes the MaterialImage and calls it only when it needs it)
-        f0 = self.materials(gb) if self.mode != "ltc+bspvt" or points else None
-        if self.mode == "ltc":
-            out = self._ltc(gb, polys, f0)
-        elif self.mode == "ltc+bspvt":
+        f0 = (self.materials(gb) if self.mode != "ltc+bspvt" or points or plan.ratio
+              else None)
+        out = None
+        if self.mode in ("ltc", "highlights") and plan.polygons:
+            polys = self._stable_textures(lights_at(self.setup, plan.polygons))
+            if self.mode == "ltc":
+                out = self._ltc(gb, polys, f0)
+            else:  # highlights: Kimura & Tokoi's specular + LTC's diffuse
+                out = (self._ltc_diffuse(gb, polys, f0)
+                       + self._highlights(gb, index, polys, f0))
+        if self.mode == "ltc+bspvt" and plan.bspvt:
+            polys = self._stable_textures(lights_at(self.setup, plan.bspvt))
             out = self.bspvt(gb, polys, self.materials if f0 is None else f0,
                              textures=self._textures)
-        elif self.mode == "ltc+ratio":
+        ratio = plan.polygons if self.mode == "ltc+ratio" else \
+            plan.ratio if self.mode == "ltc+bspvt" else ()
+        if ratio:
             from ..lights.ratio import render_ratio
 
-            out = _tensor(render_ratio(gb, polys, self.setup.scene, spp=self.opts["ratio_spp"],
+            polys = self._stable_textures(lights_at(self.setup, ratio))
+            img = _tensor(render_ratio(gb, polys, self.setup.scene, spp=self.opts["ratio_spp"],
                                        f0=f0, seed=index, textures=self._textures).image)
-        else:  # highlights: Kimura & Tokoi's specular + LTC's diffuse
-            out = self._ltc_diffuse(gb, polys, f0) + self._highlights(gb, index, polys, f0)
+            out = img if out is None else out + img
         if points:
-            out = out + self.points(gb, points, f0)
+            img = self.points(gb, points, f0)
+            out = img if out is None else out + img
+        if out is None:
+            out = _zeros(h, w)
+        if self._mask_fn is not None:
+            with no_gc():
+                out = self._mask_fn(out, gb["mesh_id"], self._mask_table)
         return {"direct": out}
 
     def _stable_textures(self, polys: list) -> list:
@@ -748,7 +820,7 @@ class IndirectStage(Stage):
     release_memory = False
 
     def __init__(self, method: str, opts: dict | None = None, setup=None,
-                 exclude: tuple[int, ...] = ()):
+                 direct_pt: bool = True):
         self.method = method
         opts = opts or {}
         self.scale = int(opts.get("indirect_scale", 1))
@@ -772,7 +844,8 @@ class IndirectStage(Stage):
         self._resampler = None
         self.low_denoiser = _denoiser(method, signals="indirect", output="illumination", **fp)
         # the primary hit's path-traced direct light: left to the path tracer for some lights
-        self.direct_pt = len(tuple(exclude)) < len(setup.scene.emitters())
+        # or some surfaces (pipeline.plan.DirectPlan.path_traced_direct)
+        self.direct_pt = bool(direct_pt)
         self.direct_denoiser = (_denoiser(method, signals="direct", **fp) if self.direct_pt
                                 else None)
         # frozen (the camera terms and the jitter opaque inputs): steady frames replay

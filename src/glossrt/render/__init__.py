@@ -77,7 +77,8 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
 
 
 def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
-           max_depth, jitter, normal_maps, primary, roughness=None, lobe_key=None, skip=()):
+           max_depth, jitter, normal_maps, primary, roughness=None, lobe_key=None, skip=(),
+           rr_depth=RR_DEPTH, material_key=None):
     # ``normal_maps`` (= shapes.any_normal_map, which gbuffer() reads) is only a key of the
     # frozen function: a Python attribute of the ShapeTable is not part of dr.freeze's key.
     # ``primary``: None (one recording) or the primary-hit EmitterTable (another one; a new
@@ -85,9 +86,11 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
     # ``roughness``: None (one recording) or the per-pixel alpha of the primary hit's rough
     # lobes (another one, replayed with each frame's values); ``lobe_key``
     # (= shapes.lobe_key, which PrimaryLobe reads) is only a key, like ``normal_maps``
-    # ``skip``: radiance channels not written (a key too)
+    # ``skip``: radiance channels not written (a key too); ``rr_depth`` a key;
+    # ``material_key`` (= shapes.material_key: sampled albedos, inseparable lobes, null
+    # surfaces, which shade() and gbuffer() trace only where the scene has them) a key
     out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
-                       height, max_depth, jitter, primary, roughness, skip)
+                       height, max_depth, jitter, primary, roughness, skip, rr_depth)
     return {k: _flat(v) for k, v in out.items()}
 
 
@@ -109,18 +112,21 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
 
 def _trace_tile(scene, sensor, shapes, emitters, table, motion_inputs, offset, count_from,
                 rows, seed, width, height, max_depth, jitter, normal_maps, primary,
-                roughness, lobe_key, skip):
+                roughness, lobe_key, skip, rr_depth=RR_DEPTH, material_key=None):
     # one row tile of a frame (the pixels offset .. offset + rows * width - 1; ``offset`` and
     # ``count_from`` opaque, the rest as :func:`_trace`'s keys): its channels (interleaved
-    # flat arrays of the tile) and its non-finite count
+    # flat arrays of the tile), its non-finite count and its count of fallback pixels
     n = rows * width
     pixel = offset + dr.arange(mi.UInt32, n)
-    out, bad = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs, pixel,
-                              seed, width, height, max_depth, jitter, primary, roughness, skip)
-    bad = dr.select(pixel >= count_from, bad, 0)  # (the last tile's rows written before)
+    out, bad, fallback = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs,
+                                        pixel, seed, width, height, max_depth, jitter, primary,
+                                        roughness, skip, rr_depth)
+    new = pixel >= count_from  # (the last tile's rows written before are not counted again)
+    bad = dr.select(new, bad, 0)
+    fallback = dr.select(new, fallback, 0)
     out = {k: _flat(v) for k, v in out.items()}
-    dr.eval(out, bad)
-    return out, dr.sum(bad)
+    dr.eval(out, bad, fallback)
+    return out, dr.sum(bad), dr.sum(fallback)
 
 
 def _new_frozen_trace():
@@ -189,6 +195,23 @@ def _check_exclude(exclude, n: int) -> tuple[int, ...]:
     return tuple(sorted(out))
 
 
+def _check_shapes(mesh_ids, n: int) -> tuple[int, ...] | None:
+    """``exclude_on`` as sorted unique 1-based mesh ids (None stays None), or one clear
+    error."""
+    if mesh_ids is None:
+        return None
+    if isinstance(mesh_ids, (str, bytes)) or not isinstance(mesh_ids, Collection):
+        raise GlossrtError("exclude_on must be a collection of mesh ids (1-based, as the "
+                           f"mesh_id channel), or None; got {mesh_ids!r}")
+    out = set()
+    for i in mesh_ids:
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) \
+                or not 1 <= int(i) <= n:
+            raise GlossrtError(f"exclude_on: {i!r} is not a mesh id of the scene (1..{n})")
+        out.add(int(i))
+    return tuple(sorted(out))
+
+
 def _check_jitter(jitter, limit: float = 0.5) -> tuple[float, float]:
     try:
         jx, jy = (float(v) for v in jitter)
@@ -221,11 +244,25 @@ class Renderer:
     Frames record the indices in ``meta["primary_exclude"]`` and the emitters' ids in
     ``meta["primary_exclude_ids"]`` (only when some are excluded). Settable between frames
     (:attr:`primary_exclude`): a set not used before records the frozen trace once more
-    (at most), a set used before replays its recording."""
+    (at most), a set used before replays its recording.
+
+    ``exclude_on``: the shapes (1-based mesh ids, as the ``mesh_id`` channel numbers them)
+    at whose primary hits the exclusion applies; a primary hit on any other shape samples
+    every emitter (its direct light path-traced in full, as the analytic stage leaves such
+    pixels). None (default): every shape. Frames count the primary hits elsewhere in
+    ``meta["fallback_pixels"]`` (with an exclusion). Settable between frames, as
+    :attr:`primary_exclude` (:meth:`set_exclusion` sets both): a pair not used before
+    records the frozen trace once more, a pair used before replays its recording.
+
+    ``rr_depth``: the depth Russian roulette starts at (default: the scene integrator's
+    ``rr_depth``, else Mitsuba's 5). A scene whose integrator glossrt does not render
+    (:attr:`glossrt.scenes.SceneSetup.integrator_error`) is refused here unless
+    ``max_depth`` is given."""
 
     def __init__(self, setup: SceneSetup, max_depth: int | None = None, seed: int = 0,
                  frozen: bool = True, primary_exclude: Collection[int] = (),
-                 tile_pixels: int = TILE_PIXELS):
+                 tile_pixels: int = TILE_PIXELS, exclude_on: Collection[int] | None = None,
+                 rr_depth: int | None = None):
         if isinstance(tile_pixels, bool) or not isinstance(tile_pixels, (int, np.integer)) \
                 or tile_pixels < 1:
             raise GlossrtError(f"tile_pixels must be a positive integer, got {tile_pixels!r}")
@@ -234,6 +271,8 @@ class Renderer:
         self.setup = setup
         if max_depth is not None:
             md, self.max_depth_from = max_depth, "argument"
+        elif getattr(setup, "integrator_error", None):
+            raise GlossrtError(setup.integrator_error)
         elif setup.max_depth is not None:
             md, self.max_depth_from = setup.max_depth, setup.max_depth_from or "scene"
         else:
@@ -242,6 +281,12 @@ class Renderer:
             self.max_depth = resolve_max_depth(int(md))
         except ValueError as e:
             raise GlossrtError(str(e)) from None
+        rr = rr_depth if rr_depth is not None else getattr(setup, "rr_depth", None)
+        rr = RR_DEPTH if rr is None else rr
+        if isinstance(rr, bool) or not isinstance(rr, (int, np.integer)) or rr < 1:
+            raise GlossrtError(f"rr_depth must be an integer >= 1 (as Mitsuba's), got {rr!r}")
+        #: the depth Russian roulette starts at (Mitsuba's ``rr_depth``)
+        self.rr_depth = int(rr)
         self.seed = seed
         self.frozen = frozen
         self._trace_frozen = _new_frozen_trace()  # recordings never shared across scenes
@@ -250,11 +295,13 @@ class Renderer:
         #: emitters in a load-independent order for next-event estimation (reproducible noise)
         self.emitters = EmitterTable(setup.scene)
         self._primary: EmitterTable | None = None
-        self._primary_tables: dict[tuple[int, ...], EmitterTable] = {}
+        self._primary_tables: dict[tuple, EmitterTable] = {}
         self._exclude: tuple[int, ...] = ()
+        self._exclude_on: tuple[int, ...] | None = None
         # ids of the emitters in stable_emitters order (the numbering primary_exclude uses),
         # ordered once: stable_emitters digests every non-area emitter's parameters
         self._emitter_ids = tuple(e.id() for e in stable_emitters(setup.scene))
+        self._exclude_on = _check_shapes(exclude_on, len(setup.shapes))
         self.primary_exclude = primary_exclude
         _warm_emitters(setup.scene)
         self.table = SpecularAlbedoTable.load()
@@ -272,12 +319,36 @@ class Renderer:
     @primary_exclude.setter
     def primary_exclude(self, exclude: Collection[int]) -> None:
         exclude = _check_exclude(exclude, len(self._emitter_ids))
-        if exclude and exclude not in self._primary_tables:
-            self._primary_tables[exclude] = EmitterTable(self.setup.scene, exclude)
+        self._set_primary(exclude, self._exclude_on)
+
+    @property
+    def exclude_on(self) -> tuple[int, ...] | None:
+        """Mesh ids of the shapes where :attr:`primary_exclude` applies (None: all)."""
+        return self._exclude_on
+
+    @exclude_on.setter
+    def exclude_on(self, mesh_ids: Collection[int] | None) -> None:
+        self._set_primary(self._exclude, _check_shapes(mesh_ids, len(self.setup.shapes)))
+
+    def set_exclusion(self, primary_exclude: Collection[int],
+                      exclude_on: Collection[int] | None = None) -> None:
+        """:attr:`primary_exclude` and :attr:`exclude_on` together (checked first; one
+        primary table for the pair)."""
+        exclude = _check_exclude(primary_exclude, len(self._emitter_ids))
+        self._set_primary(exclude, _check_shapes(exclude_on, len(self.setup.shapes)))
+
+    def _set_primary(self, exclude: tuple[int, ...], on: tuple[int, ...] | None) -> None:
+        if on is not None and len(on) == len(self.setup.shapes):
+            on = None  # every shape: the same as no restriction
+        key = (exclude, on)
+        if exclude and key not in self._primary_tables:
+            shapes = None if on is None else [self.setup.shapes[i - 1] for i in on]
+            self._primary_tables[key] = EmitterTable(self.setup.scene, exclude, shapes)
         # a table kept per set: going back to an earlier set replays its recording (a new
         # table of equal values was measured to record once more, dr.freeze in drjit 1.5)
-        self._primary = self._primary_tables[exclude] if exclude else None
+        self._primary = self._primary_tables[key] if exclude else None
         self._exclude = exclude
+        self._exclude_on = on
 
     # -- low level ---------------------------------------------------------------------
     def frozen_functions(self) -> list:
@@ -298,7 +369,8 @@ class Renderer:
         (``dr.zeros``, no memory until it is read out) per such channel."""
         md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
         out = []
-        if md <= 1 or (self._emitter_ids and len(self._exclude) == len(self._emitter_ids)):
+        every = self._emitter_ids and len(self._exclude) == len(self._emitter_ids)
+        if md <= 1 or (every and self._exclude_on is None):
             out += DIRECT_OUT
         if md <= 2:
             out += INDIRECT_OUT
@@ -376,13 +448,37 @@ class Renderer:
         # (a jittered frame traces one more ray per pixel, through its centre, for it)
         offset = (None if (jx, jy) == (0.0, 0.0)
                   else mi.Point2f(dr.opaque(mi.Float, jx), dr.opaque(mi.Float, jy)))
+        args = (self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
+                self._motion_inputs(frame), pixel, seed, self.width, self.height,
+                md, offset, self.shapes.any_normal_map, self._primary, roughness,
+                self.shapes.lobe_key if roughness is not None else None, tuple(skip),
+                self.rr_depth, self.shapes.material_key)
         with no_gc():
-            out = fn(self.setup.scene, self.setup.sensor, self.shapes, self.emitters, self.table,
-                     self._motion_inputs(frame), pixel, seed, self.width, self.height,
-                     md, offset, self.shapes.any_normal_map, self._primary, roughness,
-                     self.shapes.lobe_key if roughness is not None else None, tuple(skip))
+            try:
+                out = fn(*args)
+            except RuntimeError as e:
+                if fn is _trace or not self._unfreezable(e):
+                    raise
+                out = _trace(*args)
             dr.eval(out)
         return out
+
+    def _unfreezable(self, e: RuntimeError) -> bool:
+        """Whether ``e`` is Dr.Jit refusing to record the frame's kernels with ``dr.freeze``
+        (a plugin whose virtual calls read objects the scene does not hand to Dr.Jit's
+        traversal: Mitsuba's ``polarizer`` in an RGB variant). Then this renderer traces
+        every frame anew from now on (:attr:`frozen` False; about 0.35 s of Python tracing a
+        frame on a CPU), with a one-line warning, rather than refusing the scene."""
+        if "frozen function" not in str(e) and "record()" not in str(e):
+            return False
+        if self.frozen:
+            import warnings
+
+            warnings.warn(f"{self.setup.name}: Dr.Jit cannot freeze this scene's kernels "
+                          f"({str(e).splitlines()[0][:160]}); every frame is traced anew "
+                          "(slower)", stacklevel=4)
+        self.frozen = False
+        return True
 
     def render_pixels(self, frame: int, pixels, seed: int | None = None,
                       spp: int = 1) -> dict[str, np.ndarray]:
@@ -402,6 +498,7 @@ class Renderer:
             out = self.trace(frame, mi.UInt32(idx.astype(np.uint32)), dr.opaque(mi.UInt32, s),
                              frozen=False)
             out.pop("nonfinite")
+            out.pop("fallback")
             return {k: np.array(v).reshape(idx.size, -1) for k, v in out.items()}
         base = frame_seed(frame, self.seed if seed is None else seed, PIXELS_SALT)
         lanes = np.repeat(idx, spp).astype(np.uint32)  # pixel-major
@@ -409,6 +506,7 @@ class Renderer:
         seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
         out = self.trace(frame, mi.UInt32(lanes), seeds, frozen=False)
         out.pop("nonfinite")
+        out.pop("fallback")
         res = {}
         for k, v in out.items():
             a = np.array(v).reshape(idx.size, spp, -1)
@@ -446,9 +544,10 @@ class Renderer:
         each. Frozen frames of more than :attr:`tile_pixels` pixels are traced in row tiles
         (the same values)."""
         t0 = time.perf_counter()
-        channels, bad = self._trace_frame(frame, self.seed if seed is None else seed, jitter,
-                                          jitter_limit, roughness, None, omit)
-        f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
+        channels, bad, fallback = self._trace_frame(
+            frame, self.seed if seed is None else seed, jitter, jitter_limit, roughness, None,
+            omit)
+        f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0, fallback=fallback)
         if omit:
             f.meta["omitted"] = sorted(set(omit))
         if tuple(jitter) != (0.0, 0.0):
@@ -468,16 +567,18 @@ class Renderer:
         :meth:`render`'s; ``jitter`` as :meth:`render`'s (the same rays as a jittered light
         pass)."""
         t0 = time.perf_counter()
-        channels, bad = self._trace_frame(frame, self.seed, jitter, 0.5, None, 1, omit)
-        f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0)
+        channels, bad, fallback = self._trace_frame(frame, self.seed, jitter, 0.5, None, 1,
+                                                    omit)
+        f = self._frame(frame, channels, 1, bad, time.perf_counter() - t0, fallback=fallback)
         f.meta["max_depth"] = 1
         if omit:
             f.meta["omitted"] = sorted(set(omit))
         return f
 
     def _trace_frame(self, frame: int, seed: int, jitter, jitter_limit, roughness,
-                     max_depth: int | None, omit: Collection[str]) -> tuple[dict, int]:
-        """The whole frame's channels (``(H, W, C)`` tensors) and its non-finite count:
+                     max_depth: int | None, omit: Collection[str]) -> tuple[dict, int, int]:
+        """The whole frame's channels (``(H, W, C)`` tensors), its non-finite count and its
+        count of fallback pixels (:func:`glossrt.render.pathtracer.trace_pixels`):
         :meth:`trace` of every pixel, or its row tiles (frozen, more than
         :attr:`tile_pixels` pixels); the zero channels as constants, ``omit`` left out."""
         if isinstance(omit, (str, bytes)) or not isinstance(omit, Collection):
@@ -492,27 +593,34 @@ class Renderer:
         zero = tuple(k for k in self.zero_channels(max_depth) if k not in omit)
         skip = tuple(k for k in names + ANISOTROPY_OUT if k in zero or k in omit)
         s = frame_seed(frame, seed)
-        frozen = self.frozen
-        if not frozen or w * h <= self.tile_pixels:
+        tiles = None
+        if self.frozen and w * h > self.tile_pixels:
+            try:
+                tiles = self._trace_tiles(frame, s, jitter, jitter_limit, roughness, max_depth,
+                                          skip)
+            except RuntimeError as e:  # (traced anew from now on: _unfreezable)
+                if not self._unfreezable(e):
+                    raise
+        if tiles is None:
             out = self.trace(frame, dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, s),
                              jitter=jitter, jitter_limit=jitter_limit, roughness=roughness,
                              max_depth=max_depth, skip=skip)
             bad = int(out.pop("nonfinite")[0])
+            fallback = int(out.pop("fallback")[0])
         else:
-            out, bad = self._trace_tiles(frame, s, jitter, jitter_limit, roughness, max_depth,
-                                         skip)
+            out, bad, fallback = tiles
         channels = {k: mi.TensorXf(v, (h, w, COMPONENTS.get(k, 3))) for k, v in out.items()}
         for k in zero:
             channels[k] = dr.zeros(mi.TensorXf, (h, w, 3))
         # the schema's order (readers list the channels as a frame holds them)
         order = {k: i for i, k in enumerate(GBUFFER_OUT[:-1] + names + ("motion",))}
         channels = dict(sorted(channels.items(), key=lambda kv: order.get(kv[0], len(order))))
-        return channels, bad
+        return channels, bad, fallback
 
     def _trace_tiles(self, frame: int, s: int, jitter, jitter_limit, roughness,
-                     max_depth: int | None, skip: tuple[str, ...]) -> tuple[dict, int]:
+                     max_depth: int | None, skip: tuple[str, ...]) -> tuple[dict, int, int]:
         """The frozen frame in row tiles (see "row tiles of a frozen full frame"): flat
-        interleaved channels and the non-finite count."""
+        interleaved channels, the non-finite count and the fallback pixels' count."""
         roughness = self._roughness(roughness)
         md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
         self.setup.set_frame(frame)
@@ -526,17 +634,19 @@ class Renderer:
         dr.eval(buffers)
         seed = dr.opaque(mi.UInt32, s)
         motion_inputs = self._motion_inputs(frame)
-        bad = []
+        bad, fallback = [], []
         done = 0  # rows written by the tiles so far
         with no_gc():
             for r in tile_starts(h, rows):
-                tile, count = self._tile_frozen(
+                tile, count, fb = self._tile_frozen(
                     self.setup.scene, self.setup.sensor, self.shapes, self.emitters,
                     self.table, motion_inputs, dr.opaque(mi.UInt32, r * w),
                     dr.opaque(mi.UInt32, done * w), rows, seed, w, h, md, offset,
                     self.shapes.any_normal_map, self._primary, roughness,
-                    self.shapes.lobe_key if roughness is not None else None, skip)
+                    self.shapes.lobe_key if roughness is not None else None, skip,
+                    self.rr_depth, self.shapes.material_key)
                 bad.append(count)
+                fallback.append(fb)
                 start = dr.opaque(mi.UInt32, r * w)  # (one copy kernel per width, any tile)
                 for k, v in tile.items():
                     c = COMPONENTS.get(k, 3)
@@ -545,8 +655,9 @@ class Renderer:
                 del tile
                 done = r + rows
             total = sum(bad[1:], bad[0])
-            dr.eval(total)
-        return buffers, int(total[0])
+            fb_total = sum(fallback[1:], fallback[0])
+            dr.eval(total, fb_total)
+        return buffers, int(total[0]), int(fb_total[0])
 
     def render_reference(self, frame: int, spp: int, seed: int | None = None,
                          progress: Callable[[int, int], None] | None = None,
@@ -564,6 +675,7 @@ class Renderer:
         sums: dict[str, mi.Float] = {}
         gbuf: dict[str, mi.TensorXf] = {}
         bad = 0
+        fallback = None
         done = 0
         t0 = time.perf_counter()
         while done < spp:
@@ -573,6 +685,8 @@ class Renderer:
             seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
             out = self.trace(frame, lane // kk, seeds, frozen=False, roughness=roughness)
             bad += int(out["nonfinite"][0])
+            if fallback is None:  # (each pixel's primary hit is the same in every sample)
+                fallback = int(out["fallback"][0]) // kk
             for name in RADIANCE_OUT:
                 # lanes are pixel-major: pixel p owns lanes p*kk .. p*kk+kk-1
                 v = dr.unravel(mi.Color3f, out[name])
@@ -591,7 +705,8 @@ class Renderer:
         channels = {k_: mi.TensorXf(v / spp, (h, w, 3)) for k_, v in sums.items()}
         channels["color"] = mi.TensorXf(sum(sums[n] for n in RADIANCE_OUT) / spp, (h, w, 3))
         channels.update(gbuf)
-        f = self._frame(frame, channels, spp, bad, time.perf_counter() - t0, reference=True)
+        f = self._frame(frame, channels, spp, bad, time.perf_counter() - t0, reference=True,
+                        fallback=fallback)
         if roughness is not None:
             f.meta["primary_roughness"] = "override"
         return f
@@ -607,14 +722,14 @@ class Renderer:
                                f"got {integrator!r}")
         self.setup.set_frame(frame)
         md = self.mitsuba_max_depth
-        integrator = mi.load_dict({"type": "path", "max_depth": md} if integrator == "path"
-                                  else {"type": "direct"})
+        integrator = mi.load_dict({"type": "path", "max_depth": md, "rr_depth": self.rr_depth}
+                                  if integrator == "path" else {"type": "direct"})
         img = mi.render(self.setup.scene, sensor=self.setup.sensor, integrator=integrator,
                         spp=spp, seed=frame_seed(frame, seed, 0xA11A5))
         return mi.TensorXf(img)
 
     def _frame(self, frame: int, channels: dict, spp: int, bad: int, seconds: float,
-               reference: bool = False) -> Frame:
+               reference: bool = False, fallback: int | None = None) -> Frame:
         cam = self.setup.camera(frame)
         prev = self._prev_camera(frame)
         meta = {
@@ -623,7 +738,7 @@ class Renderer:
             "seed": self.seed,
             "max_depth": self.mitsuba_max_depth,
             "max_depth_from": self.max_depth_from,
-            "rr_depth": RR_DEPTH,
+            "rr_depth": self.rr_depth,
             "reference": reference,
             "nonfinite_samples": int(bad),
             "render_seconds": seconds,
@@ -634,4 +749,8 @@ class Renderer:
         if self._exclude:
             meta["primary_exclude"] = list(self._exclude)
             meta["primary_exclude_ids"] = [self._emitter_ids[i] for i in self._exclude]
+            if self._exclude_on is not None:
+                meta["exclude_on"] = list(self._exclude_on)
+            if fallback is not None:
+                meta["fallback_pixels"] = int(fallback)
         return Frame(channels=channels, camera=cam, prev_camera=prev, index=frame, meta=meta)

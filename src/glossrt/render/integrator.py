@@ -22,6 +22,7 @@ from .. import backend
 from ..backend import mi
 from .pathtracer import (
     RADIANCE_OUT,
+    RR_DEPTH,
     EmitterTable,
     ShapeTable,
     gbuffer,
@@ -45,7 +46,8 @@ def _integrator_class(variant: str) -> type:
     variant, so the class is built once a variant is chosen, not at import."""
 
     class GlossrtIntegrator(mi.SamplingIntegrator):
-        """Separated radiance + G-buffer AOVs. Parameter: ``max_depth`` (int, default 3).
+        """Separated radiance + G-buffer AOVs. Parameters: ``max_depth`` (int, default 3) and
+        ``rr_depth`` (int, default 5, Mitsuba's).
 
         ``depth`` is measured along the axis of the sensor being rendered (the one ``render``
         gets, e.g. ``mi.render(scene, sensor=posed_sensor)``), not ``scene.sensors()[0]``. The
@@ -56,6 +58,7 @@ def _integrator_class(variant: str) -> type:
         def __init__(self, props: mi.Properties):
             super().__init__(props)
             self.max_depth = resolve_max_depth(int(props.get("max_depth", 3)))
+            self.rr_depth = int(props.get("rr_depth", RR_DEPTH))
             #: (scene, sensor, ShapeTable, EmitterTable) while ``render`` runs, else None
             self._current = None
             from ..brdf.ggx import SpecularAlbedoTable
@@ -85,10 +88,13 @@ def _integrator_class(variant: str) -> type:
         def sample(self, scene, sampler, ray, medium=None, active=True):
             ray = mi.Ray3f(ray)
             sensor, shapes, emitters = self._tables(scene)
-            r = shade(scene, sampler, ray, self.max_depth, emitters)
+            r = shade(scene, sampler, ray, self.max_depth, emitters, shapes=shapes,
+                      rr_depth=self.rr_depth)
             # depth along the axis of the sensor being rendered (the posed camera)
-            gb = gbuffer(r.si, r.bsdf, ray, sensor, shapes, self.albedo)
-            values = {name: getattr(r, name) for name in RADIANCE_OUT}
+            gb = gbuffer(r.si, r.bsdf, ray, sensor, shapes, self.albedo, r.albedo)
+            # a non-finite sample is 0, as in the Renderer's frames (which count them)
+            values = {name: dr.select(dr.isfinite(getattr(r, name)), getattr(r, name), 0.0)
+                      for name in RADIANCE_OUT}
             values.update(gb)
             # films can't average inf
             values["depth"] = dr.select(r.si.is_valid(), gb["depth"], 0.0)
@@ -100,7 +106,8 @@ def _integrator_class(variant: str) -> type:
             return mi.Spectrum(color), mi.Bool(True), aovs
 
         def to_string(self):
-            return f"GlossrtIntegrator[max_depth={self.max_depth}]"
+            return (f"GlossrtIntegrator[max_depth={self.max_depth}, "
+                    f"rr_depth={self.rr_depth}]")
 
     return GlossrtIntegrator
 

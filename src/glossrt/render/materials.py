@@ -37,12 +37,39 @@ class Material:
     anisotropic: tuple[float, float] | None = None
     #: the Fresnel term Mitsuba weights the specular lobe with (exact conductor or dielectric)
     fresnel: Fresnel = field(default_factory=Fresnel)
+    #: whether glossrt's analytic shading represents the BSDF: Lambert plus at most one
+    #: isotropic GGX or Beckmann reflection lobe with an exact conductor or dielectric
+    #: Fresnel term (:data:`ANALYTIC_CLASSES`, through ``twosided`` and ``normalmap``). The
+    #: others (glass, transmission, blends, masks, bump maps, principled, anisotropic
+    #: lobes, ...) are rendered through Mitsuba's own BSDF by the path tracer alone, and
+    #: their G-buffer albedos come from Mitsuba's sampling (:func:`glossrt.render.pathtracer.
+    #: sampled_albedo`)
+    analytic: bool = True
+    #: whether Mitsuba's ``eval`` of the BSDF honours ``BSDFContext.type_mask``, so that the
+    #: lobes' values can be asked for one at a time (``principled`` evaluates every lobe
+    #: whatever the mask: :func:`lobes_separable`)
+    separable: bool = True
+    #: whether the G-buffer's albedo channels come from Mitsuba's sampling of the BSDF
+    #: (:func:`glossrt.render.pathtracer.sampled_albedo`) rather than the split-sum tables
+    #: and ``eval_diffuse_reflectance``: BSDFs outside :data:`ANALYTIC_CLASSES`
+    sampled_albedo: bool = False
 
     @property
     def beckmann(self) -> bool:
         """Whether the rough lobe uses Beckmann's distribution."""
         return self.distribution == "beckmann"
 
+
+#: Mitsuba classes whose BSDF glossrt's analytic shading represents (with the wrappers
+#: ``twosided`` and ``normalmap`` around them): Lambert and one microfacet reflection lobe
+ANALYTIC_CLASSES = {"SmoothDiffuse", "SmoothConductor", "RoughConductor", "SmoothPlastic",
+                    "RoughPlastic", "TwoSidedBRDF", "NormalMap"}
+#: Mitsuba classes whose ``eval`` ignores ``BSDFContext.type_mask`` (checked on Mitsuba
+#: 3.9: ``principled``'s diffuse, glossy and transmission masks each return the whole BSDF)
+NOT_SEPARABLE = {"Principled", "PrincipledThin"}
+#: the wrappers whose one nested BSDF carries the lobes (for the ``roughness`` and
+#: ``distribution`` channels of BSDFs the analytic shading does not represent)
+_WRAPPERS = {"TwoSidedBRDF": "brdf_0", "NormalMap": "nested_bsdf", "BumpMap": "nested_bsdf"}
 
 #: ``Material.normal_map``: no normal map (the shading normal is the shape's)
 NORMAL_MAP_NONE = 0
@@ -149,28 +176,117 @@ def diffuse_scale(bsdf: mi.BSDF, samples: int = 32) -> np.ndarray:
 
 def _children(obj) -> dict:
     """The objects a Mitsuba plugin hands to ``traverse`` (a wrapper's nested BSDFs), by
-    name. (The callback class is made here, not at import: touching ``mi`` picks the
-    variant.)"""
+    name (:func:`glossrt.scenes.children`)."""
+    from ..scenes import children
 
-    class Children(mi.TraversalCallback):
-        def __init__(self):
-            super().__init__()
-            self.objects: dict = {}
+    return children(obj)
 
-        # (Mitsuba 3.9 calls ``put`` for objects and values alike)
-        def put(self, name, value, flags):
-            if isinstance(value, mi.Object):
-                self.objects[name] = value
 
-        def put_value(self, name, value, flags):
-            pass
+def nested_classes(bsdf: mi.BSDF) -> set[str]:
+    """The Mitsuba class names of ``bsdf`` and every BSDF nested in it."""
+    out = {bsdf.class_name()}
+    for child in _children(bsdf).values():
+        if isinstance(child, mi.BSDF):
+            out |= nested_classes(child)
+    return out
 
-        def put_object(self, name, obj, flags):
-            self.put(name, obj, flags)
 
-    cb = Children()
-    obj.traverse(cb)
-    return cb.objects
+def _unwrapped(bsdf: mi.BSDF) -> mi.BSDF:
+    """The BSDF inside ``twosided`` (one BSDF for both sides), ``normalmap`` and ``bumpmap``
+    wrappers (``bsdf`` itself when it is none of them)."""
+    name = _WRAPPERS.get(bsdf.class_name())
+    if name is None:
+        return bsdf
+    objects = _children(bsdf)
+    if bsdf.class_name() == "TwoSidedBRDF" and objects.get("brdf_1", objects.get("brdf_0")) \
+            is not objects.get("brdf_0"):
+        return bsdf  # two different sides
+    nested = objects.get(name)
+    return _unwrapped(nested) if isinstance(nested, mi.BSDF) else bsdf
+
+
+def _probe_interactions(n: int, seed: int = 1) -> tuple:
+    """``n`` surface interactions with random texture coordinates and view directions (both
+    hemispheres), a plausible frame and differentials, and ``n`` random directions."""
+    rng = np.random.default_rng(seed)
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def vec(a):
+        return mi.Vector3f(*(mi.Float(np.ascontiguousarray(a[:, i], np.float32))
+                             for i in range(3)))
+
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.n = mi.Normal3f(0.0, 0.0, 1.0)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    si.dp_du = mi.Vector3f(1.0, 0.0, 0.0)
+    si.dp_dv = mi.Vector3f(0.0, 1.0, 0.0)
+    si.uv = mi.Point2f(mi.Float(rng.random(n, np.float32)), mi.Float(rng.random(n, np.float32)))
+    si.p = mi.Point3f(si.uv.x, si.uv.y, 0.0)
+    si.wi = vec(unit(rng.normal(size=(n, 3))))
+    return si, vec(unit(rng.normal(size=(n, 3))))
+
+
+def lobes_separable(bsdf: mi.BSDF, samples: int = 256) -> bool:
+    """Whether Mitsuba's ``eval`` of ``bsdf`` honours ``BSDFContext.type_mask``: the diffuse
+    and the non-diffuse values add up to the whole (to 1e-3 of the largest value) at
+    ``samples`` random texture coordinates and direction pairs. Classes known either way
+    are not evaluated (:data:`ANALYTIC_CLASSES` are, :data:`NOT_SEPARABLE` are not)."""
+    classes = nested_classes(bsdf)
+    if classes & NOT_SEPARABLE:
+        return False
+    if classes <= ANALYTIC_CLASSES | {"SmoothDielectric", "RoughDielectric", "ThinDielectric",
+                                      "BlendBSDF", "MaskBSDF", "BumpMap", "Null"}:
+        return True
+    diffuse = int(mi.BSDFFlags.Diffuse)
+    si, wo = _probe_interactions(samples)
+    whole = np.array(bsdf.eval(mi.BSDFContext(), si, wo), np.float64)
+    parts = 0.0
+    for mask in (diffuse, int(mi.BSDFFlags.All) & ~diffuse):
+        ctx = mi.BSDFContext()
+        ctx.type_mask = mask
+        parts = parts + np.array(bsdf.eval(ctx, si, wo), np.float64)
+    scale = float(np.max(np.abs(whole), initial=0.0))
+    return not scale > 0 or float(np.max(np.abs(parts - whole))) <= 1e-3 * scale
+
+
+def _generic(bsdf: mi.BSDF, params) -> Material:
+    """The :class:`Material` of a BSDF the analytic shading does not represent: its lobes
+    from Mitsuba's flags; ``distribution``: the microfacet distribution of a rough plugin
+    without nested BSDFs (dielectric, conductor, plastic, polarized plastic), also inside
+    ``twosided``, ``normalmap`` and ``bumpmap`` wrappers (a bump-mapped rough plastic is
+    still its lobe; None: no single microfacet lobe describes the surface, the
+    ``distribution`` channel's "no analytic lobe"); ``alpha``:
+    that lobe's roughness (``alpha_attr`` when textured), a ``principled`` BSDF's
+    ``roughness^2`` (its alpha), else 0 for a BSDF with a delta or glossy lobe and 1 for a
+    diffuse one."""
+    flags = int(bsdf.flags())
+    has_d = bool(flags & int(mi.BSDFFlags.Diffuse))
+    has_s = bool(flags & (int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta)))
+    inner = _unwrapped(bsdf)
+    alpha, alpha_attr, distribution = (0.0 if has_s else 1.0), False, None
+    # one microfacet lobe: a rough plugin without nested BSDFs (rough dielectric, conductor,
+    # plastic, polarized plastic, ...) that prints its distribution
+    single = (bsdf_distribution(inner) is not None
+              and not any(isinstance(c, mi.BSDF) for c in _children(inner).values()))
+    if single:
+        distribution = bsdf_distribution(inner)
+        ip = mi.traverse(inner)
+        if "alpha.value" in ip.keys():
+            alpha = float(np.array(ip["alpha.value"]).ravel()[0])
+        elif "alpha_u.value" in ip.keys() and "alpha_v.value" in ip.keys():
+            alpha = float(np.sqrt(np.array(ip["alpha_u.value"]).ravel()[0]
+                                  * np.array(ip["alpha_v.value"]).ravel()[0]))
+        else:
+            alpha_attr = alpha_source(bsdf) is not None
+    else:
+        r, _ = _param(params, "roughness.value")
+        if r is not None:
+            alpha = float(np.array(r).ravel()[0]) ** 2
+    return Material(bsdf.class_name(), has_d, has_s, alpha, alpha_attr, (0.0, 0.0, 0.0),
+                    NORMAL_MAP_NONE, distribution, None, Fresnel(), analytic=False,
+                    separable=lobes_separable(bsdf), sampled_albedo=True)
 
 
 def alpha_source(bsdf: mi.BSDF) -> mi.BSDF | None:
@@ -184,29 +300,53 @@ def alpha_source(bsdf: mi.BSDF) -> mi.BSDF | None:
     if bsdf.has_attribute("alpha"):
         return bsdf
     kind = bsdf.class_name()
-    if kind not in ("NormalMap", "TwoSidedBRDF"):
+    if kind not in _WRAPPERS:
         return None
     objects = _children(bsdf)
     if kind == "TwoSidedBRDF" and objects.get("brdf_1", objects.get("brdf_0")) \
             is not objects.get("brdf_0"):
         return None  # two different sides: no one texture
-    nested = objects.get("nested_bsdf" if kind == "NormalMap" else "brdf_0")
+    nested = objects.get(_WRAPPERS[kind])
     return alpha_source(nested) if isinstance(nested, mi.BSDF) else None
 
 
+#: textured parameters of the analytic classes that their analytic description has no
+#: place for (it takes one Fresnel term and one specular colour per material)
+_TEXTURED_FRESNEL = ("specular_reflectance", "eta", "k")
+
+
+def _beyond_analytic(bsdf: mi.BSDF, params) -> bool:
+    """Whether a BSDF of the analytic classes still lies beyond the analytic description: a
+    ``twosided`` with two different sides (the description is one material), or a textured
+    Fresnel parameter or specular colour (``specular_reflectance``, ``eta``, ``k``)."""
+    if bsdf.class_name() == "TwoSidedBRDF":
+        objects = _children(bsdf)
+        if objects.get("brdf_1", objects.get("brdf_0")) is not objects.get("brdf_0"):
+            return True
+    for key in params.keys():
+        name = key.rsplit(".", 2)
+        if len(name) >= 2 and name[-2] in _TEXTURED_FRESNEL and name[-1] != "value":
+            return True
+    return False
+
+
 def describe_bsdf(bsdf: mi.BSDF) -> Material:
-    """Lobes, roughness and Fresnel F0 (normal incidence) of a supported Mitsuba BSDF, looking
-    through ``twosided`` and ``normalmap`` wrappers (the nested BSDF's roughness and F0), and
-    whether a normal map perturbs its shading normal (``Material.normal_map``). A negative or
-    non-finite roughness raises :class:`glossrt.errors.SceneError` naming the BSDF."""
+    """Lobes, roughness and Fresnel F0 (normal incidence) of a Mitsuba BSDF, looking through
+    ``twosided`` and ``normalmap`` wrappers (the nested BSDF's roughness and F0), whether a
+    normal map perturbs its shading normal (``Material.normal_map``) and whether the
+    analytic shading represents it (``Material.analytic``; the others: :func:`_generic`). A
+    negative or non-finite roughness raises :class:`glossrt.errors.SceneError` naming the
+    BSDF."""
     from ..scenes import check_roughness
 
     check_roughness(bsdf)  # a negative alpha never reaches the roughness channel
+    params = mi.traverse(bsdf)
+    if not nested_classes(bsdf) <= ANALYTIC_CLASSES or _beyond_analytic(bsdf, params):
+        return _generic(bsdf, params)
     flags = int(bsdf.flags())
     has_d = bool(flags & int(mi.BSDFFlags.Diffuse))
     has_s = bool(flags & (int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta)))
     glossy = bool(flags & int(mi.BSDFFlags.Glossy))
-    params = mi.traverse(bsdf)
     kind = bsdf.class_name()
 
     alpha, alpha_attr = (0.0 if has_s else 1.0), False
@@ -260,9 +400,11 @@ def describe_bsdf(bsdf: mi.BSDF) -> Material:
             f0 = np.ones(3)
             fresnel = Fresnel(SCHLICK, scale=_t3(scale), f0=_t3(f0 * scale))
         f0 = f0 * scale
+    # an anisotropic lobe is rendered by the path tracer alone (the analytic methods take
+    # one alpha per pixel)
     return Material(kind, has_d, has_s, alpha, alpha_attr, tuple(float(v) for v in f0),
                     _normal_map_kind(bsdf, set(params.keys())),
-                    distribution, aniso, fresnel)
+                    distribution, aniso, fresnel, analytic=aniso is None)
 
 
 #: ``LobeOverride.kind``: no per-pixel roughness override (the material's own lobes stay)

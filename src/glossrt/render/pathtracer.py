@@ -41,9 +41,9 @@ import numpy as np
 
 from ..backend import VariantStruct, mi
 from ..brdf.fresnel import ROW, split_sum
-from ..brdf.microfacet import BECKMANN, GGX
+from ..brdf.microfacet import GGX
 from ..errors import GlossrtError
-from ..scenes import stable_emitters, stable_shapes
+from ..scenes import render_shapes, stable_emitters
 from .materials import NORMAL_MAP_TWOSIDED
 
 RR_DEPTH = 5
@@ -131,18 +131,24 @@ class EmitterTable:
     per-emitter ``mis_scale`` (this table's pmf over Mitsuba's, 0 where Mitsuba's is 0) turns
     ``scene.pdf_emitter_direction`` into this table's pdf for MIS; ``excluded`` flags the
     excluded entries; ``slot`` maps an emitter's Dr.Jit registry id (what an ``EmitterPtr``
-    holds) to its index + 1 here (0: not an emitter of the scene)."""
+    holds) to its index + 1 here (0: not an emitter of the scene).
+
+    ``apply``: per shape registry id (what ``si.shape`` holds), whether the exclusion applies
+    at a primary hit on that shape; a primary hit elsewhere samples every emitter (the
+    scene's own table: those pixels' direct light is path-traced in full).
+    ``apply_on``: the shapes (``mi.Shape`` objects) to apply it on; None: every shape."""
 
     DRJIT_STRUCT = VariantStruct(lambda: {"emitter": mi.EmitterPtr, "pmf": mi.Float,
                                           "cdf": mi.Float, "last": mi.UInt32,
                                           "mis_scale": mi.Float, "excluded": mi.Bool,
-                                          "slot": mi.UInt32})
+                                          "slot": mi.UInt32, "apply": mi.Bool})
 
-    def __init__(self, scene: mi.Scene | None = None, exclude=()):
+    def __init__(self, scene: mi.Scene | None = None, exclude=(), apply_on=None):
         if scene is None:
             self.emitter, self.pmf, self.cdf, self.last = (
                 mi.EmitterPtr(), mi.Float(), mi.Float(), mi.UInt32())
             self.mis_scale, self.excluded, self.slot = mi.Float(), mi.Bool(), mi.UInt32()
+            self.apply = mi.Bool()
             return
         ordered = stable_emitters(scene)
         n = len(ordered)
@@ -187,10 +193,19 @@ class EmitterTable:
         self.mis_scale = mi.Float(scale.astype(np.float32))
         self.excluded = mi.Bool(excluded)
         self.slot = mi.UInt32(slot)
+        shapes = render_shapes(scene)
+        sids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0]) for sh in shapes]
+        apply = np.zeros(max(sids, default=0) + 1, bool)
+        if apply_on is None:
+            apply[:] = True
+        else:
+            for sh in apply_on:
+                apply[int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0])] = True
+        self.apply = mi.Bool(apply)
         #: the excluded indices (a Python tuple, not part of the Dr.Jit struct)
         self.exclude = tuple(exclude)
         dr.make_opaque(self.emitter, self.pmf, self.cdf, self.mis_scale, self.excluded,
-                       self.slot)
+                       self.slot, self.apply)
 
     def __len__(self) -> int:
         """Number of emitters (the null entry of an emitter-less scene does not count)."""
@@ -200,9 +215,12 @@ class EmitterTable:
 @dr.syntax
 def sample_emitter_direction(scene: mi.Scene, emitters: EmitterTable,
                              si: mi.SurfaceInteraction3f, sample: mi.Point2f,
-                             active: mi.Bool) -> tuple[mi.DirectionSample3f, mi.Color3f]:
+                             active: mi.Bool, other: EmitterTable | None = None,
+                             use_other: mi.Bool | None = None
+                             ) -> tuple[mi.DirectionSample3f, mi.Color3f]:
     """``scene.sample_emitter_direction(si, sample, True, active)`` with the emitter picked
-    from ``emitters`` (a load-independent order) instead of Mitsuba's emitter list.
+    from ``emitters`` (a load-independent order) instead of Mitsuba's emitter list; where
+    ``use_other`` is set, from the table ``other`` (of the same emitters) instead.
 
     Same semantics as Mitsuba's ``Scene::sample_emitter_direction``: the emitter is chosen
     with probability ``pmf`` (Mitsuba's, so ``scene.pdf_emitter_direction`` stays the MIS pdf
@@ -211,18 +229,29 @@ def sample_emitter_direction(scene: mi.Scene, emitters: EmitterTable,
     (shadow ray ``si.spawn_ray_to(ds.p)``; for environment emitters ``ds.p`` lies on a sphere
     around the scene). A scene without emitters gives weight 0 and pdf 0."""
     x = sample.x
+    two = other is not None
+    alt = use_other if two else mi.Bool(False)
+
+    def read(name: str, index: mi.UInt32, mask: mi.Bool) -> mi.Float:
+        v = dr.gather(mi.Float, getattr(emitters, name), index, mask & ~alt)
+        if two:
+            v = dr.select(alt, dr.gather(mi.Float, getattr(other, name), index, mask & alt), v)
+        return v
+
     # first index with cdf > x in [0, last] (the CDF is exactly 1 from ``last`` on, and
     # zero-pmf entries repeat the previous CDF value, so they are never chosen)
     lo = mi.UInt32(0)
     hi = mi.UInt32(emitters.last)
+    if two:
+        hi = dr.select(alt, mi.UInt32(other.last), hi)
     while active & (lo < hi):
         mid = (lo + hi) >> 1
-        right = dr.gather(mi.Float, emitters.cdf, mid) <= x
+        right = read("cdf", mid, active) <= x
         lo = dr.select(right, mid + 1, lo)
         hi = dr.select(right, hi, mid)
-    pmf = dr.gather(mi.Float, emitters.pmf, lo, active)
-    cdf_hi = dr.gather(mi.Float, emitters.cdf, lo, active)
-    cdf_lo = dr.gather(mi.Float, emitters.cdf, lo - 1, active & (lo > 0))
+    pmf = read("pmf", lo, active)
+    cdf_hi = read("cdf", lo, active)
+    cdf_lo = read("cdf", lo - 1, active & (lo > 0))
     active = active & (pmf > 0)
     # reuse sample.x: its position within the chosen emitter's CDF interval
     x_re = dr.select(active, (x - cdf_lo) / (cdf_hi - cdf_lo), 0.0)
@@ -247,46 +276,152 @@ class ShadeResult:
     indirect_specular: mi.Color3f
     si: mi.SurfaceInteraction3f
     bsdf: mi.BSDFPtr
+    #: the primary hit's lobe albedos from Mitsuba's sampling where the shape's material
+    #: needs them (:func:`sampled_albedo`; None: no shape of the scene does)
+    albedo: tuple[mi.Color3f, mi.Color3f] | None = None
+    #: per lane: a primary hit on a shape where ``primary``'s exclusion does not apply (its
+    #: direct light is path-traced from every emitter); None without a ``primary`` table
+    fallback: mi.Bool | None = None
 
 
-def _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, active) -> mi.Color3f:
+def _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, active,
+                   separable: mi.Bool | None = None) -> mi.Color3f:
     """The diffuse lobe's share of what a BSDF sample carries: ``f_d / p_mix`` of the sampled
     direction over the sample's weight ``f / p_mix``, i.e. ``f_d / f`` (the lobes' f sum to
     f), so ``indirect_diffuse`` estimates the integral of ``f_d L`` and ``indirect_specular``
     that of ``f_s L`` whatever lobe the sample came from (a mixture's sample weight holds
     every lobe: roughplastic's ``f / p_mix`` is diffuse and glossy). A delta sample is all
     specular (its direction has measure zero for the other lobes, which eval() reports as 0);
-    where both lobes evaluate to 0 the sampled lobe takes it all."""
+    where both lobes evaluate to 0 the sampled lobe takes it all. Where ``separable`` is
+    False (a BSDF whose ``eval`` ignores the lobe masks: :func:`glossrt.render.materials.
+    lobes_separable`) the sampled lobe's flag decides alone (``bs.sampled_type``)."""
     delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
     sampled_diffuse = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
-    f_d = mi.Color3f(bsdf.eval(ctx_d, si, bs.wo, active & ~delta))
-    f_s = mi.Color3f(bsdf.eval(ctx_s, si, bs.wo, active & ~delta))
+    by_eval = active & ~delta if separable is None else active & ~delta & separable
+    f_d = mi.Color3f(bsdf.eval(ctx_d, si, bs.wo, by_eval))
+    f_s = mi.Color3f(bsdf.eval(ctx_s, si, bs.wo, by_eval))
     f = f_d + f_s
     share = dr.select(f > 0, f_d / dr.select(f > 0, f, 1.0), dr.select(sampled_diffuse, 1.0, 0.0))
+    if separable is not None:
+        share = dr.select(separable, share, dr.select(sampled_diffuse, 1.0, 0.0))
     return dr.select(delta, 0.0, share)
 
 
+#: BSDF samples per pixel of :func:`sampled_albedo` (a fixed, stratified set: the G-buffer
+#: stays noise-free)
+ALBEDO_SAMPLES = 16
+
+
+def _stratum(i: mi.UInt32) -> tuple[mi.Float, mi.Point2f]:
+    """Sample ``i`` of :data:`ALBEDO_SAMPLES` fixed stratified ones: ``u1 = (j + 1/2) / N``
+    with ``j`` a permutation of ``i`` (7 is coprime to 16), ``u2`` on a 4 x 4 grid."""
+    n = ALBEDO_SAMPLES
+    side = int(round(n ** 0.5))
+    j = (i * 7 + 3) % n
+    return ((mi.Float(j) + 0.5) / n,
+            mi.Point2f((mi.Float(i % side) + 0.5) / side, (mi.Float(i // side) + 0.5) / side))
+
+
+@dr.syntax
+def sampled_albedo(bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool,
+                   separable: mi.Bool) -> tuple[mi.Color3f, mi.Color3f]:
+    """The directional albedos of a BSDF's diffuse and non-diffuse lobes at ``si`` (towards
+    ``si.wi``) from Mitsuba's own ``sample`` and ``eval`` with :data:`ALBEDO_SAMPLES` fixed
+    stratified numbers (:func:`_stratum`: deterministic, so the G-buffer stays noise-free):
+    the albedos of BSDFs the split-sum tables do not describe (glass, principled, blends,
+    masks, bump maps, ...; docs/FORMATS.md).
+
+    * The non-diffuse lobes: the mean of the BSDF's sample weights ``f cos / pdf``, each
+      split between the lobes as the path tracer splits it (:func:`_diffuse_share`).
+    * The diffuse lobes, where ``separable`` (``eval`` honours ``BSDFContext.type_mask``):
+      cosine-weighted quadrature of ``eval`` with the diffuse mask over the hemisphere of
+      ``wi`` (a plastic's mixture may send all of its samples to the coating, and Mitsuba's
+      ``pplastic`` does not weight a sample drawn with one lobe's mask correctly, so neither
+      sampling gives a diffuse lobe its albedo reliably). Elsewhere (``principled``) the
+      sampled split's diffuse part."""
+    ctx = mi.BSDFContext()
+    diffuse_mask, specular_mask = lobe_masks()
+    ctx_d, ctx_s = _context(diffuse_mask), _context(specular_mask)
+    a_d = dr.zeros(mi.Color3f)
+    a_s = dr.zeros(mi.Color3f)
+    q_d = dr.zeros(mi.Color3f)
+    up = dr.select(mi.Frame3f.cos_theta(si.wi) < 0.0, -1.0, 1.0)
+    i = mi.UInt32(0)
+    while active & (i < ALBEDO_SAMPLES):
+        u1, u2 = _stratum(i)
+        bs, w = bsdf.sample(ctx, si, u1, u2, active)
+        w = dr.select(dr.isfinite(w), mi.Color3f(w), 0.0)
+        share = _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, active, separable)
+        a_d += w * share
+        a_s += w * (1.0 - share)
+        # (cosine sampling: pdf cos / pi, and eval includes the cosine)
+        wo = mi.warp.square_to_cosine_hemisphere(u2)
+        wo.z = wo.z * up
+        f_d = mi.Color3f(bsdf.eval(ctx_d, si, wo, active & separable))
+        q_d += dr.select(wo.z * up > 0.0, f_d * dr.pi / (wo.z * up), 0.0)
+        i += 1
+    n = ALBEDO_SAMPLES
+    return dr.select(separable, q_d, a_d) / n, a_s / n
+
+
 def _primary_hit_weight(primary: EmitterTable | None, dsk: mi.DirectionSample3f,
-                        em_pdf: mi.Float, first: mi.Bool,
+                        em_pdf: mi.Float, first: mi.Bool, applies: mi.Bool,
                         active: mi.Bool) -> tuple[mi.Float, mi.Bool]:
     """For a BSDF-sampled ray that hit an emitter: the MIS pdf of the emitter-sampling
     technique that could have drawn the same direction, and whether the hit counts.
 
     Without a primary table (``primary`` None) that is Mitsuba's ``em_pdf`` and every hit
-    counts. With one, at the primary hit (``first``: the ray left path vertex 0) the
-    next-event estimation there picked emitters from ``primary``, so the pdf is
-    ``em_pdf * mis_scale`` (its selection probability instead of Mitsuba's; Veach 1997,
-    eq. 9.13 needs the pdf of the technique actually used), and hits of excluded emitters do
-    not count; from deeper vertices both stay as they are."""
+    counts. With one, at the primary hit (``first``: the ray left path vertex 0) of a lane
+    where its exclusion ``applies`` the next-event estimation there picked emitters from
+    ``primary``, so the pdf is ``em_pdf * mis_scale`` (its selection probability instead of
+    Mitsuba's; Veach 1997, eq. 9.13 needs the pdf of the technique actually used), and hits
+    of excluded emitters do not count; from deeper vertices, and on lanes where the
+    exclusion does not apply, both stay as they are."""
     if primary is None:
         return em_pdf, active
     rid = dr.reinterpret_array(mi.UInt32, dsk.emitter)
-    on = active & first & (rid != 0)
+    on = active & first & applies & (rid != 0)
     k = dr.gather(mi.UInt32, primary.slot, rid, on)
     on &= k != 0
     scale = dr.gather(mi.Float, primary.mis_scale, k - 1, on)
     excluded = dr.gather(mi.Bool, primary.excluded, k - 1, on)
     return dr.select(on, em_pdf * scale, em_pdf), active & ~(on & excluded)
+
+
+#: most fully transparent surfaces (a ``mask`` of opacity 0, a ``null`` BSDF) a primary ray
+#: passes through before the G-buffer takes its hit (:func:`primary_hit`)
+NULL_SKIPS = 8
+
+
+@dr.syntax
+def primary_hit(scene: mi.Scene, ray: mi.Ray3f, shapes: ShapeTable | None
+                ) -> tuple[mi.SurfaceInteraction3f, mi.UInt32]:
+    """The primary hit of ``ray`` and how many surfaces the ray passed through to reach it:
+    the first surface that is not fully transparent. A surface whose BSDF passes all light
+    through unchanged (``eval_null_transmission`` 1 in every channel: a ``mask`` BSDF where
+    its opacity is 0, a ``null`` BSDF) and that emits nothing is passed through, up to
+    :data:`NULL_SKIPS` times, so an alpha-masked leaf shows what lies behind its cut-out in
+    every G-buffer channel (alpha testing). Light transport is unchanged: Mitsuba samples
+    such a surface's null lobe with probability 1 and weight 1, a straight continuation,
+    which counts as a path vertex of its ``max_depth`` (:func:`shade` counts the surfaces
+    passed through so). Scenes without such BSDFs (``shapes.any_null`` False) trace one
+    ray."""
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True)
+    k = mi.UInt32(0)
+    if dr.hint(shapes is None or not shapes.any_null, mode="scalar"):
+        return si, k
+    null = shapes.null  # (read here: the loop's state holds Dr.Jit values only)
+    through = mi.Bool(True)
+    while through & (k < NULL_SKIPS):
+        rid = dr.select(si.is_valid(), dr.reinterpret_array(mi.UInt32, si.shape), 0)
+        candidate = si.is_valid() & dr.gather(mi.Bool, null, rid, si.is_valid())
+        t = mi.Color3f(si.bsdf(ray).eval_null_transmission(si, candidate))
+        through = candidate & dr.all(t >= 1.0)
+        if through:
+            si = scene.ray_intersect(si.spawn_ray(ray.d), ray_flags=mi.RayFlags.All,
+                                     coherent=True, active=through)
+            k += 1
+    return si, k
 
 
 def _shadow_terminator(n: mi.Vector3f, w: mi.Vector3f) -> mi.Float:
@@ -501,18 +636,21 @@ def _primary_eval(lobe: PrimaryLobe | None, bsdf, ctx_s, ctx_all, si, wo, active
 
 
 def _primary_sample(lobe: PrimaryLobe | None, bsdf, ctx_d, ctx_s, ctx_all, si, sample1,
-                    sample2, active):
-    """BSDF sampling at the primary hit: ``(wo local, pdf, delta, weight, diffuse share)``,
+                    sample2, active, separable=None):
+    """BSDF sampling at the primary hit: ``(wo local, pdf, delta, weight, diffuse share,
+    eta)`` (``eta``: the sample's relative index of refraction, for Russian roulette),
     Mitsuba's or :class:`PrimaryLobe`'s on its lanes (a plastic's weight is its value, the
-    overridden specular lobe plus Mitsuba's diffuse lobe, over the mixture's pdf)."""
+    overridden specular lobe plus Mitsuba's diffuse lobe, over the mixture's pdf);
+    ``separable``: :func:`_diffuse_share`'s."""
     rest = active if lobe is None else active & ~lobe.on
     bs, w = bsdf.sample(ctx_all, si, sample1, sample2, rest)
-    share_d = _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, rest)
+    share_d = _diffuse_share(bsdf, ctx_d, ctx_s, si, bs, rest, separable)
     wo, pdf = mi.Vector3f(bs.wo), mi.Float(bs.pdf)
     delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
     weight = mi.Color3f(w)
+    eta = dr.select(rest, mi.Float(bs.eta), 1.0)  # (the overridden lobes reflect: 1)
     if lobe is None:
-        return wo, pdf, delta, weight, share_d
+        return wo, pdf, delta, weight, share_d, eta
     on = lobe.on
     wo_o, pdf_o, diffuse_o, w_cond = lobe.sample(sample1, sample2)
     f_d = mi.Color3f(bsdf.eval(ctx_d, si, wo_o, on & lobe.plastic & (pdf_o > 0.0)))
@@ -523,25 +661,31 @@ def _primary_sample(lobe: PrimaryLobe | None, bsdf, ctx_d, ctx_s, ctx_all, si, s
     share_o = dr.select(f > 0.0, f_d / dr.select(f > 0.0, f, 1.0),
                         dr.select(diffuse_o, 1.0, 0.0))
     return (dr.select(on, wo_o, wo), dr.select(on, pdf_o, pdf), delta & ~on,
-            dr.select(on, w_o, weight), dr.select(on, share_o, share_d))
+            dr.select(on, w_o, weight), dr.select(on, share_o, share_d), eta)
 
 
 @dr.syntax
 def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
           emitters: EmitterTable | None = None,
           primary: EmitterTable | None = None, alpha0: mi.Float | None = None,
-          shapes: ShapeTable | None = None) -> ShadeResult:
+          shapes: ShapeTable | None = None, rr_depth: int = RR_DEPTH) -> ShadeResult:
     """Trace one path per lane from ``ray`` and return its separated contributions.
     ``emitters``: the scene's :class:`EmitterTable` (built here when not given; pass it in
-    from outside when tracing inside ``dr.freeze``).
+    from outside when tracing inside ``dr.freeze``). ``shapes``: the scene's
+    :class:`ShapeTable` (needed for ``alpha0``, and for the lobe split and albedos of BSDFs
+    whose ``eval`` ignores the lobe masks, and the primary hit through fully transparent
+    surfaces: :func:`primary_hit`). ``rr_depth``: the depth Russian roulette starts at
+    (Mitsuba's ``rr_depth``).
 
     ``primary``: an :class:`EmitterTable` with excluded emitters (``EmitterTable(scene,
-    exclude=...)``), for path vertex 0 only: next-event estimation there samples the other
-    emitters from it (renormalised probabilities, so no sample is wasted), and a
-    BSDF-sampled ray from vertex 0 that hits an excluded emitter brings nothing, one that
-    hits another emitter is MIS-weighted with that table's pdf (:func:`_primary_hit_weight`).
-    So ``direct_*`` lacks the excluded emitters' light; ``emission`` (seen by the camera)
-    and every deeper vertex (``indirect_*``) are unchanged, with the same random numbers.
+    exclude=...)``), for path vertex 0 only: where its exclusion applies (``primary.apply``
+    of the hit shape), next-event estimation there samples the other emitters from it
+    (renormalised probabilities, so no sample is wasted), and a BSDF-sampled ray from vertex
+    0 that hits an excluded emitter brings nothing, one that hits another emitter is
+    MIS-weighted with that table's pdf (:func:`_primary_hit_weight`). So ``direct_*`` lacks
+    the excluded emitters' light there; ``emission`` (seen by the camera) and every deeper
+    vertex (``indirect_*``) are unchanged, with the same random numbers. On shapes where the
+    exclusion does not apply, vertex 0 samples ``emitters`` (every light, path-traced).
 
     ``alpha0``: a per-lane microfacet alpha for path vertex 0 only (``shapes``: the scene's
     :class:`ShapeTable`): where the primary hit's BSDF is a rough conductor or rough plastic
@@ -551,46 +695,83 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
     MIS-weighted with) and in the lobe split of what follows. A negative alpha keeps the
     material's; deeper vertices always do. Used by specular antialiasing (Kaplanyan et al.
     2016's filtered roughness, :mod:`glossrt.specaa`) so that environment maps and
-    path-traced light see the filtered roughness too."""
+    path-traced light see the filtered roughness too.
+
+    The lobe split at vertex 0 (module docstring) evaluates the lobes through
+    ``BSDFContext.type_mask``; for a BSDF whose ``eval`` ignores the mask (``principled``:
+    ``ShapeTable.separable``) the BSDF-sampled light goes to the sampled lobe
+    (``sampled_type``) and the next-event estimate is split in the ratio of the lobes'
+    albedos (:func:`sampled_albedo`, the expected share of the sampled split)."""
     if emitters is None:
         emitters = EmitterTable(scene)
-    nee0 = emitters if primary is None else primary
     ctx_all = mi.BSDFContext()
     diffuse_mask, specular_mask = lobe_masks()
     ctx_d, ctx_s = _context(diffuse_mask), _context(specular_mask)
     zero = dr.zeros(mi.Color3f)
 
     # --- primary hit (path vertex 0) --------------------------------------------------
-    si0 = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True)
+    # (``passed``: fully transparent surfaces the primary ray went through, path vertices
+    # of Mitsuba's max_depth)
+    si0, passed = primary_hit(scene, ray, shapes)
     valid0 = si0.is_valid()
     emission = mi.Color3f(si0.emitter(scene).eval(si0))
     bsdf0 = si0.bsdf(ray)
     direct_d, direct_s = mi.Color3f(zero), mi.Color3f(zero)
-    act0 = valid0 & (max_depth > 1)
+    act0 = valid0 & (passed + 1 < max_depth)
+    rid0 = dr.select(valid0, dr.reinterpret_array(mi.UInt32, si0.shape), 0)
+    # where the primary table's exclusion applies (the analytic stage shades those pixels)
+    applies = mi.Bool(True)
+    fallback = None
+    if primary is not None:
+        applies = dr.gather(mi.Bool, primary.apply, rid0, valid0)
+        fallback = valid0 & ~applies
+    separable = None
+    albedo = None
+    if shapes is not None and shapes.any_sampled:
+        on = valid0 & dr.gather(mi.Bool, shapes.sampled, rid0, valid0)
+        separable = dr.gather(mi.Bool, shapes.separable, rid0, valid0) | ~valid0
+        a_d, a_s = sampled_albedo(bsdf0, si0, on, separable)
+        albedo = (dr.select(on, a_d, 0.0), dr.select(on, a_s, 0.0))
+        if not shapes.any_inseparable:
+            separable = None
 
     # (a scene without rough conductors or plastics: nothing to override)
     lobe = (None if alpha0 is None or not any(shapes.lobe_key[:2])
             else PrimaryLobe(si0, bsdf0, shapes, alpha0, act0, shapes.lobe_key))
 
     # next-event estimation, split by lobe; MIS against the full BSDF's pdf
-    ds, em_w = sample_emitter_direction(scene, nee0, si0, sampler.next_2d(), act0)
+    if primary is None:
+        ds, em_w = sample_emitter_direction(scene, emitters, si0, sampler.next_2d(), act0)
+    else:
+        ds, em_w = sample_emitter_direction(scene, emitters, si0, sampler.next_2d(), act0,
+                                            primary, applies)
     wo = si0.to_local(ds.d)
     f_d = bsdf0.eval(ctx_d, si0, wo, act0)
     f_s, pdf_b = _primary_eval(lobe, bsdf0, ctx_s, ctx_all, si0, wo, act0)
+    if separable is not None:
+        # eval ignores the lobe masks (f_d and f_s are each the whole BSDF): the whole
+        # value, split in the ratio of the lobes' albedos
+        whole = dr.select(separable, f_d + f_s, f_d)
+        a_sum = albedo[0] + albedo[1]
+        ratio = dr.select(a_sum > 0, albedo[0] / dr.select(a_sum > 0, a_sum, 1.0), 0.5)
+        f_d = dr.select(separable, f_d, whole * ratio)
+        f_s = dr.select(separable, f_s, whole * (1.0 - ratio))
     w_em = dr.select(ds.delta, 1.0, _mis(ds.pdf, pdf_b))
     direct_d += dr.select(act0, em_w * f_d * w_em, 0.0)
     direct_s += dr.select(act0, em_w * f_s * w_em, 0.0)
 
     # BSDF sampling at the primary hit decides the lobe of everything further along
-    wo0, pdf0, delta0, bsdf_w, share_d = _primary_sample(
-        lobe, bsdf0, ctx_d, ctx_s, ctx_all, si0, sampler.next_1d(), sampler.next_2d(), act0)
+    wo0, pdf0, delta0, bsdf_w, share_d, eta = _primary_sample(
+        lobe, bsdf0, ctx_d, ctx_s, ctx_all, si0, sampler.next_1d(), sampler.next_2d(), act0,
+        separable)
     share_s = 1.0 - share_d
     beta = mi.Spectrum(bsdf_w)
     prev_si = dr.detach(si0)
     prev_pdf = mi.Float(pdf0)
     prev_delta = mi.Bool(delta0)
     ray_k = si0.spawn_ray(si0.to_world(wo0))
-    depth = mi.UInt32(1)
+    depth = passed + 1  # (Mitsuba's vertex count)
+    first = mi.Bool(True)  # the ray left the primary hit
     active = act0 & dr.any(beta != 0.0)
     L_dir = mi.Color3f(zero)  # BSDF-sampled hits of emitters from vertex 0
     L_ind = mi.Color3f(zero)
@@ -601,8 +782,7 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
         # emitter hit by BSDF sampling, MIS-weighted against emitter sampling
         dsk = mi.DirectionSample3f(scene, si=si, ref=prev_si)
         em_pdf = scene.pdf_emitter_direction(prev_si, dsk, ~prev_delta)
-        first = depth == 1
-        em_pdf, counts = _primary_hit_weight(primary, dsk, em_pdf, first, active)
+        em_pdf, counts = _primary_hit_weight(primary, dsk, em_pdf, first, applies, active)
         w_b = dr.select(prev_delta, 1.0, _mis(prev_pdf, em_pdf))
         contrib = beta * w_b * si.emitter(scene).eval(si, counts)
         L_dir += dr.select(active & first, contrib, 0.0)
@@ -619,9 +799,11 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
 
         bsn, wn = bsdf.sample(ctx_all, si, sampler.next_1d(), sampler.next_2d(), active_next)
         beta *= wn
-        # Russian roulette as in Mitsuba's path integrator
-        q = dr.minimum(dr.max(beta), 0.95)
-        rr = active_next & (depth + 1 >= RR_DEPTH)
+        eta *= dr.select(active_next, mi.Float(bsn.eta), 1.0)
+        # Russian roulette as in Mitsuba's path integrator (the throughput times eta^2:
+        # radiance compressed into a denser medium is not a reason to end the path)
+        q = dr.minimum(dr.max(beta) * dr.square(eta), 0.95)
+        rr = active_next & (depth + 1 >= rr_depth)
         survive = sampler.next_1d() < q
         beta = dr.select(rr, beta / q, beta)
         active_next &= ~rr | survive
@@ -630,6 +812,7 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
         prev_delta = mi.has_flag(bsn.sampled_type, mi.BSDFFlags.Delta)
         ray_k = si.spawn_ray(si.to_world(bsn.wo))
         depth += 1
+        first = mi.Bool(False)
         active = active_next & dr.any(beta != 0.0)
 
     direct_d += L_dir * share_d
@@ -642,6 +825,8 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
         indirect_specular=L_ind * share_s,
         si=si0,
         bsdf=bsdf0,
+        albedo=albedo,
+        fallback=fallback,
     )
 
 
@@ -653,7 +838,15 @@ class ShapeTable:
     ``alpha`` attribute evaluated per hit when it is textured; ``normal_map``: whether a
     Mitsuba ``normalmap`` BSDF perturbs the shading normal
     (:data:`glossrt.render.materials.NORMAL_MAP` and friends; 0: no); ``beckmann``: whether
-    its rough lobe has Beckmann's microfacet distribution (Mitsuba's default)."""
+    its rough lobe has Beckmann's microfacet distribution (Mitsuba's default);
+    ``distribution``: the ``distribution`` channel's code (:data:`glossrt.brdf.microfacet.
+    GGX`, ``BECKMANN`` or ``NO_LOBE``); ``analytic``: whether the analytic shading represents
+    the material (:attr:`glossrt.render.materials.Material.analytic`); ``sampled``: whether
+    its G-buffer albedos come from Mitsuba's sampling (:func:`sampled_albedo`);
+    ``separable``: whether its ``eval`` honours the lobe masks; ``null``: whether a primary
+    ray may pass through it (a BSDF with a null lobe on a shape that emits nothing:
+    :func:`primary_hit`). Shapes in :func:`glossrt.scenes.render_shapes` order (instanced
+    shapes after the scene's own)."""
 
     DRJIT_STRUCT = VariantStruct(lambda: {
         "index": mi.UInt32,
@@ -673,12 +866,18 @@ class ShapeTable:
         "lobe_twosided": mi.Bool,
         "lobe_normal_map": mi.Bool,
         "spec_weight": mi.Float,
+        "distribution": mi.Float,
+        "analytic": mi.Bool,
+        "sampled": mi.Bool,
+        "separable": mi.Bool,
+        "null": mi.Bool,
     })
 
     def __init__(self, scene: mi.Scene):
+        from ..brdf.microfacet import NO_LOBE, code
         from .materials import alpha_source, describe_bsdf, lobe_override
 
-        shapes = stable_shapes(scene)
+        shapes = render_shapes(scene)
         ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
         n = max(ids, default=0) + 1
         index, has_d, has_s, alpha = [0] * n, [False] * n, [False] * n, [0.0] * n
@@ -689,10 +888,20 @@ class ShapeTable:
         fres = np.zeros((n, ROW))
         alpha_uv = np.zeros((n, 2))
         lobe, lobe_ts, lobe_nm, spec_w = [0] * n, [False] * n, [False] * n, [1.0] * n
+        dist, analytic = [float(NO_LOBE)] * n, [False] * n
+        sampled, separable, null = [False] * n, [True] * n, [False] * n
+        null_flag = int(mi.BSDFFlags.Null)
         self.materials = {}
         for i, (s, rid) in enumerate(zip(shapes, ids, strict=True)):
             m = describe_bsdf(s.bsdf())
             self.materials[s.id() or f"shape_{i}"] = m
+            analytic[rid], sampled[rid], separable[rid] = m.analytic, m.sampled_albedo, \
+                m.separable
+            null[rid] = bool(int(s.bsdf().flags()) & null_flag) and not s.is_emitter()
+            if m.distribution is not None:
+                dist[rid] = float(code(m.distribution))
+            elif m.analytic:  # no rough lobe: a mirror (alpha 0) or Lambert, as GGX
+                dist[rid] = float(code("ggx"))
             index[rid] = i + 1
             has_d[rid], has_s[rid], alpha[rid] = m.has_diffuse, m.has_specular, m.alpha
             if m.alpha_attr:  # (the wrapped BSDF's id where a wrapper has the texture)
@@ -748,6 +957,21 @@ class ShapeTable:
         #: whether any shape is normal-mapped (a Python bool: pass it to gbuffer(), so scenes
         #: without normal maps keep the texture lookup's virtual call out of their kernels)
         self.any_normal_map = any(v != 0 for v in normal_map)
+        self.distribution = mi.Float(dist)
+        self.analytic = mi.Bool(analytic)
+        self.sampled = mi.Bool(sampled)
+        self.separable = mi.Bool(separable)
+        self.null = mi.Bool(null)
+        #: Python flags (keys of the traced kernels: what a scene does not need is not
+        #: traced): any shape's albedo sampled, any BSDF not separable by lobe masks, any
+        #: surface a primary ray may pass through
+        self.any_sampled = any(sampled)
+        self.any_inseparable = any(sampled[r] and not separable[r] for r in range(n))
+        self.any_null = any(null)
+        #: those three flags together: a key of the frozen trace (render.Renderer)
+        self.material_key = (self.any_sampled, self.any_inseparable, self.any_null)
+        #: the 1-based mesh ids of the shapes whose material the analytic shading represents
+        self.analytic_ids = tuple(index[r] for r in range(n) if index[r] and analytic[r])
 
 
 def camera_axes(sensor: mi.Sensor) -> tuple[mi.Point3f, mi.Vector3f]:
@@ -796,12 +1020,15 @@ def shading_normal(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f,
 
 
 def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor: mi.Sensor,
-            shapes: ShapeTable, table) -> dict:
+            shapes: ShapeTable, table,
+            albedo: tuple[mi.Color3f, mi.Color3f] | None = None) -> dict:
     """Noise-free G-buffer values of the primary hit. ``normal`` is :func:`shading_normal`
     (normal-mapped where the BSDF is a ``normalmap``); on normal-mapped surfaces the specular
     albedo is looked up at the cosine to that normal (0 should it face away from the camera;
     the plugin's shadow-terminator factor is not included). Scenes without normal maps
-    (``ShapeTable.any_normal_map`` False) skip the lookup."""
+    (``ShapeTable.any_normal_map`` False) skip the lookup. ``albedo``: :func:`shade`'s
+    sampled lobe albedos (``ShadeResult.albedo``), the albedo channels of the shapes whose
+    BSDF the split-sum tables do not describe (``ShapeTable.sampled``)."""
     valid = si.is_valid()
     rid = dr.reinterpret_array(mi.UInt32, si.shape)
     rid = dr.select(valid, rid, 0)
@@ -823,7 +1050,10 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     cos_o = dr.abs(mi.Frame3f.cos_theta(si.wi))
     cos_m = dr.dot(n, -ray.d)
     cos_o = dr.select(mapped, dr.maximum(cos_m, 1e-4), cos_o)
-    albedo_d = dr.select(valid & has_d, bsdf.eval_diffuse_reflectance(si, valid & has_d), 0.0)
+    diffuse_ref = valid & has_d
+    if albedo is not None:  # (not asked of the BSDFs whose albedo is sampled)
+        diffuse_ref &= ~dr.gather(mi.Bool, shapes.sampled, rid, valid)
+    albedo_d = dr.select(diffuse_ref, bsdf.eval_diffuse_reflectance(si, diffuse_ref), 0.0)
     # the split-sum table of the pixel's distribution with Mitsuba's exact Fresnel term at the
     # lobe's effective angle (glossrt.brdf.fresnel)
     ab = table.lookup_ab(cos_o, alpha, beckmann)
@@ -834,6 +1064,10 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
     e_spec = split_sum(ab.x + ab.y, ab.y, kind, eta, kk, scale, f0)
     albedo_s = dr.select(valid & has_s, e_spec, 0.0)
     albedo_s = dr.select(mapped & (cos_m <= 0), 0.0, albedo_s)
+    if albedo is not None:
+        sampled = valid & dr.gather(mi.Bool, shapes.sampled, rid, valid)
+        albedo_d = dr.select(sampled, albedo[0], albedo_d)
+        albedo_s = dr.select(sampled, albedo[1], albedo_s)
     # the microfacet frame's first axis (Mitsuba's local x, where alpha_u applies) in the
     # plane of the G-buffer normal
     s = mi.Vector3f(si.sh_frame.s)
@@ -855,7 +1089,8 @@ def gbuffer(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, ray: mi.Ray3f, sensor
         "roughness": dr.select(valid, alpha, 0.0),
         "roughness_uv": dr.select(valid, auv, 0.0),
         "tangent": tangent,
-        "distribution": dr.select(beckmann, float(BECKMANN), float(GGX)),
+        "distribution": dr.select(valid, dr.gather(mi.Float, shapes.distribution, rid, valid),
+                                  float(GGX)),
         "mesh_id": mi.Float(index),
     }
 
@@ -865,9 +1100,12 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  seed: mi.UInt32, width: int, height: int, max_depth: int,
                  jitter: mi.Point2f | None = None,
                  primary: EmitterTable | None = None,
-                 roughness: mi.Float | None = None, skip: tuple[str, ...] = ()) -> dict:
+                 roughness: mi.Float | None = None, skip: tuple[str, ...] = (),
+                 rr_depth: int = RR_DEPTH) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
-    radiance values were not finite and were replaced by 0 (see the package docstring).
+    radiance values were not finite and were replaced by 0 (see the package docstring), and
+    ``fallback``: how many primary hits lie on shapes where ``primary``'s exclusion does
+    not apply (their direct light path-traced from every emitter; 0 without ``primary``).
     ``skip``: radiance channels (of :data:`RADIANCE_OUT` and ``color``) and the anisotropy
     channels (:data:`ANISOTROPY_OUT`) left out of the result, so that the kernel writes no
     buffer for them (:func:`pixel_channels`).
@@ -879,12 +1117,14 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     :func:`shade`'s next-event estimation at the primary hit (None: ``emitters``).
     ``roughness``: a microfacet alpha per *pixel* (flat, ``width * height``, read at each
     lane's ``pixel``) for the rough lobes of the primary hit (:func:`shade`'s ``alpha0``);
-    the G-buffer keeps the material's roughness."""
-    out, bad = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs, pixel,
-                              seed, width, height, max_depth, jitter, primary, roughness, skip)
+    the G-buffer keeps the material's roughness. ``rr_depth``: :func:`shade`'s."""
+    out, bad, fallback = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs,
+                                        pixel, seed, width, height, max_depth, jitter, primary,
+                                        roughness, skip, rr_depth)
     # one kernel for everything (a reduction first would re-run the path tracing for it)
-    dr.eval(out, bad)
+    dr.eval(out, bad, fallback)
     out["nonfinite"] = dr.sum(bad)
+    out["fallback"] = dr.sum(fallback)
     return out
 
 
@@ -893,11 +1133,13 @@ def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                    seed: mi.UInt32, width: int, height: int, max_depth: int,
                    jitter: mi.Point2f | None = None, primary: EmitterTable | None = None,
                    roughness: mi.Float | None = None,
-                   skip: tuple[str, ...] = ()) -> tuple[dict, mi.UInt32]:
-    """:func:`trace_pixels`' channels, not evaluated, and the per-lane count of non-finite
-    radiance values. A skipped channel is still computed and counted (and summed into
-    ``color``): only its output is dropped, so the other channels and the count are those
-    of the full set (the same arithmetic)."""
+                   skip: tuple[str, ...] = (),
+                   rr_depth: int = RR_DEPTH) -> tuple[dict, mi.UInt32, mi.UInt32]:
+    """:func:`trace_pixels`' channels, not evaluated, the per-lane count of non-finite
+    radiance values and whether the lane's primary hit fell back (``ShadeResult.fallback``,
+    1 or 0). A skipped channel is still computed and counted (and summed into ``color``):
+    only its output is dropped, so the other channels and the count are those of the full
+    set (the same arithmetic)."""
     from .motion import motion
 
     xc = mi.Float(pixel % width) + 0.5
@@ -909,8 +1151,8 @@ def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)
     alpha0 = None if roughness is None else dr.gather(mi.Float, roughness, pixel)
-    r = shade(scene, sampler, ray, max_depth, emitters, primary, alpha0, shapes)
-    out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table)
+    r = shade(scene, sampler, ray, max_depth, emitters, primary, alpha0, shapes, rr_depth)
+    out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table, r.albedo)
     for name in ANISOTROPY_OUT:  # (the optional G-buffer channels a caller may skip)
         if name in skip:
             del out[name]
@@ -932,7 +1174,8 @@ def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     else:  # the pixel centre's own primary hit
         ray_c, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(xc / width, yc / height),
                                      mi.Point2f(0.5, 0.5))
-        si_c = scene.ray_intersect(ray_c, ray_flags=mi.RayFlags.Minimal, coherent=True)
+        si_c = (primary_hit(scene, ray_c, shapes)[0] if shapes.any_null else
+                scene.ray_intersect(ray_c, ray_flags=mi.RayFlags.Minimal, coherent=True))
         rid = dr.select(si_c.is_valid(), dr.reinterpret_array(mi.UInt32, si_c.shape), 0)
         mesh_c = dr.gather(mi.UInt32, shapes.index, rid, si_c.is_valid())
     # background: a far point along the ray, so camera rotation still moves the sky
@@ -940,4 +1183,6 @@ def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                          mi.Vector3f(ray_c.o + ray_c.d * 1e6))
     out["motion"] = motion(p_motion, mesh_c, mi.Bool(True), mi.Point2f(xc, yc),
                            motion_inputs)
-    return out, bad
+    fallback = (mi.UInt32(0) if r.fallback is None
+                else dr.select(r.fallback, mi.UInt32(1), mi.UInt32(0)))
+    return out, bad, fallback

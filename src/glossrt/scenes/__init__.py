@@ -32,11 +32,9 @@ from ..errors import SceneError
 from ..jit import owned_float
 
 Matrix = np.ndarray
-#: Mitsuba plugins glossrt's renderer supports (BSDF and emitter types).
-SUPPORTED_BSDFS = {"diffuse", "conductor", "roughconductor", "plastic", "roughplastic", "twosided",
-                   "normalmap"}
-SUPPORTED_EMITTERS = {"area", "point", "constant", "envmap", "directional"}
-SUPPORTED_SENSORS = {"perspective"}
+#: the cameras glossrt renders: Mitsuba's class name -> plugin name (``thinlens`` as a
+#: pinhole of the same pose and field of view, with a warning: no depth of field)
+SUPPORTED_SENSORS = {"PerspectiveCamera": "perspective", "ThinLensCamera": "thinlens"}
 
 
 @dataclass
@@ -264,6 +262,9 @@ class SceneSetup:
         max_depth: int | None = None,
         max_depth_from: str | None = None,
         source: str | None = None,
+        rr_depth: int | None = None,
+        integrator: str | None = None,
+        integrator_error: str | None = None,
     ):
         self.name = name
         self.scene = scene
@@ -272,15 +273,31 @@ class SceneSetup:
         self.max_depth = max_depth
         #: where ``max_depth`` comes from (the frames' ``meta["max_depth_from"]``)
         self.max_depth_from = max_depth_from if max_depth is not None else None
+        #: the depth Russian roulette starts at (the integrator's ``rr_depth``), None: the
+        #: renderer's default (Mitsuba's 5)
+        self.rr_depth = rr_depth
+        #: the scene's integrator plugin (``path``, ``direct``, ...; None: a built-in scene)
+        self.integrator = integrator
+        #: why glossrt cannot render the scene's integrator (None: it can): raised by a
+        #: renderer that traces with the scene's path depth, never by commands that do not
+        #: trace (:class:`IntegratorDepth`)
+        self.integrator_error = integrator_error
         sensors = scene.sensors()
         if not sensors:
             raise SceneError(f"{name}: the scene has no sensor (camera)")
         s0 = sensors[0]
         p0 = mi.traverse(s0)
-        if "x_fov" not in p0.keys():
+        kind = SUPPORTED_SENSORS.get(s0.class_name())
+        if kind is None or "x_fov" not in p0.keys():
+            cls = s0.class_name()
+            plugin = cls[:-len("Camera")].lower() if cls.endswith("Camera") else cls.lower()
             raise SceneError(
-                f"{name}: sensor type {s0.class_name()} is not supported (use a perspective camera)"
-            )
+                f"{name}: sensor {plugin} ({cls}) is not supported: glossrt renders pinhole "
+                "cameras (its G-buffer, motion vectors and analytic shading project through "
+                "one eye point); use <sensor type=\"perspective\"> (thinlens is rendered as "
+                "a pinhole)")
+        #: the scene's camera plugin (``perspective``, or ``thinlens`` rendered as a pinhole)
+        self.sensor_kind = kind
         self.fov = float(p0["x_fov"][0])
         self.rest_camera = to_matrix(p0["to_world"])
         if not (np.isfinite(self.rest_camera).all() and math.isfinite(self.fov)):
@@ -317,13 +334,15 @@ class SceneSetup:
         #: moved meshes' rest vertex positions on the host (read once, not per pose)
         self._rest_positions: dict[str, np.ndarray] = {}
         #: shapes in mesh_id order (1-based); stable across loads of the same scene
-        self.shapes = stable_shapes(scene)
-        shapes = {s.id(): s for s in self.shapes}
+        self.shapes = render_shapes(scene)
+        # (the scene's own shapes: those inside instanced groups cannot be moved one by one)
+        own = len(stable_shapes(scene))
+        shapes = {s.id(): s for s in self.shapes[:own]}
         for sid in self.object_paths:
             if sid not in shapes:
                 raise SceneError(f"{name}: animated shape {sid!r} is not in the scene")
             self._keep_rest(sid)
-        self.shape_index = {s.id(): i + 1 for i, s in enumerate(self.shapes) if s.id()}
+        self.shape_index = {s.id(): i + 1 for i, s in enumerate(self.shapes[:own]) if s.id()}
         #: the frame index last posed by :meth:`set_frame`
         self.frame = None
         #: explicit pose (the viewer moves things): see :meth:`set_camera_override` and
@@ -583,32 +602,58 @@ class SceneSetup:
 # -- loading ------------------------------------------------------------------------------
 
 
-#: Mitsuba class names (``obj.class_name()``) of the supported plugins -> their plugin names
+#: Mitsuba class names (``obj.class_name()``) of emitters -> their plugin names (another
+#: class: its name in lower case)
+_EMITTER_CLASSES = {"AreaLight": "area", "PointLight": "point",
+                    "ConstantBackgroundEmitter": "constant", "EnvironmentMapEmitter": "envmap",
+                    "DirectionalEmitter": "directional", "SpotLight": "spot",
+                    "Projector": "projector", "DirectionalArea": "directionalarea"}
+#: Mitsuba class names of BSDFs -> their plugin names (another class: its name in lower case)
 _BSDF_CLASSES = {"SmoothDiffuse": "diffuse", "SmoothConductor": "conductor",
                  "RoughConductor": "roughconductor", "SmoothPlastic": "plastic",
                  "RoughPlastic": "roughplastic", "TwoSidedBRDF": "twosided",
-                 "NormalMap": "normalmap"}
-_EMITTER_CLASSES = {"AreaLight": "area", "PointLight": "point",
-                    "ConstantBackgroundEmitter": "constant", "EnvironmentMapEmitter": "envmap",
-                    "DirectionalEmitter": "directional"}
+                 "NormalMap": "normalmap", "BumpMap": "bumpmap", "SmoothDielectric": "dielectric",
+                 "RoughDielectric": "roughdielectric", "ThinDielectric": "thindielectric",
+                 "BlendBSDF": "blendbsdf", "MaskBSDF": "mask", "Null": "null",
+                 "Principled": "principled", "PrincipledThin": "principledthin",
+                 "PolarizedPlastic": "pplastic", "LinearPolarizer": "polarizer"}
 
 
 def emitter_kind(emitter) -> str:
-    """The plugin name of a Mitsuba emitter (``"area"``, ``"point"``, ``"directional"``,
-    ``"envmap"``, ``"constant"``; another class's name in lower case)."""
+    """The plugin name of a Mitsuba emitter (``"area"``, ``"point"``, ``"spot"``,
+    ``"projector"``, ``"directional"``, ``"envmap"``, ``"constant"``; another class's name in
+    lower case)."""
     cls = emitter.class_name()
     return _EMITTER_CLASSES.get(cls, cls.lower())
+
+
+def bsdf_kind(bsdf) -> str:
+    """The plugin name of a Mitsuba BSDF (another class's name in lower case)."""
+    cls = bsdf.class_name()
+    return _BSDF_CLASSES.get(cls, cls.lower())
 
 
 #: what a scene file without an integrator gets: Mitsuba's ``path`` default, max_depth -1
 #: (unbounded; Russian roulette ends the paths from depth 5)
 MITSUBA_DEFAULT_MAX_DEPTH = -1
+#: Mitsuba's default Russian-roulette depth (``rr_depth``)
+MITSUBA_DEFAULT_RR_DEPTH = 5
 
-
-def _unsupported(kind: str, obj, supported) -> str:
-    cls = obj.class_name()
-    return (f"{kind} {obj.id()!r} is a Mitsuba {cls} ({cls.lower()}), which glossrt's renderer "
-            f"does not support (supported plugins: {', '.join(sorted(supported))})")
+#: Mitsuba integrators whose image glossrt's path tracer renders, by the first word of their
+#: string form (Python-implemented integrators share one class name) -> plugin name. The
+#: path tracers take their ``max_depth`` and ``rr_depth``; the direct-light ones render
+#: direct light only (path depth 2: emission, next-event estimation and the BSDF-sampled
+#: emitter hit at the primary vertex)
+PATH_INTEGRATORS = {"PathIntegrator": "path", "VolumetricSimplePathIntegrator": "volpath",
+                    "VolumetricMisPathIntegrator": "volpathmis",
+                    "ParticleTracerIntegrator": "ptracer", "PRBIntegrator": "prb",
+                    "BasicPRBIntegrator": "prb_basic", "PRBVolpathIntegrator": "prbvolpath",
+                    "PathProjectiveIntegrator": "prb_projective",
+                    "GlossrtIntegrator": "glossrt"}
+DIRECT_INTEGRATORS = {"DirectIntegrator": "direct",
+                      "DirectProjectiveIntegrator": "direct_projective"}
+#: the volumetric path tracers: they render participating media, which glossrt does not
+VOLUME_INTEGRATORS = {"volpath", "volpathmis", "prbvolpath"}
 
 
 @functools.cache
@@ -617,28 +662,66 @@ def _children_class(variant: str) -> type:
     are per variant)."""
 
     class _Children(mi.TraversalCallback):
-        """Collects the BSDFs nested in a BSDF (``Object.traverse``: twosided's sides, a
-        normalmap's nested BSDF)."""
+        """Collects the Mitsuba objects an object hands to ``traverse`` (twosided's sides, a
+        normalmap's nested BSDF, an instance's shape group, a shape group's shapes), by
+        name."""
 
         def __init__(self):
             super().__init__()
-            self.bsdfs = []
+            self.objects = {}
 
         def put(self, name, value, *flags):
-            if isinstance(value, mi.BSDF):
-                self.bsdfs.append(value)
+            if isinstance(value, mi.Object):
+                self.objects[name] = value
 
     return _Children
 
 
+def children(obj) -> dict:
+    """The Mitsuba objects ``obj`` hands to ``traverse``, by name (a wrapper BSDF's nested
+    BSDFs, an instance's shape group, a shape group's shapes)."""
+    cb = _children_class(mi.variant())()
+    obj.traverse(cb)
+    return cb.objects
+
+
 def _nested_bsdfs(bsdf) -> list:
     """``bsdf`` and every BSDF nested in it, depth first."""
-    cb = _children_class(mi.variant())()
-    bsdf.traverse(cb)
     out = [bsdf]
-    for child in cb.bsdfs:
-        out += _nested_bsdfs(child)
+    for child in children(bsdf).values():
+        if isinstance(child, mi.BSDF):
+            out += _nested_bsdfs(child)
     return out
+
+
+def instanced_shapes(scene: mi.Scene) -> list:
+    """The shapes inside the shape groups that the scene's ``instance`` shapes place, each
+    once (several instances of one group share its shapes: a ray that hits an instance
+    reports the group's shape), in a load-independent order."""
+    out, seen = [], set()
+    if not any(s.class_name() == "Instance" for s in scene.shapes()):
+        return out
+    # (an instance does not hand its group to ``traverse``; the scene hands its groups)
+    for group in children(scene).values():
+        if not (isinstance(group, mi.Shape) and group.class_name().startswith("ShapeGroup")):
+            continue
+        for s in children(group).values():
+            if isinstance(s, mi.Shape) and _registry_id(mi.ShapePtr, s) not in seen:
+                seen.add(_registry_id(mi.ShapePtr, s))
+                out.append(s)
+    b = [s.bbox() for s in out]
+    order = sorted(range(len(out)), key=lambda i: (
+        out[i].id(), out[i].class_name(), tuple(float(b[i].min[k]) for k in range(3)),
+        tuple(float(b[i].max[k]) for k in range(3))))
+    return [out[i] for i in order]
+
+
+def render_shapes(scene: mi.Scene) -> list:
+    """The shapes a ray can report (``si.shape``), in ``mesh_id`` order (1-based position):
+    :func:`stable_shapes` (the scene's own shapes), then :func:`instanced_shapes` (those
+    inside instanced shape groups, shared by all instances of a group). Appending keeps the
+    scene's own shapes' indices whether or not it instances anything."""
+    return stable_shapes(scene) + instanced_shapes(scene)
 
 
 _ROUGHNESS_KEYS = ("alpha", "alpha.value", "alpha_u", "alpha_u.value", "alpha_v",
@@ -663,53 +746,119 @@ def check_roughness(bsdf, where: str = "") -> None:
 
 
 def check_plugins(scene: mi.Scene, name: str) -> None:
-    """Raise :class:`SceneError` for a BSDF (nested ones included) or emitter of the LOADED
-    scene that glossrt's renderer does not support, or a BSDF with a negative roughness
-    (:func:`check_roughness`). What Mitsuba loaded is checked, so
-    ``<include>``d files, ``$parameters`` and built-in scene dicts are covered alike."""
-    for shape in stable_shapes(scene):
+    """Raise :class:`SceneError` for a BSDF (nested ones included) with a negative or
+    non-finite roughness (:func:`check_roughness`). Every BSDF and emitter Mitsuba loads in
+    the RGB variant is rendered (through Mitsuba's own ``sample`` / ``eval`` / ``pdf``);
+    what Mitsuba loaded is checked, so ``<include>``d files, ``$parameters`` and built-in
+    scene dicts are covered alike."""
+    for shape in render_shapes(scene):
         bsdf = shape.bsdf()
         if bsdf is None:
             continue
         for b in _nested_bsdfs(bsdf):
-            if b.class_name() not in _BSDF_CLASSES:
-                raise SceneError(f"{name}: shape {shape.id()!r}: "
-                                 + _unsupported("BSDF", b, SUPPORTED_BSDFS))
             check_roughness(b, f"{name}: shape {shape.id()!r}")
-    for e in scene.emitters():
-        if e.class_name() not in _EMITTER_CLASSES:
-            raise SceneError(f"{name}: " + _unsupported("emitter", e, SUPPORTED_EMITTERS))
+
+
+def media(scene: mi.Scene) -> list[str]:
+    """Where the scene has participating media: ``"shape 'x' (interior)"`` per medium
+    attached to a shape, ``"the sensor"`` for a camera inside one."""
+    out = []
+    for s in render_shapes(scene):
+        for side, m in (("interior", s.interior_medium()), ("exterior", s.exterior_medium())):
+            if m is not None:
+                out.append(f"shape {s.id()!r} ({side}: {m.class_name()})")
+    for sensor in scene.sensors():
+        if sensor.get_medium() is not None:
+            out.append("the sensor")
+    return out
 
 
 _INT_FIELD = r"{}\s*=\s*(-?\d+)"
 
 
-def integrator_max_depth(scene: mi.Scene, name: str) -> int:
-    """``max_depth`` of the loaded scene's integrator, in Mitsuba's convention (-1: no
-    limit). Mitsuba exposes it only in the integrator's string form (``mi.traverse`` gives
-    no parameters); an unsigned -1 (``volpath`` prints 4294967295) reads as -1. A scene
-    without an integrator gets Mitsuba's default, -1 (:data:`MITSUBA_DEFAULT_MAX_DEPTH`).
-    An integrator without a ``max_depth`` (``direct``, ``aov``, ...) is refused: glossrt
-    cannot tell which paths it renders."""
+@dataclass(frozen=True)
+class IntegratorDepth:
+    """How glossrt renders a scene's integrator: ``max_depth`` and ``rr_depth`` in Mitsuba's
+    convention (-1: no limit), the Mitsuba plugin it comes from (``integrator``) and
+    ``error``: why glossrt cannot render it (then the depths are None): the renderer raises
+    it when it traces with the scene's depth (commands that do not trace never do)."""
+
+    max_depth: int | None
+    rr_depth: int | None
+    integrator: str
+    error: str | None = None
+
+
+def _read_int(field: str, text: str) -> int | None:
+    m = re.search(_INT_FIELD.format(field), text)
+    if m is None:
+        return None
+    v = int(m.group(1))
+    return -1 if v >= 2**31 - 1 else v  # an unsigned -1 (``volpath`` prints 4294967295)
+
+
+def integrator_depth(scene: mi.Scene, name: str) -> IntegratorDepth:
+    """What glossrt renders for the loaded scene's integrator (:class:`IntegratorDepth`).
+
+    * none: Mitsuba's default ``path`` (max_depth -1, rr_depth 5);
+    * ``path`` and the path tracers that estimate the same image (``ptracer``, ``prb``,
+      ``prb_basic``, ``prb_projective``, and ``volpath`` / ``volpathmis`` / ``prbvolpath``
+      in a scene without media): their ``max_depth`` and ``rr_depth``, read from the
+      integrator's string form (``mi.traverse`` gives no parameters);
+    * ``direct`` and ``direct_projective``: direct light only, path depth 2;
+    * ``aov``: the first integrator nested in it of the kinds above;
+    * anything else (``depth``, ``moment``, an ``aov`` without one of these, a volumetric
+      path tracer in a scene with media): ``error`` names it and what to use."""
     integrator = scene.integrator()
     if integrator is None:
-        return MITSUBA_DEFAULT_MAX_DEPTH
-    m = re.search(_INT_FIELD.format("max_depth"), str(integrator))
-    if m is None:
-        raise SceneError(f"{name}: integrator {integrator.class_name()} has no max_depth; "
-                         "glossrt renders with a path tracer: use <integrator type=\"path\"> "
-                         "(or none, for Mitsuba's default max_depth -1)")
-    depth = int(m.group(1))
-    if depth >= 2**31 - 1:  # printed as an unsigned integer
-        depth = -1
-    return depth
+        return IntegratorDepth(MITSUBA_DEFAULT_MAX_DEPTH, MITSUBA_DEFAULT_RR_DEPTH, "none")
+    text = str(integrator)
+    first = re.match(r"\s*(\w+)", text)
+    word = first.group(1) if first else integrator.class_name()
+    if word == "AOVIntegrator":  # its nested integrators: the first one glossrt renders
+        inner = re.findall(r"\b(\w+Integrator)\[", text)
+        word = next((w for w in inner if w in PATH_INTEGRATORS or w in DIRECT_INTEGRATORS),
+                    word)
+        if word == "AOVIntegrator":
+            return IntegratorDepth(None, None, "aov", (
+                f"{name}: integrator aov nests no path tracer, so the scene says no path "
+                "depth to render light with; add <integrator type=\"path\"/> inside it, or "
+                "use <integrator type=\"path\"> (\"direct\" for direct light only)"))
+    if word in DIRECT_INTEGRATORS:
+        return IntegratorDepth(2, MITSUBA_DEFAULT_RR_DEPTH, DIRECT_INTEGRATORS[word])
+    if word in PATH_INTEGRATORS:
+        plugin = PATH_INTEGRATORS[word]
+        where = media(scene) if plugin in VOLUME_INTEGRATORS else []
+        if where:
+            return IntegratorDepth(None, None, plugin, (
+                f"{name}: integrator {plugin} renders participating media ({where[0]}), "
+                "which glossrt's path tracer does not (it renders surfaces only); use "
+                "<integrator type=\"path\"> to render the scene without them, as Mitsuba's "
+                "path does"))
+        depth = _read_int("max_depth", text)
+        rr = _read_int("rr_depth", text)
+        return IntegratorDepth(MITSUBA_DEFAULT_MAX_DEPTH if depth is None else depth,
+                               MITSUBA_DEFAULT_RR_DEPTH if rr is None else rr, plugin)
+    plugin = word[:-len("Integrator")].lower() if word.endswith("Integrator") else word.lower()
+    return IntegratorDepth(None, None, plugin, (
+        f"{name}: integrator {plugin} is not one glossrt renders (it renders the light of "
+        "Mitsuba's path tracer); use <integrator type=\"path\"> (with its max_depth), "
+        "\"direct\" for direct light only, or none for Mitsuba's default path tracer"))
+
+
+def integrator_max_depth(scene: mi.Scene, name: str) -> int:
+    """``max_depth`` of the loaded scene's integrator in Mitsuba's convention (-1: no
+    limit; 2 for the direct-light integrators), or a :class:`SceneError` naming an
+    integrator glossrt does not render (:func:`integrator_depth`)."""
+    d = integrator_depth(scene, name)
+    if d.error is not None:
+        raise SceneError(d.error)
+    return d.max_depth
 
 
 def _xml_plugin_types(path: str, seen: set | None = None) -> list[tuple[str, str]]:
     """(tag, type) of every plugin element of an XML scene file and the files it
-    ``<include>``s (relative to the including file). Only used to explain a file that Mitsuba
-    could not load (e.g. twosided around a dielectric); what glossrt renders is checked on
-    the loaded scene (:func:`check_plugins`)."""
+    ``<include>``s (relative to the including file), for naming a plugin in an error."""
     seen = set() if seen is None else seen
     path = os.path.abspath(path)
     if path in seen:
@@ -721,7 +870,7 @@ def _xml_plugin_types(path: str, seen: set | None = None) -> list[tuple[str, str
         return []
     out = []
     for el in root.iter():
-        if el.tag in ("bsdf", "emitter", "sensor") and el.get("type"):
+        if el.get("type"):
             out.append((el.tag, el.get("type")))
         if el.tag == "include" and el.get("filename"):
             out += _xml_plugin_types(os.path.join(os.path.dirname(path), el.get("filename")),
@@ -729,15 +878,26 @@ def _xml_plugin_types(path: str, seen: set | None = None) -> list[tuple[str, str
     return out
 
 
-def _explain_load_error(path: str) -> str | None:
-    """Name an unsupported plugin of a file Mitsuba refused, when there is one."""
-    supported = {"bsdf": SUPPORTED_BSDFS, "emitter": SUPPORTED_EMITTERS,
-                 "sensor": SUPPORTED_SENSORS}
-    for tag, typ in _xml_plugin_types(path):
-        if typ not in supported[tag]:
-            return (f"{tag} plugin {typ!r} is not supported by glossrt's renderer "
-                    f"(supported: {', '.join(sorted(supported[tag]))})")
-    return None
+_LOAD_ERROR = re.compile(r"^\s*\[[\w.]+:\d+\]\s*")
+_UNDEFINED = re.compile(r"undefined parameter:?\s*\$?(\w+)")
+
+
+def _load_error(what: str, e: Exception) -> str:
+    """One line for a scene Mitsuba refused: Mitsuba's message on one line, without its
+    source locations; an undefined ``$parameter`` says how to give it; a plugin Mitsuba cannot
+    instantiate in this variant (polarized or spectral-only plugins in an RGB variant) is
+    named with the variant."""
+    lines = [_LOAD_ERROR.sub("", ln).strip() for ln in str(e).strip().splitlines()]
+    msg = " ".join(ln for ln in lines if ln) or repr(e)
+    m = _UNDEFINED.search(msg)
+    if m:
+        return (f"{what}: the scene uses the parameter ${m.group(1)} without a default: give "
+                f"it (glossrt render -D {m.group(1)}=VALUE, scenes.load(..., "
+                f"params={{{m.group(1)!r}: VALUE}}))")
+    if "polarized" in msg.lower() or "spectral" in msg.lower():
+        return (f"{what}: Mitsuba cannot load the scene in the {mi.variant()} variant "
+                f"glossrt renders with (a polarized or spectral-only plugin): {msg}")
+    return f"{what}: Mitsuba could not load the scene: {msg}"
 
 
 def check_size(size) -> tuple[int, int] | None:
@@ -771,6 +931,7 @@ def load(
     size: tuple[int, int] | None = None,
     orbit: float | None = None,
     frames: int = 1,
+    params: Mapping | None = None,
 ) -> SceneSetup:
     """Load a scene from any of:
 
@@ -788,8 +949,19 @@ def load(
     the camera is the scene's first sensor, static (a :class:`SceneError` when it has none).
 
     ``size`` (W, H) overrides the scene's film size; ``orbit`` (degrees over all
-    ``frames``) adds a camera orbit to a scene without its own animation."""
+    ``frames``) adds a camera orbit to a scene without its own animation; ``params``: values
+    of an XML file's ``$parameters`` (``mi.load_file``'s keyword arguments, Mitsuba's
+    ``-D name=value``).
+
+    Every BSDF and emitter Mitsuba loads in the RGB variant is rendered; a ``thinlens``
+    camera is rendered as a pinhole (with a warning), other non-pinhole cameras are refused.
+    An integrator glossrt does not render is refused by the renderer that would trace with
+    it (:attr:`SceneSetup.integrator_error`), not here."""
     size = check_size(size)
+    params = check_params(params)
+    if params and not (isinstance(scene, (str, os.PathLike)) and os.fspath(scene) not in BUILTIN):
+        raise SceneError("scene params are for XML files' $parameters; this scene is "
+                         f"{type(scene).__name__ if not isinstance(scene, str) else 'built in'}")
     if orbit is not None and not math.isfinite(float(orbit)):
         raise SceneError(f"orbit must be a finite number of degrees, got {orbit}")
     from . import library  # noqa: F401  (registers the built-in scenes)
@@ -803,12 +975,15 @@ def load(
         if name_or_path in BUILTIN:
             setup = from_spec(name_or_path, BUILTIN[name_or_path][0](), size=size)
         else:
-            setup = _from_file(name_or_path, size)
+            setup = _from_file(name_or_path, size, params)
     elif isinstance(scene, mi.Scene):
         setup = _from_scene(scene, "scene", size, "scene object")
     else:
         raise SceneError(f"a scene must be {', '.join(SCENE_FORMS[:-1])} or {SCENE_FORMS[-1]}"
                          f" (of variant {mi.variant()}), got {type(scene).__name__}")
+    if setup.sensor_kind == "thinlens":
+        warnings.warn(f"{setup.name}: the thinlens camera is rendered as a pinhole of the same "
+                      "pose and field of view: depth of field is not rendered", stacklevel=2)
     if orbit:
         if setup.camera_path is not None:
             warnings.warn(f"scene {setup.name!r} animates its own camera: orbit {orbit} "
@@ -821,16 +996,20 @@ def _from_scene(scene: mi.Scene, name: str, size, what: str, source: str | None 
                 label: str | None = None) -> SceneSetup:
     """A static :class:`SceneSetup` named ``name`` of a loaded scene, checked like any scene
     (errors say ``label``, default ``name``); ``what`` ("scene file", ...) is where its
-    integrator comes from, for ``meta["max_depth_from"]``."""
+    integrator comes from, for ``meta["max_depth_from"]``. An integrator glossrt does not
+    render is not refused here (:attr:`SceneSetup.integrator_error`)."""
     label = name if label is None else label
     check_plugins(scene, label)  # what Mitsuba loaded (``<include>``d files too)
-    max_depth = integrator_max_depth(scene, label)
-    return SceneSetup(
-        name, scene, size=size, max_depth=max_depth,
-        max_depth_from=(what if scene.integrator() is not None
-                        else f"Mitsuba's default (the {what} sets no integrator)"),
-        source=source,
-    )
+    d = integrator_depth(scene, label)
+    if scene.integrator() is None:
+        origin = f"Mitsuba's default (the {what} sets no integrator)"
+    elif d.integrator in DIRECT_INTEGRATORS.values():
+        origin = f"{what} ({d.integrator} integrator: direct light only)"
+    else:
+        origin = what
+    return SceneSetup(name, scene, size=size, max_depth=d.max_depth, max_depth_from=origin,
+                      source=source, rr_depth=d.rr_depth, integrator=d.integrator,
+                      integrator_error=d.error)
 
 
 def _from_dict(d: Mapping, size) -> SceneSetup:
@@ -840,12 +1019,43 @@ def _from_dict(d: Mapping, size) -> SceneSetup:
     try:
         scene = mi.load_dict(dict(d))
     except Exception as e:
-        msg = str(e).strip().splitlines()[-1] if str(e).strip() else repr(e)
-        raise SceneError(f"dict: Mitsuba could not load the scene dict: {msg}") from None
+        raise SceneError(_load_error("dict", e)) from None
     return _from_scene(scene, "dict", size, "scene dict")
 
 
-def _from_file(path: str, size) -> SceneSetup:
+def check_params(params) -> dict[str, str]:
+    """``params`` (a mapping of XML ``$parameter`` names to values, or None) as the strings
+    ``mi.load_file`` takes, or one :class:`SceneError` naming a bad entry."""
+    if params is None:
+        return {}
+    if not isinstance(params, Mapping):
+        raise SceneError(f"scene params must be a mapping of names to values, got {params!r}")
+    out = {}
+    for k, v in params.items():
+        if not isinstance(k, str) or not re.fullmatch(r"[A-Za-z_]\w*", k):
+            raise SceneError(f"scene parameter name {k!r}: use letters, digits and _")
+        if isinstance(v, bool):
+            v = str(v).lower()
+        if not isinstance(v, (str, int, float)) or (isinstance(v, float)
+                                                     and not math.isfinite(v)):
+            raise SceneError(f"scene parameter {k}: a value must be text or a finite number, "
+                             f"got {v!r}")
+        out[k] = str(v)
+    return out
+
+
+def parse_defines(items) -> dict[str, str]:
+    """``-D NAME=VALUE`` command-line items as scene parameters, or one :class:`SceneError`."""
+    out = {}
+    for item in items or ():
+        name, eq, value = str(item).partition("=")
+        if not eq or not name:
+            raise SceneError(f"-D {item!r}: give a scene parameter as NAME=VALUE")
+        out[name.strip()] = value
+    return check_params(out)
+
+
+def _from_file(path: str, size, params: dict | None = None) -> SceneSetup:
     if not path.endswith(".xml") and not os.path.exists(path):
         raise SceneError(
             f"unknown scene {path!r}: not a built-in scene ({', '.join(sorted(BUILTIN))}) "
@@ -860,13 +1070,9 @@ def _from_file(path: str, size) -> SceneSetup:
     except ET.ParseError as e:
         raise SceneError(f"{path}: not a valid XML scene ({e})") from None
     try:
-        scene = mi.load_file(path)
+        scene = mi.load_file(path, **(params or {}))
     except Exception as e:
-        why = _explain_load_error(path)
-        if why is not None:
-            raise SceneError(f"{path}: {why}") from None
-        msg = str(e).strip().splitlines()[-1] if str(e).strip() else repr(e)
-        raise SceneError(f"{path}: Mitsuba could not load the scene: {msg}") from None
+        raise SceneError(_load_error(path, e)) from None
     return _from_scene(scene, os.path.splitext(os.path.basename(path))[0], size, "scene file",
                        source=path, label=path)
 
@@ -893,6 +1099,21 @@ def from_spec(name: str, spec: SceneSpec, *, size: tuple[int, int] | None = None
     return SceneSetup(name, scene, size=check_size(size), camera_path=spec.camera_path,
                       object_paths=spec.object_paths, max_depth=spec.max_depth,
                       max_depth_from="built-in scene")
+
+
+#: the trial scenes shipped with glossrt (``src/glossrt/data/scenes``): small Mitsuba XML
+#: files that use the plugins beyond the analytic methods (transmission, principled, blends,
+#: masks, bump maps, spot and projector lights, curved area lights, the ``direct``
+#: integrator, a thin-lens camera, instancing), by name
+TRIAL_SCENES = ("glass", "materials", "lights", "direct", "thinlens", "instances")
+
+
+def trial_scenes() -> dict[str, str]:
+    """The paths of glossrt's trial scenes (:data:`TRIAL_SCENES`), by name: scenes written
+    for the fallback paths (the pipeline renders them with the papers' methods where they
+    apply and the path tracer elsewhere; ``glossrt experiment --which scenes``)."""
+    folder = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data", "scenes")
+    return {name: os.path.join(folder, f"{name}.xml") for name in TRIAL_SCENES}
 
 
 #: the largest image side: a G-buffer channel of 16384^2 RGB pixels still fits Dr.Jit's 2^32

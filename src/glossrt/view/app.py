@@ -149,14 +149,16 @@ class Viewer:
     :meth:`stop` (or use it as a context manager).
 
     ``scene``: anything :func:`glossrt.scenes.load` takes (a built-in name, an XML path, a
-    Mitsuba scene dict or an ``mi.Scene``). ``pipeline``: a preset or a TOML file
-    (:func:`glossrt.pipeline.parse`), ``choices`` override its options. Everything is checked
-    before the server starts: a :class:`~glossrt.errors.GlossrtError` means nothing was
-    started and nothing written."""
+    Mitsuba scene dict or an ``mi.Scene``; ``params``: an XML file's ``$parameters``).
+    ``pipeline``: a preset or a TOML file (:func:`glossrt.pipeline.parse`), ``choices``
+    override its options. Everything is checked before the server starts: a
+    :class:`~glossrt.errors.GlossrtError` means nothing was started and nothing written. The
+    stats say which method shades which light and what share of the pixels takes the path
+    tracer's direct light (``stats["lights"]``, ``stats["fallback_share"]``)."""
 
     def __init__(self, scene, pipeline: str = "full", size=(320, 180),
                  host: str = "127.0.0.1", port: int = 8080, captures="captures",
-                 verbose: bool = True, bspvt=None, **choices: Any):
+                 verbose: bool = True, bspvt=None, params=None, **choices: Any):
         from .. import pipeline as pl
 
         if not isinstance(host, str) or not host:
@@ -172,19 +174,20 @@ class Viewer:
         self._thread = threading.Thread(target=self._loop, name="glossrt-view", daemon=True)
         _claim(self)
         try:
-            self._start(scene, preset, choices, size, host, port, verbose, bspvt)
+            self._start(scene, preset, choices, size, host, port, verbose, bspvt, params)
         except BaseException:
             self._stop.set()  # (the claim is given up: nothing runs)
             raise
 
-    def _start(self, scene, preset, choices, size, host, port, verbose, bspvt) -> None:
+    def _start(self, scene, preset, choices, size, host, port, verbose, bspvt,
+               params=None) -> None:
         import drjit as dr
 
         from .. import pipeline as pl
         from ..scenes import load
 
         with DRJIT_LOCK:  # (the caller's own Dr.Jit work may run meanwhile)
-            setup = load(scene, size=size)
+            setup = load(scene, size=size, params=params)
             self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
                                     **choices)
             self.size = tuple(setup.size)
@@ -264,7 +267,7 @@ class Viewer:
         setup = self.pipe.setup
         movable = set(setup.movable_shapes())
         out = {}
-        for light in polygon_lights(setup, 0):
+        for light in polygon_lights(setup, 0, skip=True):
             if light.id in movable:
                 v = np.asarray(light.vertices, np.float64)
                 c = v.mean(axis=0)
@@ -744,7 +747,13 @@ class Viewer:
             s.update(self._meter.measure(frame.numpy("color"), self._ref_color, self._ref_spp))
         s["index"] = self.index
         s["direct"] = p["direct"]
+        s["lights"] = [dict(light) for light in p.get("lights", ())]
+        s["fallback_share"] = float(p.get("fallback_share", 0.0))
         self.stats = s
+        methods = self.pipe.plan.summary()
+        fallback = (f"; {100 * s['fallback_share']:.0f}% of the pixels path-traced for every "
+                    "light (materials the analytic methods do not represent)"
+                    if s["fallback_share"] > 0 else "")
         rows = "\n".join(f"| {k} | {v:.1f} |" for k, v in s["stage_ms"].items())
         if "rmse" not in s:
             err = "reference: accumulates when the view stands still"
@@ -755,6 +764,7 @@ class Viewer:
         self._gui(setattr, self._stats_md, "content", (
             f"**{s['fps']:.1f} fps** ({s['frame_ms']:.0f} ms), frame {self.index}, "
             f"{s['frames']} rendered, {s['recordings']} recordings, direct: {p['direct']}\n\n"
+            f"lights: {methods}{fallback}\n\n"
             f"{err}\n\n| stage | ms |\n|---|---|\n{rows}"))
 
     def _loop(self) -> None:

@@ -175,13 +175,18 @@ _NO_CUT = np.int64(1) << 62
 
 def occluders(scene: mi.Scene) -> mi.Scene:
     """The scene's shapes without the emitting ones (area lights), as a new scene for shadow
-    rays. Meshes are copied (positions and faces); other shapes (analytic spheres, ...) are
-    shared with ``scene`` (their ids are kept: Mitsuba renames objects put in a scene dict).
-    The new scene does not follow later edits of ``scene`` (moving objects): visibility is
-    precomputed for the static geometry."""
-    from ...scenes import stable_shapes
+    rays. Meshes are copied (positions and faces); other shapes (analytic spheres, instances
+    with the shape groups they place, ...) are shared with ``scene`` (their ids are kept:
+    Mitsuba renames objects put in a scene dict). The new scene does not follow later edits
+    of ``scene`` (moving objects): visibility is precomputed for the static geometry."""
+    from ...scenes import children, stable_shapes
 
     shapes = {}
+    if any(s.class_name() == "Instance" for s in scene.shapes()):
+        # an instance refers to its shape group by key: the groups go along under theirs
+        for key, group in children(scene).items():
+            if isinstance(group, mi.Shape) and group.class_name().startswith("ShapeGroup"):
+                shapes[key] = group
     for i, s in enumerate(stable_shapes(scene)):
         if s.is_emitter():
             continue

@@ -507,7 +507,7 @@ def _compare_geometry(scene: mi.Scene, trees, tp: np.ndarray, tn: np.ndarray) ->
 @dataclass
 class MaterialTable:
     """:func:`glossrt.lights.shading.fresnel_image`'s material rows on the device: per mesh id
-    (0 = background, then :func:`glossrt.scenes.stable_shapes` order) the Fresnel row
+    (0 = background, then :func:`glossrt.scenes.render_shapes` order) the Fresnel row
     (``rows``, ``n x ROW`` flat) and the diffuse-scale table (``scales``, ``n x
     DIFFUSE_SCALE_NODES x 3`` flat); ``count`` the number of ids (an opaque scalar).
     :func:`material_columns` evaluates them per lane inside frozen functions."""
@@ -520,9 +520,9 @@ class MaterialTable:
     def of(scene: mi.Scene) -> MaterialTable:
         from ...brdf.fresnel import ROW
         from ...render.materials import DIFFUSE_SCALE_NODES
-        from ...scenes import stable_shapes
+        from ...scenes import render_shapes
 
-        rows, scales = mesh_material_tables(stable_shapes(scene))
+        rows, scales = mesh_material_tables(render_shapes(scene))
         rows = np.concatenate([np.zeros((1, ROW)), rows])
         scales = np.concatenate([np.ones((1, DIFFUSE_SCALE_NODES, 3)), scales])
         return MaterialTable(owned(mi.Float, rows), owned(mi.Float, scales),
