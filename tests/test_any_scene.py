@@ -481,6 +481,51 @@ def test_anisotropic_lobes_fall_back_to_the_path_tracer(tmp_path):
         assert np.isfinite(f.numpy("color")).all() and f.numpy("color")[floor].mean() > 0
 
 
+def test_the_primary_hits_light_alone_keeps_the_scenes_depth():
+    """The pipeline's full-resolution half at indirect_scale 2 (``primary_only``): with the
+    same seed its direct light is, bit for bit, the full render's, also behind the masked
+    card's cut-outs, where the surface the primary ray passed through counts against the
+    path depth (tracing it as max_depth 2 lost that light: ``full`` on Mitsuba's
+    bsdf_mask_after had twice the RMSE of schied2017)."""
+    setup = _load("materials")
+    whole = Renderer(setup).render(0)
+    alone = Renderer(setup, primary_only=True).render(0)
+    assert alone.meta["primary_only"] and alone.meta["max_depth"] == whole.meta["max_depth"]
+    for k in ("emission", "direct_diffuse", "direct_specular"):
+        np.testing.assert_array_equal(alone.numpy(k), whole.numpy(k), err_msg=k)
+    assert not alone.numpy("indirect_diffuse").any() and whole.numpy("indirect_diffuse").any()
+    # (behind the cut-outs, where the floor shows through the card)
+    card = setup.shapes.index(next(s for s in setup.shapes if s.id() == "card")) + 1
+    ids = whole.numpy("mesh_id")[..., 0]
+    ys, xs = np.nonzero(ids == card)
+    box = np.zeros(ids.shape, bool)
+    box[ys.min():ys.max() + 1, xs.min():xs.max() + 1] = True
+    behind = box & (ids == setup.shape_index["floor"])
+    lit = alone.numpy("direct_diffuse") + alone.numpy("direct_specular")
+    assert behind.sum() > 5 and lit[behind].mean() > 0.01
+
+
+def test_an_emitter_on_a_rectangle_that_is_not_an_area_light_is_path_traced():
+    """A ``directionalarea`` emitter sits on a rectangle like an area light but emits along
+    one direction: no polygon light, so the path tracer lights it (the analytic stage would
+    shade it as a Lambertian polygon)."""
+    T = mi.ScalarTransform4f
+    d = {"type": "scene",
+         "sensor": {"type": "perspective", "to_world": T().look_at([0, 1.5, 3], [0, 0, 0],
+                                                                   [0, 1, 0]),
+                    "film": {"type": "hdrfilm", "width": 16, "height": 12}},
+         "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(2),
+                   "bsdf": {"type": "diffuse"}},
+         "beam": {"type": "rectangle", "to_world": T().translate([0, 1.5, 0])
+                  .rotate([1, 0, 0], 90).scale(0.5),
+                  "emitter": {"type": "directionalarea",
+                              "radiance": {"type": "rgb", "value": 5.0}}}}
+    pipe = pipeline.Pipeline(d, preset="full", progress=False)
+    (beam,) = pipe.plan.lights
+    assert beam.kind == "directionalarea" and beam.method == "path-traced" and beam.why
+    assert not pipe.plan.exclude
+
+
 def test_emitter_indices_name_every_kind():
     setup = _load("lights")
     kinds = {eid: kind for _, eid, kind, _ in emitter_index(setup)}
@@ -578,3 +623,18 @@ def test_a_scene_dr_jit_cannot_freeze_is_traced_anew_with_a_warning():
     r2._trace_frozen = lambda *a: (_ for _ in ()).throw(RuntimeError("another failure"))
     with pytest.raises(RuntimeError, match="another failure"):
         r2.render(0)  # (anything else is not taken for a refusal to freeze)
+
+
+def test_cli_light_leaves_out_area_lights_that_are_not_polygons(tmp_path, capsys):
+    from glossrt.cli import main
+
+    text = open(TRIALS["direct"]).read().replace("</scene>", '''  <shape type="sphere" id="bulb">
+    <point name="center" x="1" y="1.5" z="1"/><float name="radius" value="0.1"/>
+    <emitter type="area"><rgb name="radiance" value="5, 5, 5"/></emitter>
+  </shape>
+</scene>''')
+    path = _write(tmp_path, "bulb.xml", text)
+    with pytest.warns(UserWarning, match="1 area light.s. are not polygons"):
+        assert main(["light", path, "--method", "ltc", "--size", "16x12",
+                     "--out", str(tmp_path / "l")]) == 0
+    assert (tmp_path / "l" / "frame_0000.exr").is_file()

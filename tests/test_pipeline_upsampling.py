@@ -36,11 +36,13 @@ def converged():
 
 
 def test_low_resolution_tracing(converged):
-    """The full-resolution renderer traces no indirect light (path depth 2), the low one
-    traces it at 1/2 the size with no direct light at its primary hit."""
+    """The full-resolution renderer traces no indirect light (the primary hit's light
+    alone, within the scene's depth), the low one traces it at 1/2 the size with no direct
+    light at its primary hit."""
     setup, ref, pipe, gb, low = converged
     g = pipe.stages["gbuffer"]
-    assert g.renderer.max_depth == 2 and (g.low.width, g.low.height) == (32, 24)
+    assert g.renderer.primary_only and (g.low.width, g.low.height) == (32, 24)
+    assert g.renderer.max_depth == g.low.max_depth
     f = g.run(1, {})
     assert f["frame"].size == SIZE and f["frame_low"].size == (32, 24)
     assert np.abs(_indirect(f["frame"])).max() == 0.0

@@ -667,7 +667,14 @@ def cmd_light(args) -> int:
     with Progress(work, desc) as p:
         for i in range(args.frames):
             gb = r.render(i)
-            lights = polygon_lights(setup, i)
+            # (area lights on other shapes are not this command's: named once, left out)
+            lights = polygon_lights(setup, i, skip=True)
+            if i == 0:
+                areas = sum(1 for e in setup.scene.emitters() if e.get_shape() is not None)
+                if areas > len(lights):
+                    warnings.warn(f"{setup.name}: {areas - len(lights)} area light(s) are not "
+                                  "polygons (spheres, disks, curved meshes) and are left out "
+                                  "(glossrt render --pipeline path-traces them)", stacklevel=1)
             if not lights:
                 raise GlossrtError(f"{setup.name}: no polygon lights (area emitters on "
                                    "rectangles or small planar meshes) in this scene")

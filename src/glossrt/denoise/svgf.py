@@ -612,27 +612,29 @@ def taa_jitter(index: int, count: int = TAA_JITTER_COUNT) -> tuple[float, float]
 
 def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
         alpha: float = 0.1, mesh_id: mi.TensorXf | None = None,
-        prev_mesh_id: mi.TensorXf | None = None) -> mi.TensorXf:
+        prev_mesh_id: mi.TensorXf | None = None, neighbours: bool = False) -> mi.TensorXf:
     """Temporal antialiasing (Karis 2014) as a separate pass: reproject ``history`` with the
     motion vectors (bilinear), clamp it to the 3x3 neighbourhood's min/max of ``image``,
     blend with weight ``alpha`` for the new frame. Pass the result as next ``history``.
 
     ``mesh_id`` / ``prev_mesh_id`` (the G-buffer's ``mesh_id`` of this frame and of the
     history's frame): each of the four bilinear taps counts only if the surface it showed in
-    the previous frame is the pixel's own now, or that of a 3x3 neighbour moving with it
-    (motion vectors within :data:`TAA_MOTION_TOLERANCE` pixels of the pixel's; the weights
-    renormalised; none left: a disocclusion, the history is dropped), a consistency test as
-    SVGF's 2x2 reprojection has (Schied 2017, sec. 4.1). Without it the neighbourhood clamp
-    keeps a moving bright emitter's trail wherever one of the 3x3 neighbours still shows
-    it. The neighbours as well as the pixel (glossrt's extension): under sub-pixel jitter
+    the previous frame is the pixel's own now (the weights renormalised; none left: a
+    disocclusion, the history is dropped), a consistency test as SVGF's 2x2 reprojection has
+    (Schied 2017, sec. 4.1). Without it the neighbourhood clamp keeps a moving bright
+    emitter's trail wherever one of the 3x3 neighbours still shows it.
+
+    ``neighbours`` (for jittered frames, glossrt's extension): a tap also counts if its
+    surface is that of a 3x3 neighbour moving with the pixel (motion vectors within
+    :data:`TAA_MOTION_TOLERANCE` pixels of the pixel's). Under sub-pixel jitter
     (:func:`taa_jitter`) a pixel on a geometric edge shows one surface or the other from
-    frame to frame, and a test against its own alone would drop the history there, at every
-    edge TAA exists to resolve (measured on polygon-light's light at 48x27 after 16
-    frames: the edge pixels' RMSE against the box-filtered image 5.97 with the pixel's own
-    surface, 1.33 with its neighbours', 4.53 without TAA). A neighbour only when it moves
-    with the pixel: an emitter that moved away is not part of the pixel any more. At the
-    image border the neighbourhood is one-sided, and its clamp keeps an edge there
-    aliased.
+    frame to frame, and a test against its own alone drops the history there, at every edge
+    TAA exists to resolve (measured on polygon-light's light at 48x27 after 16 still frames:
+    the edge pixels' RMSE against the box-filtered image 5.97 with the pixel's own surface,
+    1.33 with its neighbours', 4.53 without TAA). Without jitter it only does harm: on the
+    animated polygon-light at 96x72 it raised schied2017's RMSE from 0.068 to 0.31, twice
+    the raw 1 spp input's (docs/RESULTS.md). At the image border the neighbourhood is
+    one-sided, and its clamp keeps an edge there aliased.
 
     Input hygiene: NaN/Inf in ``image`` or ``history`` count as 0 (they reach neither the
     neighbours' clamp nor the next history); non-finite motion drops the pixel's history,
@@ -664,7 +666,7 @@ def taa(image: mi.TensorXf, history: mi.TensorXf | None, motion: mi.TensorXf,
         near_ids = [cur_id]  # the pixel's own surface, and each neighbour's that moves with it
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
-                if dx or dy:
+                if neighbours and (dx or dy):
                     k = grid.index(grid.x + dx, grid.y + dy)
                     along = ((dr.abs(dr.gather(mi.Float, mx, k) - mx) < TAA_MOTION_TOLERANCE)
                              & (dr.abs(dr.gather(mi.Float, my, k) - my)

@@ -383,10 +383,11 @@ class Pipeline:
             stages["indirect"] = IndirectStage(opts["indirect"], opts, self.setup,
                                                the_plan.path_traced_direct)
         stages["composite"] = prev.get("composite") or CompositeStage()
-        if old is not None and same("taa", "taa_alpha"):
+        if old is not None and same("taa", "taa_alpha", "taa_jitter"):
             stages["taa"] = prev["taa"]
         else:
-            stages["taa"] = TAAStage(opts["taa"], opts["taa_alpha"])
+            stages["taa"] = TAAStage(opts["taa"], opts["taa_alpha"],
+                                     jitter=bool(opts["taa"] and opts["taa_jitter"]))
         stages["indirect"].release_memory = bool(opts["release_memory"])
         self.stages = stages
         self.opts = dict(opts)

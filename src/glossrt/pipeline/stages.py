@@ -164,8 +164,9 @@ class GBufferStage(Stage):
     (mesh ids; None: all; :class:`glossrt.pipeline.plan.DirectPlan`).
 
     ``indirect_scale`` 2 or 4 (issue 25; Tokuyoshi 2015's pipeline, sec. 3): the
-    full-resolution renderer traces the G-buffer and the direct light only (path depth 2:
-    NEE and the BSDF-sampled emitter hit at the primary vertex), and a second renderer
+    full-resolution renderer traces the G-buffer and the direct light only
+    (``Renderer(primary_only=True)``: NEE and the BSDF-sampled emitter hit at the primary
+    vertex, within the scene's path depth), and a second renderer
     traces the indirect light at ``1/scale`` the size (``frame_low``: its own low-resolution
     G-buffer, every emitter excluded at its primary hit so that it holds the indirect light
     alone, bit-identical to a full-depth render's). Its primary rays are jittered by
@@ -175,10 +176,10 @@ class GBufferStage(Stage):
 
     Memory (issue 25): the frames hold no buffer for the channels that are 0 by
     construction (:meth:`glossrt.render.Renderer.zero_channels`: the full-resolution
-    ``indirect_*`` at path depth 2, ``direct_*`` when every emitter is excluded, as in the
-    low-resolution frame; zero constants instead) nor for the path tracer's ``color``
-    (:data:`OMIT`); frames of more than ``Renderer.tile_pixels`` pixels are traced in row
-    tiles.
+    frame's ``indirect_*`` (its primary hit's light alone), ``direct_*`` when every emitter
+    is excluded, as in the low-resolution frame; zero constants instead) nor for the path
+    tracer's ``color`` (:data:`OMIT`); frames of more than ``Renderer.tile_pixels`` pixels
+    are traced in row tiles.
 
     ``specaa`` (set by the pipeline: its :class:`SpecAAStage`): when that stage filters,
     the frame is traced in two passes so that the path tracer's primary hit sees the
@@ -210,12 +211,13 @@ class GBufferStage(Stage):
             n = len(setup.scene.emitters())
             self.low = render.Renderer(low_setup, max_depth=md, seed=opts["seed"] + 1,
                                        primary_exclude=tuple(range(n)))
-            full_md = self.low.mitsuba_max_depth
-            md = 2 if full_md < 0 or full_md > 2 else full_md
+            md = self.low.mitsuba_max_depth  # (the scene's, or the option's)
             self.outputs = ("frame", "frame_low")
+        # at scale 2 or 4 the full-resolution frame holds the primary hit's light alone
+        # (the light of its next-event estimation and of its BSDF sample's emitter hit)
         self.renderer = render.Renderer(setup, max_depth=md, seed=opts["seed"],
                                         primary_exclude=tuple(exclude),
-                                        exclude_on=exclude_on)
+                                        exclude_on=exclude_on, primary_only=self.scale > 1)
         self.setup = setup
         self.exclude = tuple(exclude)
         self.exclude_on = exclude_on
@@ -1035,9 +1037,12 @@ class TAAStage(Stage):
     inputs = ("frame", "composite")
     outputs = ("color",)
 
-    def __init__(self, enabled: bool, alpha: float):
+    def __init__(self, enabled: bool, alpha: float, jitter: bool = False):
         self.enabled = bool(enabled)
         self.alpha = float(alpha)
+        #: the frames are jittered (``taa_jitter``): the consistency test accepts the 3x3
+        #: neighbours' surfaces too (:func:`glossrt.denoise.taa`'s ``neighbours``)
+        self.jitter = bool(jitter)
         self.reset()
 
     def reads(self) -> dict[str, tuple[str, ...] | None]:
@@ -1059,7 +1064,8 @@ class TAAStage(Stage):
         # the previous frame's surfaces: a pixel that showed another one (a light that moved
         # away) drops its history instead of keeping the emitter's trail
         out = taa(img, self.history, ctx["frame"]["motion"], self.alpha, mesh_id=ids,
-                  prev_mesh_id=self.history_ids if self.history is not None else ids)
+                  prev_mesh_id=self.history_ids if self.history is not None else ids,
+                  neighbours=self.jitter)
         self.history, self.history_ids = out, ids
         return {"color": out}
 

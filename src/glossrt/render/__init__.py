@@ -78,7 +78,7 @@ def frame_seed(frame: int, seed: int = 0, salt: int = 0) -> int:
 
 def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width, height,
            max_depth, jitter, normal_maps, primary, roughness=None, lobe_key=None, skip=(),
-           rr_depth=RR_DEPTH, material_key=None):
+           rr_depth=RR_DEPTH, material_key=None, primary_only=False):
     # ``normal_maps`` (= shapes.any_normal_map, which gbuffer() reads) is only a key of the
     # frozen function: a Python attribute of the ShapeTable is not part of dr.freeze's key.
     # ``primary``: None (one recording) or the primary-hit EmitterTable (another one; a new
@@ -90,7 +90,8 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
     # ``material_key`` (= shapes.material_key: sampled albedos, inseparable lobes, null
     # surfaces, which shade() and gbuffer() trace only where the scene has them) a key
     out = trace_pixels(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, width,
-                       height, max_depth, jitter, primary, roughness, skip, rr_depth)
+                       height, max_depth, jitter, primary, roughness, skip, rr_depth,
+                       primary_only)
     return {k: _flat(v) for k, v in out.items()}
 
 
@@ -112,7 +113,8 @@ def _trace(scene, sensor, shapes, emitters, table, motion_inputs, pixel, seed, w
 
 def _trace_tile(scene, sensor, shapes, emitters, table, motion_inputs, offset, count_from,
                 rows, seed, width, height, max_depth, jitter, normal_maps, primary,
-                roughness, lobe_key, skip, rr_depth=RR_DEPTH, material_key=None):
+                roughness, lobe_key, skip, rr_depth=RR_DEPTH, material_key=None,
+                primary_only=False):
     # one row tile of a frame (the pixels offset .. offset + rows * width - 1; ``offset`` and
     # ``count_from`` opaque, the rest as :func:`_trace`'s keys): its channels (interleaved
     # flat arrays of the tile), its non-finite count and its count of fallback pixels
@@ -120,7 +122,7 @@ def _trace_tile(scene, sensor, shapes, emitters, table, motion_inputs, offset, c
     pixel = offset + dr.arange(mi.UInt32, n)
     out, bad, fallback = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs,
                                         pixel, seed, width, height, max_depth, jitter, primary,
-                                        roughness, skip, rr_depth)
+                                        roughness, skip, rr_depth, primary_only)
     new = pixel >= count_from  # (the last tile's rows written before are not counted again)
     bad = dr.select(new, bad, 0)
     fallback = dr.select(new, fallback, 0)
@@ -255,14 +257,19 @@ class Renderer:
     records the frozen trace once more, a pair used before replays its recording.
 
     ``rr_depth``: the depth Russian roulette starts at (default: the scene integrator's
-    ``rr_depth``, else Mitsuba's 5). A scene whose integrator glossrt does not render
+    ``rr_depth``, else Mitsuba's 5). ``primary_only``: trace the primary hit's light alone
+    (its emission, next-event estimation and the emitter hit of its BSDF sample, within
+    ``max_depth``; ``indirect_*`` are 0), the full-resolution half of the pipeline's
+    reduced-resolution indirect light. Unlike ``max_depth=2`` it leaves the path depth the
+    scene's, which the surfaces a primary ray passes through count against (as
+    Mitsuba's). A scene whose integrator glossrt does not render
     (:attr:`glossrt.scenes.SceneSetup.integrator_error`) is refused here unless
     ``max_depth`` is given."""
 
     def __init__(self, setup: SceneSetup, max_depth: int | None = None, seed: int = 0,
                  frozen: bool = True, primary_exclude: Collection[int] = (),
                  tile_pixels: int = TILE_PIXELS, exclude_on: Collection[int] | None = None,
-                 rr_depth: int | None = None):
+                 rr_depth: int | None = None, primary_only: bool = False):
         if isinstance(tile_pixels, bool) or not isinstance(tile_pixels, (int, np.integer)) \
                 or tile_pixels < 1:
             raise GlossrtError(f"tile_pixels must be a positive integer, got {tile_pixels!r}")
@@ -287,6 +294,8 @@ class Renderer:
             raise GlossrtError(f"rr_depth must be an integer >= 1 (as Mitsuba's), got {rr!r}")
         #: the depth Russian roulette starts at (Mitsuba's ``rr_depth``)
         self.rr_depth = int(rr)
+        #: whether frames hold the primary hit's light alone (see the class)
+        self.primary_only = bool(primary_only)
         self.seed = seed
         self.frozen = frozen
         self._trace_frozen = _new_frozen_trace()  # recordings never shared across scenes
@@ -372,7 +381,7 @@ class Renderer:
         every = self._emitter_ids and len(self._exclude) == len(self._emitter_ids)
         if md <= 1 or (every and self._exclude_on is None):
             out += DIRECT_OUT
-        if md <= 2:
+        if md <= 2 or self.primary_only:
             out += INDIRECT_OUT
         return tuple(out)
 
@@ -452,7 +461,7 @@ class Renderer:
                 self._motion_inputs(frame), pixel, seed, self.width, self.height,
                 md, offset, self.shapes.any_normal_map, self._primary, roughness,
                 self.shapes.lobe_key if roughness is not None else None, tuple(skip),
-                self.rr_depth, self.shapes.material_key)
+                self.rr_depth, self.shapes.material_key, self.primary_only)
         with no_gc():
             try:
                 out = fn(*args)
@@ -554,6 +563,8 @@ class Renderer:
             f.meta["jitter"] = [float(jitter[0]), float(jitter[1])]
         if roughness is not None:
             f.meta["primary_roughness"] = "override"
+        if self.primary_only:
+            f.meta["primary_only"] = True
         return f
 
     def render_gbuffer(self, frame: int, omit: Collection[str] = (),
@@ -644,7 +655,7 @@ class Renderer:
                     dr.opaque(mi.UInt32, done * w), rows, seed, w, h, md, offset,
                     self.shapes.any_normal_map, self._primary, roughness,
                     self.shapes.lobe_key if roughness is not None else None, skip,
-                    self.rr_depth, self.shapes.material_key)
+                    self.rr_depth, self.shapes.material_key, self.primary_only)
                 bad.append(count)
                 fallback.append(fb)
                 start = dr.opaque(mi.UInt32, r * w)  # (one copy kernel per width, any tile)

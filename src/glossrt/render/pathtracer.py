@@ -668,14 +668,16 @@ def _primary_sample(lobe: PrimaryLobe | None, bsdf, ctx_d, ctx_s, ctx_all, si, s
 def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
           emitters: EmitterTable | None = None,
           primary: EmitterTable | None = None, alpha0: mi.Float | None = None,
-          shapes: ShapeTable | None = None, rr_depth: int = RR_DEPTH) -> ShadeResult:
+          shapes: ShapeTable | None = None, rr_depth: int = RR_DEPTH,
+          primary_only: bool = False) -> ShadeResult:
     """Trace one path per lane from ``ray`` and return its separated contributions.
     ``emitters``: the scene's :class:`EmitterTable` (built here when not given; pass it in
     from outside when tracing inside ``dr.freeze``). ``shapes``: the scene's
     :class:`ShapeTable` (needed for ``alpha0``, and for the lobe split and albedos of BSDFs
     whose ``eval`` ignores the lobe masks, and the primary hit through fully transparent
     surfaces: :func:`primary_hit`). ``rr_depth``: the depth Russian roulette starts at
-    (Mitsuba's ``rr_depth``).
+    (Mitsuba's ``rr_depth``). ``primary_only``: no vertex after the first bounce (only the
+    emitter its BSDF sample hits): the primary hit's light alone, within ``max_depth``.
 
     ``primary``: an :class:`EmitterTable` with excluded emitters (``EmitterTable(scene,
     exclude=...)``), for path vertex 0 only: where its exclusion applies (``primary.apply``
@@ -789,6 +791,8 @@ def shade(scene: mi.Scene, sampler, ray: mi.Ray3f, max_depth: int,
         L_ind += dr.select(active & ~first, contrib, 0.0)
 
         active_next = active & si.is_valid() & (depth + 1 < max_depth)
+        if primary_only:
+            active_next = mi.Bool(False)
         bsdf = si.bsdf(ray_k)
         dsn, em_wn = sample_emitter_direction(scene, emitters, si, sampler.next_2d(),
                                               active_next)
@@ -1101,7 +1105,7 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                  jitter: mi.Point2f | None = None,
                  primary: EmitterTable | None = None,
                  roughness: mi.Float | None = None, skip: tuple[str, ...] = (),
-                 rr_depth: int = RR_DEPTH) -> dict:
+                 rr_depth: int = RR_DEPTH, primary_only: bool = False) -> dict:
     """Every channel for the pixel indices ``pixel`` (y*W + x), plus ``nonfinite``: how many
     radiance values were not finite and were replaced by 0 (see the package docstring), and
     ``fallback``: how many primary hits lie on shapes where ``primary``'s exclusion does
@@ -1117,10 +1121,11 @@ def trace_pixels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     :func:`shade`'s next-event estimation at the primary hit (None: ``emitters``).
     ``roughness``: a microfacet alpha per *pixel* (flat, ``width * height``, read at each
     lane's ``pixel``) for the rough lobes of the primary hit (:func:`shade`'s ``alpha0``);
-    the G-buffer keeps the material's roughness. ``rr_depth``: :func:`shade`'s."""
+    the G-buffer keeps the material's roughness. ``rr_depth``, ``primary_only``:
+    :func:`shade`'s."""
     out, bad, fallback = pixel_channels(scene, sensor, shapes, emitters, table, motion_inputs,
                                         pixel, seed, width, height, max_depth, jitter, primary,
-                                        roughness, skip, rr_depth)
+                                        roughness, skip, rr_depth, primary_only)
     # one kernel for everything (a reduction first would re-run the path tracing for it)
     dr.eval(out, bad, fallback)
     out["nonfinite"] = dr.sum(bad)
@@ -1134,7 +1139,8 @@ def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
                    jitter: mi.Point2f | None = None, primary: EmitterTable | None = None,
                    roughness: mi.Float | None = None,
                    skip: tuple[str, ...] = (),
-                   rr_depth: int = RR_DEPTH) -> tuple[dict, mi.UInt32, mi.UInt32]:
+                   rr_depth: int = RR_DEPTH,
+                   primary_only: bool = False) -> tuple[dict, mi.UInt32, mi.UInt32]:
     """:func:`trace_pixels`' channels, not evaluated, the per-lane count of non-finite
     radiance values and whether the lane's primary hit fell back (``ShadeResult.fallback``,
     1 or 0). A skipped channel is still computed and counted (and summed into ``color``):
@@ -1151,7 +1157,8 @@ def pixel_channels(scene: mi.Scene, sensor: mi.Sensor, shapes: ShapeTable,
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     sampler = PixelSampler(pixel, seed)
     alpha0 = None if roughness is None else dr.gather(mi.Float, roughness, pixel)
-    r = shade(scene, sampler, ray, max_depth, emitters, primary, alpha0, shapes, rr_depth)
+    r = shade(scene, sampler, ray, max_depth, emitters, primary, alpha0, shapes, rr_depth,
+              primary_only)
     out = gbuffer(r.si, r.bsdf, ray, sensor, shapes, table, r.albedo)
     for name in ANISOTROPY_OUT:  # (the optional G-buffer channels a caller may skip)
         if name in skip:
