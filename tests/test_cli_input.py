@@ -450,9 +450,9 @@ def test_failed_light_keeps_finished_frames_only(tmp_path, capsys, monkeypatch):
 
     real, calls = light_scene.polygon_lights, []
 
-    def second_fails(setup, i):
+    def second_fails(setup, i, skip=False):
         calls.append(i)
-        return real(setup, i) if i == 0 else []
+        return real(setup, i, skip=skip) if i == 0 else []
 
     monkeypatch.setattr(light_scene, "polygon_lights", second_fails)
     out = tmp_path / "new" / "o"

@@ -676,6 +676,7 @@ def cmd_light(args) -> int:
                                   "polygons (spheres, disks, curved meshes) and are left out "
                                   "(glossrt render --pipeline path-traces them)", stacklevel=1)
             if not lights:
+                polygon_lights(setup, i)  # (an area light that failed says why, in one line)
                 raise GlossrtError(f"{setup.name}: no polygon lights (area emitters on "
                                    "rectangles or small planar meshes) in this scene")
             f0 = fresnel_image(setup, gb)

@@ -259,9 +259,10 @@ class Pipeline:
 
     def _resolve_direct(self, opts: dict) -> str:
         """``direct``, with ``auto`` (the ``full`` preset) resolved for the scene as it is
-        posed: ``ltc+bspvt`` when BSPVT's trees can shade at least one polygon light, else
-        ``ltc+ratio`` (an occluder away from its rest pose, no triangle meshes, every polygon
-        light with geometry behind it; :mod:`glossrt.pipeline.plan`). At path depth 1 (the
+        posed: ``ltc+bspvt`` when BSPVT's trees can shade at least one polygon light on at
+        least one surface, else ``ltc+ratio`` (an occluder away from its rest pose, no
+        triangle meshes fine enough, every polygon light with geometry behind it;
+        :mod:`glossrt.pipeline.plan`). At path depth 1 (the
         scene renders emission only) every mode is ``pathtraced``: there is no direct light
         to shade."""
         mode = opts["direct"]
@@ -275,8 +276,8 @@ class Pipeline:
 
         if not scene_meshes(self.setup.scene):
             return "ltc+ratio"
-        return "ltc+bspvt" if plan(self.setup, "ltc+bspvt", self.shape_table).bspvt \
-            else "ltc+ratio"
+        trial = plan(self.setup, "ltc+bspvt", self.shape_table)
+        return "ltc+bspvt" if trial.bspvt and trial.bspvt_shapes else "ltc+ratio"
 
     @staticmethod
     def _load_trees(bspvt, opts: dict):

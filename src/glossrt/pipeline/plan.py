@@ -17,12 +17,14 @@ everything else to the path tracer:
   takes the ratio estimator instead (:func:`bspvt_light_obstacle`).
 * **Surfaces.** The analytic methods shade a pixel only where the primary hit's material is
   one they represent (Lambert plus one isotropic GGX or Beckmann reflection lobe:
-  :attr:`glossrt.render.materials.Material.analytic`); under ``ltc+bspvt`` only on the
-  scene's own triangle meshes (the trees live at mesh vertices), under ``highlights`` only on
-  the scene's own shapes (the light maps are per object). Every other pixel (glass,
-  transmission, blends, masks, bump maps, ``principled``, anisotropic lobes, analytic spheres
-  under BSPVT, instanced shapes under BSPVT or highlights) takes the path-traced direct light
-  of every emitter.
+  :attr:`glossrt.render.materials.Material.analytic`); under ``highlights`` only on the
+  scene's own shapes (the light maps are per object). Every other pixel (glass,
+  transmission, blends, masks, bump maps, ``principled``, anisotropic lobes, instanced shapes
+  under highlights) takes the path-traced direct light of every emitter. Under ``ltc+bspvt``
+  the analytic surfaces BSPVT's trees do not cover (the trees live at the vertices of the
+  scene's own non-emitting meshes: analytic spheres, instanced shapes, lamps' own surfaces,
+  and meshes too coarse to carry a shadow) take the ratio estimator for the BSPVT lights
+  (``DirectPlan.bspvt_ratio``).
 
 The two sides agree by construction: the renderer leaves the analytically shaded lights out
 at the primary hit exactly on the shapes the direct stage shades (``Renderer(primary_exclude=
@@ -88,6 +90,14 @@ class DirectPlan:
     points: tuple[int, ...] = ()
     shapes: tuple[int, ...] = ()
     fallback_shapes: dict[str, str] = field(default_factory=dict)
+    #: under ``ltc+bspvt``: the mesh ids among ``shapes`` that BSPVT's trees do not cover
+    #: (analytic spheres and other non-meshes, instanced shapes, lamps' own surfaces, and
+    #: meshes of fewer than :data:`COARSE_VERTICES` vertices),
+    #: where the BSPVT lights take the ratio estimator, and why (``ratio_shapes``: id -> why)
+    bspvt_ratio: tuple[int, ...] = ()
+    ratio_shapes: dict[str, str] = field(default_factory=dict)
+    #: under ``ltc+bspvt``: the mesh ids BSPVT's trees shade
+    bspvt_shapes: tuple[int, ...] = ()
     #: the number of the scene's shapes (mesh ids 1..n)
     n_shapes: int = 0
 
@@ -101,12 +111,15 @@ class DirectPlan:
     def key(self) -> tuple:
         """What the stages are built from (two plans with equal keys shade alike)."""
         return (self.mode, self.exclude, self.polygons, self.bspvt, self.ratio, self.points,
-                self.shapes)
+                self.shapes, self.bspvt_ratio)
 
     def report(self) -> dict:
         """The plan as the frames' meta holds it (``meta["pipeline"]``)."""
-        return {"lights": [c.as_dict() for c in self.lights],
-                "fallback_shapes": dict(self.fallback_shapes)}
+        out = {"lights": [c.as_dict() for c in self.lights],
+               "fallback_shapes": dict(self.fallback_shapes)}
+        if self.ratio_shapes:
+            out["ratio_shapes"] = dict(self.ratio_shapes)
+        return out
 
     def summary(self) -> str:
         """One line: how many lights take each method (for the viewer and the CLI)."""
@@ -226,6 +239,14 @@ def lights_at(setup, indices, frame: int | None = None) -> list:
     return out
 
 
+#: a receiver mesh with fewer vertices than this takes the ratio estimator for the BSPVT
+#: lights: the visibility BSPVT interpolates between so few vertices (per vertex, and per
+#: pixel from its triangle's vertices) cannot carry a shadow (a 2-triangle floor shaded from
+#: its 4 corners came out uniformly lit, 0.0033 against 0.079 path-traced under one quad
+#: light)
+COARSE_VERTICES = 64
+
+
 def plan(setup, mode: str, shapes_table, trees_ok: bool = True,
          frame: int = 0, why: str = "direct=pathtraced") -> DirectPlan:
     """The :class:`DirectPlan` of direct-light ``mode`` (``pathtraced`` or one of
@@ -275,31 +296,53 @@ def plan(setup, mode: str, shapes_table, trees_ok: bool = True,
     out.exclude = tuple(sorted(polys + points))
     # the surfaces: analytic materials, and what the mode's data covers
     own = len(stable_shapes(setup.scene))
-    trees = ({_registry_id(mi.ShapePtr, m) for m in scene_meshes(setup.scene)}
+    trees = ({_registry_id(mi.ShapePtr, m): m for m in scene_meshes(setup.scene)}
              if bspvt else None)
     analytic = set(shapes_table.analytic_ids)
-    keep = []
+    keep, ratio_shapes, tree_shapes = [], [], []
     for i, s in enumerate(setup.shapes, start=1):
         label = s.id() or f"shape {i} ({s.class_name()})"
         if i in instances or (s.is_emitter() and reflects_nothing(s.bsdf())):
             keep.append(i)  # (no pixel of it reflects light: nothing to fall back for)
-        elif i not in analytic:
+            continue
+        if i not in analytic:
             b = s.bsdf()
             out.fallback_shapes[label] = (
                 f"its BSDF ({bsdf_kind(b)}) is not one the analytic methods represent "
                 "(Lambert plus one isotropic GGX or Beckmann reflection lobe)")
-        elif i > own and mode in ("ltc+bspvt", "highlights"):
-            out.fallback_shapes[label] = ("it is instanced (BSPVT's trees and the highlights' "
-                                          "light maps cover the scene's own shapes)")
-        elif trees is not None and _registry_id(mi.ShapePtr, s) not in trees:
-            out.fallback_shapes[label] = (
-                "it emits light (BSPVT's trees live at the vertices of the non-emitting "
-                "meshes)" if s.is_emitter() else
-                f"it is not a triangle mesh ({s.class_name()}): BSPVT's trees live at mesh "
-                "vertices")
+            continue
+        if i > own and mode == "highlights":
+            out.fallback_shapes[label] = ("it is instanced (the highlights' light maps cover "
+                                          "the scene's own shapes)")
+            continue
+        keep.append(i)
+        if trees is None:
+            continue
+        mesh = trees.get(_registry_id(mi.ShapePtr, s))
+        why = ("it is instanced (BSPVT's trees cover the scene's own meshes)" if i > own else
+               "it emits light (BSPVT's trees live at the vertices of the non-emitting "
+               "meshes)" if s.is_emitter() else
+               f"it is not a triangle mesh ({s.class_name()}): BSPVT's trees live at mesh "
+               "vertices" if mesh is None else
+               f"its {mesh.vertex_count()} vertices are too few to carry a shadow (fewer "
+               "than {COARSE_VERTICES}: BSPVT interpolates visibility between them)"
+               if mesh.vertex_count() < COARSE_VERTICES else None)
+        if why is not None:
+            ratio_shapes.append(i)
+            out.ratio_shapes[label] = why.replace("{COARSE_VERTICES}", str(COARSE_VERTICES))
         else:
-            keep.append(i)
+            tree_shapes.append(i)
     out.shapes = tuple(keep)
+    out.bspvt_ratio = tuple(ratio_shapes)
+    out.bspvt_shapes = tuple(tree_shapes)
+    if bspvt and not tree_shapes:  # the trees would shade no pixel: the ratio estimator
+        for c in out.lights:
+            if c.method == "ltc+bspvt":
+                c.method = "ltc+ratio"
+                c.why = ("BSPVT's trees cover none of the surfaces the analytic methods shade "
+                         "(see ratio_shapes)")
+        out.ratio = tuple(sorted(out.ratio + out.bspvt))
+        out.bspvt = out.bspvt_ratio = ()
     return out
 
 

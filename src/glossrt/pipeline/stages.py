@@ -562,7 +562,7 @@ class DirectStage(Stage):
         analytic = mode != "pathtraced"
         self.points = PointLights(setup) if analytic and plan.points else None
         self.trees = None
-        if mode == "ltc+bspvt" and plan.bspvt:  # prebuilt ``trees`` (checked), else cached
+        if mode == "ltc+bspvt" and plan.bspvt and plan.bspvt_shapes:  # prebuilt or cached
             self.trees = trees if trees is not None else scene_trees(
                 setup.scene, int(opts["bspvt_resolution"]), progress, cache_dir)
         #: the frame's material image (fresnel_image) on the device, and BSPVT's frozen
@@ -588,11 +588,15 @@ class DirectStage(Stage):
         # where some are left to the path tracer
         self._mask_table = None
         self._mask_fn = None
+        self._trees_table = self._ratio_table = None
         if analytic and len(plan.shapes) < plan.n_shapes:
-            table = np.zeros(plan.n_shapes + 1, bool)
-            table[list(plan.shapes)] = True
-            self._mask_table = mi.Bool(table)
-            dr.make_opaque(self._mask_table)
+            self._mask_table = self._table(plan.shapes)
+        if self.bspvt is not None and plan.bspvt_ratio:
+            # the BSPVT lights' shading on the surfaces the trees cover, the ratio
+            # estimator's on the others (plan.bspvt_ratio)
+            self._trees_table = self._table(set(plan.shapes) - set(plan.bspvt_ratio))
+            self._ratio_table = self._table(plan.bspvt_ratio)
+        if self._mask_table is not None or self._trees_table is not None:
             self._mask_fn = dr.freeze(_mask_kernel, warn_after=16)
         #: the highlights' light maps and what they were built from (:meth:`_highlights`)
         self._maps = None
@@ -603,6 +607,18 @@ class DirectStage(Stage):
         #: one array per distinct light texture (digest of its texels): the ids that key
         #: ``_textures`` (:meth:`_stable_textures`)
         self._stable: dict = {}
+
+    def _table(self, mesh_ids) -> mi.Bool:
+        """A per-mesh-id mask (0: the background) marking ``mesh_ids``."""
+        table = np.zeros(self.plan.n_shapes + 1, bool)
+        table[list(mesh_ids)] = True
+        out = mi.Bool(table)
+        dr.make_opaque(out)
+        return out
+
+    def _masked(self, img: mi.TensorXf, gb: Frame, table: mi.Bool) -> mi.TensorXf:
+        with no_gc():
+            return self._mask_fn(img, gb["mesh_id"], table)
 
     @property
     def shades(self) -> bool:
@@ -648,7 +664,7 @@ class DirectStage(Stage):
         # on the device where it is read: BSPVT's vertex mode reads the vertices' instead
         # (FrozenShader takes the MaterialImage and calls it only when it needs it)
         f0 = (self.materials(gb) if self.mode != "ltc+bspvt" or points or plan.ratio
-              else None)
+              or plan.bspvt_ratio else None)
         out = None
         if self.mode in ("ltc", "highlights") and plan.polygons:
             polys = self._stable_textures(lights_at(self.setup, plan.polygons))
@@ -657,28 +673,34 @@ class DirectStage(Stage):
             else:  # highlights: Kimura & Tokoi's specular + LTC's diffuse
                 out = (self._ltc_diffuse(gb, polys, f0)
                        + self._highlights(gb, index, polys, f0))
-        if self.mode == "ltc+bspvt" and plan.bspvt:
+        if self.bspvt is not None and plan.bspvt:
             polys = self._stable_textures(lights_at(self.setup, plan.bspvt))
             out = self.bspvt(gb, polys, self.materials if f0 is None else f0,
                              textures=self._textures)
+            if self._trees_table is not None:  # the surfaces the trees do not cover
+                out = (self._masked(out, gb, self._trees_table)
+                       + self._masked(self._ratio(gb, polys, f0, index), gb, self._ratio_table))
         ratio = plan.polygons if self.mode == "ltc+ratio" else \
             plan.ratio if self.mode == "ltc+bspvt" else ()
         if ratio:
-            from ..lights.ratio import render_ratio
-
             polys = self._stable_textures(lights_at(self.setup, ratio))
-            img = _tensor(render_ratio(gb, polys, self.setup.scene, spp=self.opts["ratio_spp"],
-                                       f0=f0, seed=index, textures=self._textures).image)
+            img = self._ratio(gb, polys, f0, index)
             out = img if out is None else out + img
         if points:
             img = self.points(gb, points, f0)
             out = img if out is None else out + img
         if out is None:
             out = _zeros(h, w)
-        if self._mask_fn is not None:
-            with no_gc():
-                out = self._mask_fn(out, gb["mesh_id"], self._mask_table)
+        if self._mask_table is not None:
+            out = self._masked(out, gb, self._mask_table)
         return {"direct": out}
+
+    def _ratio(self, gb: Frame, polys: list, f0, index: int) -> mi.TensorXf:
+        """The ratio estimator's direct light of ``polys`` (Heitz, Hill & McGuire 2018)."""
+        from ..lights.ratio import render_ratio
+
+        return _tensor(render_ratio(gb, polys, self.setup.scene, spp=self.opts["ratio_spp"],
+                                    f0=f0, seed=index, textures=self._textures).image)
 
     def _stable_textures(self, polys: list) -> list:
         """``polys`` with each light texture replaced by the array this stage already holds
