@@ -661,6 +661,27 @@ def test_render_pixels_equals_full_render(cornell_renderer):
                                       err_msg=name)
 
 
+def test_render_pixels_launches_bounded_chunks_with_the_same_values(cornell_renderer,
+                                                                    monkeypatch):
+    """Many samples of many pixels go in launches of at most MAX_LANES lanes (adaptive
+    re-sampling of every pixel at 1000 spp was killed for memory when it went in one), and
+    the chunks give the values of a single launch."""
+    import glossrt.render as render_mod
+
+    idx = np.arange(0, W * H, 7)
+    one = cornell_renderer.render_pixels(1, idx, spp=6)
+    lanes = []
+    trace = cornell_renderer.trace
+    monkeypatch.setattr(render_mod, "MAX_LANES", 64)
+    monkeypatch.setattr(cornell_renderer, "trace", lambda f, px, *a, **k: (
+        lanes.append(dr.width(px)), trace(f, px, *a, **k))[1])
+    chunked = cornell_renderer.render_pixels(1, idx, spp=6)
+    assert len(lanes) == -(-idx.size // (64 // 6)) and max(lanes) <= 64
+    assert set(one) == set(chunked)
+    for k in one:
+        np.testing.assert_allclose(chunked[k], one[k], rtol=1e-6, atol=1e-7, err_msg=k)
+
+
 def test_render_pixels_rejects_out_of_range(cornell_renderer):
     with pytest.raises(ValueError):
         cornell_renderer.render_pixels(0, [W * H])

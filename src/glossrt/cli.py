@@ -296,8 +296,17 @@ def cmd_render(args) -> int:
     if size is not None:
         _check_memory(size)
     reference = args.reference or args.mitsuba or args.spp > 1
+    if args.max_depth is not None:
+        from .render.pathtracer import resolve_max_depth
+
+        try:
+            resolve_max_depth(args.max_depth)
+        except GlossrtError as e:
+            raise GlossrtError(f"--max-depth: {e}") from None
     if args.pipeline is not None:
         return _render_pipeline(args, size)
+    if args.set_options:
+        raise GlossrtError("--set (pipeline options) goes with --pipeline")
     if args.outputs is not None:
         raise GlossrtError("--outputs (the channels a composed frame keeps) goes with "
                            "--pipeline")
@@ -432,17 +441,31 @@ def _render_pipeline(args, size) -> int:
     from .progress import Progress
 
     for flag, bad in (("--reference", args.reference), ("--mitsuba", args.mitsuba),
-                      ("--specaa", args.specaa is not None), ("--spp", args.spp > 1)):
+                      ("--specaa", args.specaa is not None)):
         if bad:
             raise GlossrtError(f"--pipeline composes 1 spp frames: {flag} does not apply "
-                               "(the reference preset accumulates converged frames)")
-    preset, choices = pipeline.parse(args.pipeline)  # a bad name or file fails here
+                               "(the reference preset accumulates converged frames; "
+                               "specaa: --set specaa=METHOD)")
+    for flag, bad in (("--cluster", args.cluster), ("--resume", args.resume),
+                      ("--block-spp", args.block_spp is not None)):
+        if bad:
+            raise GlossrtError(f"{flag} goes with --reference (sample blocks of converged "
+                               "frames); --pipeline renders its frames in order in this "
+                               "process")
+    preset, choices = pipeline.parse(_pipeline_spec(args.pipeline))  # bad name or file
     outputs = (pipeline.check_outputs([k.strip() for k in args.outputs.split(",") if k.strip()])
                if args.outputs is not None else None)
     choices.setdefault("seed", args.seed)
     if args.max_depth is not None:
         choices.setdefault("max_depth", args.max_depth)
-    pipeline.resolve(preset, **choices)
+    choices.update(_set_options(args))
+    if args.spp > 1:
+        choices["spp"] = args.spp
+    opts = pipeline.resolve(preset, **choices)
+    if args.spp > 1 and not opts["accumulate"]:
+        raise GlossrtError(f"--spp {args.spp}: pipeline {preset} composes 1 spp frames; "
+                           "--spp sets the samples per frame of an accumulating pipeline "
+                           "(--pipeline reference, or --set accumulate=true)")
     params = _defines(args)
     todo = list(range(args.start, args.start + args.frames, args.every))
     _refuse_overwrite([Path(args.out) / frame_filename(i) for i in todo],
@@ -853,6 +876,62 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _set_options(args) -> dict:
+    """The pipeline options of ``--set KEY=VALUE`` (repeatable): VALUE read as a TOML value
+    (``2``, ``2.5``, ``true``, ``"svgf"``), a bare word as a string (``direct=ltc+ratio``);
+    names and values checked later with the rest of the pipeline's choices."""
+    import tomllib
+
+    out: dict = {}
+    for item in getattr(args, "set_options", None) or ():
+        key, eq, text = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise GlossrtError(f"--set {item!r}: expected KEY=VALUE, e.g. --set taa=false")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        out[key] = value
+    return out
+
+
+def _pipeline_spec(spec: str) -> str:
+    """``--pipeline help`` prints the presets and options (``glossrt presets``) and exits."""
+    if spec == "help":
+        print(_presets_text())
+        raise SystemExit(0)
+    return spec
+
+
+def _presets_text() -> str:
+    from .pipeline import config
+
+    lines = ["presets (options not named take the defaults below):"]
+    for name, settings in config.PRESETS.items():
+        lines.append(f"  {name}: " + ", ".join(f"{k}={_toml_value(v)}"
+                                                for k, v in settings.items()))
+    lines += ["", "options (--set KEY=VALUE, or a TOML file: docs/FORMATS.md; "
+                  "examples/pipeline.toml):"]
+    for name in config.OPTIONS:
+        default = config.DEFAULTS[name]
+        shown = "the scene's integrator's" if default is None else _toml_value(default)
+        lines.append(f"  {name} = {config.range_text(name)}  (default {shown})")
+        lines.append(f"      {config.HELP[name]}")
+    return "\n".join(lines)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return f'"{v}"' if isinstance(v, str) else f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def cmd_presets(args) -> int:
+    print(_presets_text())
+    return 0
+
+
 def cmd_view(args) -> int:
     """``glossrt view``: the live viewer until Ctrl-C or SIGTERM (glossrt.view)."""
     from . import scenes
@@ -860,8 +939,9 @@ def cmd_view(args) -> int:
 
     size = scenes.parse_size(args.size)
     _check_memory(size)
-    v = Viewer(args.scene, pipeline=args.pipeline, size=size, host=args.host, port=args.port,
-               captures=args.captures, bspvt=args.bspvt, params=_defines(args))
+    v = Viewer(args.scene, pipeline=_pipeline_spec(args.pipeline), size=size, host=args.host,
+               port=args.port, captures=args.captures, bspvt=args.bspvt,
+               params=_defines(args), **_set_options(args))
     print(f"glossrt view: {v.url}  ({args.scene}, {v.pipe.preset}, {size[0]}x{size[1]}; "
           f"captures into {v.captures}; Ctrl-C stops)", flush=True)
     # stopped within 1 s: the render loop ended or was left mid-frame, no capture half-written
@@ -945,6 +1025,10 @@ _SEED = _arg("--seed", type=int, default=0, help=f"random seed, 0..{SEED_MAX}")
 _DEFINE = _arg("-D", "--define", action="append", default=None, metavar="NAME=VALUE",
                help="a value for the scene file's $NAME parameter (as Mitsuba's -D), "
                     "repeatable: -D spp=16 -D res=64")
+_SET = _arg("--set", action="append", default=None, metavar="KEY=VALUE", dest="set_options",
+            help="a pipeline option over the preset or file, repeatable: --set "
+                 "direct=ltc+ratio --set svgf_sigma_l=2 --set taa=false (TOML values; "
+                 "`glossrt presets` lists every option with its range)")
 _CLUSTER = _arg("--cluster", default=None, metavar="SPEC",
                 help="run the work on Ray: local, local:N (N worker slots on this machine), "
                      "auto (the cluster `ray start --head` started here) or ray://HOST:PORT; "
@@ -1000,6 +1084,7 @@ COMMANDS: tuple[Command, ...] = (
                           "(schied2017, okuno-iwasaki, kimura-tokoi, tokuyoshi2015, full, "
                           "reference) or a TOML file; writes color plus every stage's layer "
                           "and the per-stage timings (docs/FORMATS.md)"),
+                _SET,
                 _arg("--bspvt", default=None, metavar="FILE",
                      help="--pipeline with direct=ltc+bspvt: prebuilt trees (`glossrt bspvt "
                           "build`) instead of building them; refused unless they fit the "
@@ -1167,9 +1252,13 @@ COMMANDS: tuple[Command, ...] = (
                 _arg("--captures", default="captures",
                      help="folder the Capture and Record buttons write EXRs into "
                           "(default ./captures, made at the first capture)"),
+                _SET,
                 _arg("--bspvt", default=None, metavar="FILE",
                      help="prebuilt BSPVT trees (glossrt bspvt build) for direct=ltc+bspvt"),
             ), more_help=_builtin_scenes_help),
+    Command("presets", cmd_presets,
+            "the pipeline presets' settings and every option with its range and default",
+            "glossrt presets"),
     Command("bench", cmd_bench, "registered benchmarks (median of repeats), JSON out",
             "glossrt bench --json bench.json --size 640x360", (
                 _arg("--json"),

@@ -140,6 +140,18 @@ def _free(ctx: dict, keep: dict) -> None:
                 del f.channels[k]
 
 
+def _nonfinite(t) -> int:
+    """How many values of the tensor ``t`` are NaN or infinite."""
+    return int(dr.count(~dr.isfinite(t.array))[0]) if dr.width(t.array) else 0
+
+
+def check_index(index) -> int:
+    """A frame index: an integer >= 0 (NumPy integers too), else one GlossrtError line."""
+    if isinstance(index, bool) or not isinstance(index, int | np.integer) or index < 0:
+        raise GlossrtError(f"frame index must be an integer >= 0, got {index!r}")
+    return int(index)
+
+
 def _check_every(n) -> None:
     if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
         raise GlossrtError(f"timing_every must be an integer >= 1, got {n!r}")
@@ -174,8 +186,8 @@ class Pipeline:
         self.outputs = outputs  # (checked: the setter)
         self.timing_every = timing_every
         _check_every(timing_every)
-        if preset not in PRESETS:
-            preset, file_choices = parse(preset)
+        if not (isinstance(preset, str) and preset in PRESETS):
+            preset, file_choices = parse(preset)  # (None: the default preset)
             choices = {**file_choices, **choices}
         self.opts = resolve(preset, **choices)  # names and values, before the scene loads
         if bspvt_cache is not None and not os.path.isdir(bspvt_cache):
@@ -196,6 +208,7 @@ class Pipeline:
         self._kernel_times: dict | None = None
         self._timed = 0  # frames rendered with ``timing="kernels"``
         self._apply(self.opts, trees)
+        self.outputs = outputs  # (checked against the scene's channels)
 
     # -- configuration ---------------------------------------------------------------------
     @property
@@ -206,13 +219,20 @@ class Pipeline:
         nor read by a later stage is freed as soon as the last stage that reads it has run
         (:meth:`glossrt.pipeline.stages.Stage.reads`), which lowers a frame's peak memory
         (docs/PERFORMANCE.md); the values are the same. Settable between frames (no
-        re-recording). Names the scene's frames do not have (``tangent`` in an isotropic
-        scene) are not in the frame."""
+        re-recording). Names the scene's frames do not have (``tangent`` and
+        ``roughness_uv`` in a scene without anisotropic materials) are refused."""
         return self._outputs
 
     @outputs.setter
     def outputs(self, names) -> None:
-        self._outputs = check_outputs(names)
+        names = check_outputs(names)
+        gb = getattr(self, "_gbuffer", None)
+        absent = [k for k in names or () if gb is not None and k in gb.absent]
+        if absent:
+            raise GlossrtError(f"outputs {', '.join(absent)}: scene {self.setup.name!r} has "
+                               "no anisotropic material, and its frames have no tangent or "
+                               "roughness_uv channel")
+        self._outputs = names
 
     def _liveness(self) -> list[dict[str, set | None]]:
         """Per stage, what the context must still hold after it: context entry -> the frame
@@ -544,6 +564,7 @@ class Pipeline:
         563 MiB with it and ``outputs=("color",)`` (docs/PERFORMANCE.md); the flush costs
         frame time (the next frame allocates its buffers anew), and on a GPU it may wait for
         the device (not measured)."""
+        index = check_index(index)
         ctx: dict[str, Any] = {}
         check_stage_timing(self.timing)
         _check_every(self.timing_every)
@@ -601,6 +622,13 @@ class Pipeline:
                 channels[layer] = ctx[layer]
         meta = dict(gb.meta)
         meta.pop("omitted", None)  # (the G-buffer frame's: this frame has its own color)
+        # the composed colour's non-finite values (a filter's arithmetic, not the trace's)
+        # are replaced by 0 and counted with the trace's in the header's nonfinite_samples
+        bad_color = _nonfinite(channels["color"])
+        if bad_color:
+            c = channels["color"]
+            channels["color"] = dr.select(dr.isfinite(c), c, 0.0)
+        meta["nonfinite_samples"] = int(meta.get("nonfinite_samples", 0)) + bad_color
         meta["pipeline"] = {
             "preset": self.preset,
             "choices": self.choices,
@@ -613,6 +641,7 @@ class Pipeline:
                        for n, s in self.stages.items()},
             "layers": [k for k in LAYERS if k in channels],
             "outputs": "all" if self._outputs is None else list(self._outputs),
+            "nonfinite_color": bad_color,
             "frame_ms": 1000.0 * (time.perf_counter() - t_all),
             "timing": self.timing,
             **times,
@@ -653,6 +682,9 @@ class Pipeline:
     def display(self, frame: Frame) -> Any:
         """The frame's ``color`` as 8-bit sRGB (H, W, 3) ``uint8`` (exposure and tonemap
         from the options)."""
+        if not isinstance(frame, Frame) or "color" not in frame.names:
+            raise GlossrtError("display: expects a Frame with a color channel (as render "
+                               f"returns), got {type(frame).__name__}")
         return display(frame.numpy("color"), self.opts["exposure"], self.opts["tonemap"])
 
 

@@ -126,6 +126,81 @@ DEFAULTS: dict[str, Any] = {
     "max_depth": None,
 }
 
+#: numeric option -> (lowest, highest, lowest excluded): every value outside is refused before
+#: any work. The ends keep each filter's float32 arithmetic finite (tests/test_pipeline_options
+#: renders at each end) and bound the work a frame can ask for; more samples come from more
+#: frames (``accumulate``), not from one unbounded frame
+RANGES: dict[str, tuple[float, float, bool]] = {
+    "resample_threshold": (0.0, 1.0, False),
+    "resample_spp": (1, 256, False),
+    "taa_alpha": (0.0, 1.0, True),
+    "exposure": (-20.0, 20.0, False),
+    "bspvt_resolution": (1, 128, False),
+    "ratio_spp": (1, 256, False),
+    "highlight_samples": (1, 64, False),
+    "highlight_probes": (1, 16, False),
+    "svgf_alpha": (0.0, 1.0, True),
+    "svgf_sigma_z": (0.0, 1e4, True),
+    "svgf_sigma_n": (0.0, 1e4, True),
+    "svgf_sigma_l": (0.0, 1e4, True),
+    "lobe_beta": (0.0, 100.0, True),
+    "lobe_kappa": (0.0, 1e6, True),
+    "spp": (1, 1024, False),
+    "seed": (0, 2**32 - 1, False),
+    "max_depth": (1, 2**30, False),
+}
+
+#: why a range ends where it does, where that is not plain
+RANGE_WHY: dict[str, str] = {
+    "seed": "frame seeds are 32-bit: larger values would repeat smaller ones",
+    "spp": "samples per frame; accumulate=true adds frames for more",
+    "bspvt_resolution": "the trees' build time grows with its square: 32 takes about 40 s "
+                        "on polygon-light on 2 CPU cores",
+    "max_depth": "-1 is no limit",
+    "highlight_probes": "light-map probes along the largest object's side",
+    "highlight_samples": "each sample is unrolled into the frozen highlight kernel",
+    "lobe_beta": "the lobe weight's constant 4^(beta/2) = 2^beta must stay within float32 "
+                 "(2^128; measured: 250 gave NaN in 5949 of 9216 values)",
+    "lobe_kappa": "measured: 1e30 gave NaN in the composed frame, 1e12 did not",
+}
+
+#: one line per option: what it does (``glossrt presets`` prints it with the range and default)
+HELP: dict[str, str] = {
+    "specaa": "specular antialiasing: filtered roughness at the primary hit (glossrt.specaa)",
+    "direct": "direct light: path-traced, LTC, LTC with BSPVT or ratio-estimated shadows, "
+              "light-shape highlights; auto: ltc+bspvt where its trees shade something, "
+              "else ltc+ratio",
+    "indirect": "the reconstruction filter of the 1 spp path-traced light",
+    "indirect_scale": "the indirect light traced at 1/1, 1/2 or 1/4 resolution",
+    "upsampling": "how the reduced-resolution indirect light is upsampled",
+    "upsampling_weight": "the upsampler's weights: normals or Tokuyoshi 2015's lobes",
+    "resample": "re-trace the pixels the upsampler cannot fill (adaptive re-sampling)",
+    "resample_threshold": "the upsampling weight below which a pixel is re-traced",
+    "resample_spp": "samples per re-traced pixel",
+    "taa": "temporal antialiasing of the composed frame",
+    "taa_alpha": "TAA's exponential average weight of the new frame",
+    "taa_jitter": "sub-pixel jitter of the primary rays for TAA",
+    "exposure": "exposure in stops before the tonemap",
+    "tonemap": "display transform of the composed frame",
+    "bspvt_mode": "BSPVT visibility at mesh vertices or per pixel",
+    "bspvt_resolution": "the BSPVT trees' cube-map face resolution",
+    "ratio_spp": "shadow rays per pixel per light of the ratio estimator",
+    "highlight_samples": "samples per pixel of the light-shape highlights",
+    "highlight_probes": "light-map probes along the largest object's longest side",
+    "highlight_distribution": "the highlights' microfacet distribution",
+    "svgf_alpha": "SVGF's temporal average weight of the new frame",
+    "svgf_sigma_z": "SVGF's depth edge-stopping sigma",
+    "svgf_sigma_n": "SVGF's normal edge-stopping exponent",
+    "svgf_sigma_l": "SVGF's luminance edge-stopping sigma",
+    "lobe_beta": "Tokuyoshi 2015's lobe-weight exponent beta",
+    "lobe_kappa": "Tokuyoshi 2015's lobe-sharpness smoothing kappa",
+    "release_memory": "hand Dr.Jit's cached memory back after each stage",
+    "accumulate": "average the frames of a still pose (the converged reference)",
+    "spp": "samples per pixel per frame when accumulating",
+    "seed": "the random seed of the frames",
+    "max_depth": "path depth (Mitsuba's convention); unset: the scene's integrator's",
+}
+
 #: the presets, named after what they reproduce (issue 25)
 PRESETS: dict[str, dict[str, Any]] = {
     # Schied et al. 2017: 1 spp path-traced direct and indirect light, SVGF, TAA
@@ -197,34 +272,42 @@ def _check_value(name: str, value: Any) -> Any:
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise GlossrtError(f"pipeline option {name} must be an integer, got {value!r}")
-        if name in ("bspvt_resolution", "ratio_spp", "highlight_samples", "spp",
-                    "resample_spp") and value < 1:
-            raise GlossrtError(f"pipeline option {name} must be >= 1, got {value}")
-        if name == "highlight_probes" and not 1 <= value <= 16:
-            raise GlossrtError(f"pipeline option highlight_probes must be in 1..16 (probes "
-                               f"along the largest object's side), got {value}")
-        return value
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    elif isinstance(value, bool) or not isinstance(value, (int, float)):
         raise GlossrtError(f"pipeline option {name} must be a number, got {value!r}")
-    value = float(value)
-    if name == "resample_threshold" and not 0.0 <= value <= 1.0:
-        raise GlossrtError(f"pipeline option resample_threshold must lie in [0, 1], got {value}")
-    if name == "svgf_alpha" and not 0.0 < value <= 1.0:
-        raise GlossrtError(f"pipeline option svgf_alpha must lie in (0, 1], got {value}")
-    if name in FILTER_OPTIONS and name != "svgf_alpha" and not value > 0.0:
-        raise GlossrtError(f"pipeline option {name} must be > 0, got {value}")
-    if name == "taa_alpha" and not 0.0 < value <= 1.0:
-        raise GlossrtError(f"pipeline option taa_alpha must lie in (0, 1], got {value}")
-    if value != value or abs(value) == float("inf"):
-        raise GlossrtError(f"pipeline option {name} must be finite, got {value}")
+    else:
+        value = float(value)
+        if value != value or abs(value) == float("inf"):
+            raise GlossrtError(f"pipeline option {name} must be finite, got {value}")
+    if name == "max_depth" and value == -1:
+        return value  # (Mitsuba's "no limit": Russian roulette ends the paths)
+    lo, hi, open_below = RANGES[name]
+    if not ((lo < value if open_below else lo <= value) and value <= hi):
+        why = f" ({RANGE_WHY[name]})" if name in RANGE_WHY else ""
+        raise GlossrtError(f"pipeline option {name} must lie in {range_text(name)}{why}, "
+                           f"got {value}")
     return value
+
+
+def range_text(name: str) -> str:
+    """The allowed values of option ``name`` as ``help`` prints them: ``[lo, hi]`` (``(lo,
+    hi]`` when ``lo`` itself is not allowed), the choices, or ``true|false``."""
+    kind = OPTIONS[name]
+    if name == "specaa":
+        return "none or a glossrt.specaa method with one roughness per pixel"
+    if isinstance(kind, tuple):
+        return "|".join(map(str, kind))
+    if kind is bool:
+        return "true|false"
+    lo, hi, open_below = RANGES[name]
+    text = f"{'(' if open_below else '['}{lo:g}, {hi:g}]"
+    return f"-1 or {text}" if name == "max_depth" else text
 
 
 def resolve(preset: str | None = "schied2017", **choices: Any) -> dict[str, Any]:
     """The full option dict of ``preset`` with ``choices`` applied, every name and value
     checked (GlossrtError listing the choices otherwise)."""
     preset = preset or "schied2017"
-    if preset not in PRESETS:
+    if not isinstance(preset, str) or preset not in PRESETS:
         raise GlossrtError(f"unknown pipeline preset {preset!r}; choose one of "
                            f"{', '.join(PRESETS)} (or a .toml file)")
     check_names(choices)
@@ -250,6 +333,13 @@ def load_toml(path: str | os.PathLike) -> tuple[str, dict[str, Any]]:
             data = tomllib.load(fh)
     except FileNotFoundError:
         raise GlossrtError(f"pipeline file not found: {path}") from None
+    except IsADirectoryError:
+        raise GlossrtError(f"pipeline file {path} is a folder, not a .toml file") from None
+    except OSError as e:
+        raise GlossrtError(f"pipeline file {path}: {e.strerror or e}") from None
+    except UnicodeDecodeError:
+        raise GlossrtError(f"{path}: not a TOML pipeline description (TOML is UTF-8 text; "
+                           "this file is not)") from None
     except tomllib.TOMLDecodeError as e:
         raise GlossrtError(f"{path}: not a valid TOML pipeline description ({e})") from None
     preset = data.pop("preset", "schied2017")
@@ -275,8 +365,15 @@ def load_toml(path: str | os.PathLike) -> tuple[str, dict[str, Any]]:
     return preset, choices
 
 
-def parse(spec: str) -> tuple[str, dict[str, Any]]:
-    """``--pipeline PRESET|FILE``: a preset name, or a TOML file."""
+def parse(spec: str | os.PathLike | None) -> tuple[str, dict[str, Any]]:
+    """``--pipeline PRESET|FILE``: a preset name, or a TOML file (None: the default preset,
+    schied2017)."""
+    if spec is None:
+        return "schied2017", {}
+    if not isinstance(spec, (str, os.PathLike)):
+        raise GlossrtError(f"pipeline preset must be a preset name ({', '.join(PRESETS)}) or "
+                           f"a .toml file, got {type(spec).__name__} {spec!r}")
+    spec = os.fspath(spec)
     if spec in PRESETS:
         return spec, {}
     if spec.endswith(".toml") or os.path.exists(spec):

@@ -284,10 +284,7 @@ class Renderer:
             md, self.max_depth_from = setup.max_depth, setup.max_depth_from or "scene"
         else:
             md, self.max_depth_from = DEFAULT_MAX_DEPTH, "glossrt's default"
-        try:
-            self.max_depth = resolve_max_depth(int(md))
-        except ValueError as e:
-            raise GlossrtError(str(e)) from None
+        self.max_depth = resolve_max_depth(md)
         rr = rr_depth if rr_depth is not None else getattr(setup, "rr_depth", None)
         rr = RR_DEPTH if rr is None else rr
         if isinstance(rr, bool) or not isinstance(rr, (int, np.integer)) or rr < 1:
@@ -376,7 +373,7 @@ class Renderer:
         depth 1 (no light sampled) or when every emitter is excluded at the primary hit.
         :meth:`render` writes no buffer for them: its frame holds one zero constant
         (``dr.zeros``, no memory until it is read out) per such channel."""
-        md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
+        md = self.max_depth if max_depth is None else resolve_max_depth(max_depth)
         out = []
         every = self._emitter_ids and len(self._exclude) == len(self._emitter_ids)
         if md <= 1 or (every and self._exclude_on is None):
@@ -448,7 +445,7 @@ class Renderer:
         renderer's; 1: G-buffer and emission only); ``skip``: radiance channels left
         out (a key of the frozen trace)."""
         roughness = self._roughness(roughness)
-        md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
+        md = self.max_depth if max_depth is None else resolve_max_depth(max_depth)
         self.setup.set_frame(frame)
         frozen = self.frozen if frozen is None else frozen
         fn = self._trace_frozen if frozen else _trace
@@ -510,17 +507,23 @@ class Renderer:
             out.pop("fallback")
             return {k: np.array(v).reshape(idx.size, -1) for k, v in out.items()}
         base = frame_seed(frame, self.seed if seed is None else seed, PIXELS_SALT)
-        lanes = np.repeat(idx, spp).astype(np.uint32)  # pixel-major
-        sample = dr.arange(mi.UInt32, lanes.size) % spp
-        seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
-        out = self.trace(frame, mi.UInt32(lanes), seeds, frozen=False)
-        out.pop("nonfinite")
-        out.pop("fallback")
-        res = {}
-        for k, v in out.items():
-            a = np.array(v).reshape(idx.size, spp, -1)
-            res[k] = a.mean(axis=1) if k in RADIANCE_OUT or k == "color" else a[:, 0]
-        return res
+        # launches of at most MAX_LANES lanes (pixel-major), whatever the pixels and spp:
+        # each lane's sample depends on its pixel and sample index only
+        step = max(1, MAX_LANES // spp)
+        parts: dict[str, list[np.ndarray]] = {}
+        for start in range(0, max(idx.size, 1), step):
+            chunk = idx[start:start + step]
+            lanes = np.repeat(chunk, spp).astype(np.uint32)
+            sample = dr.arange(mi.UInt32, lanes.size) % spp
+            seeds = mi.sample_tea_32(sample, dr.opaque(mi.UInt32, base), 4)[0]
+            out = self.trace(frame, mi.UInt32(lanes), seeds, frozen=False)
+            out.pop("nonfinite")
+            out.pop("fallback")
+            for k, v in out.items():
+                a = np.array(v).reshape(chunk.size, spp, -1)
+                parts.setdefault(k, []).append(
+                    a.mean(axis=1) if k in RADIANCE_OUT or k == "color" else a[:, 0])
+        return {k: np.concatenate(v) for k, v in parts.items()}
 
     # -- frames --------------------------------------------------------------------------
     def render(self, frame: int, seed: int | None = None,
@@ -633,7 +636,7 @@ class Renderer:
         """The frozen frame in row tiles (see "row tiles of a frozen full frame"): flat
         interleaved channels, the non-finite count and the fallback pixels' count."""
         roughness = self._roughness(roughness)
-        md = self.max_depth if max_depth is None else resolve_max_depth(int(max_depth))
+        md = self.max_depth if max_depth is None else resolve_max_depth(max_depth)
         self.setup.set_frame(frame)
         jx, jy = _check_jitter(jitter, jitter_limit)
         offset = (None if (jx, jy) == (0.0, 0.0)

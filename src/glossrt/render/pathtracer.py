@@ -52,9 +52,13 @@ UNBOUNDED_DEPTH = 1 << 30
 
 
 def resolve_max_depth(max_depth: int) -> int:
-    """Mitsuba's convention: -1 = unbounded; 0 or below -1 is an error."""
-    if max_depth == 0 or max_depth < -1:
-        raise GlossrtError(f"max_depth must be >= 1, or -1 for unbounded; got {max_depth}")
+    """Mitsuba's convention: -1 = unbounded; 0, below -1 or above :data:`UNBOUNDED_DEPTH`
+    (2^30: deeper paths end by Russian roulette long before) is an error."""
+    if isinstance(max_depth, bool) or not isinstance(max_depth, int | np.integer):
+        raise GlossrtError(f"max_depth must be an integer, got {max_depth!r}")
+    if max_depth == 0 or max_depth < -1 or max_depth > UNBOUNDED_DEPTH:
+        raise GlossrtError(f"max_depth must be in 1..{UNBOUNDED_DEPTH}, or -1 for unbounded; "
+                           f"got {max_depth}")
     return UNBOUNDED_DEPTH if max_depth == -1 else max_depth
 
 #: the G-buffer channels of anisotropic lobes (``tangent``; ``roughness_uv``, which equals
