@@ -1360,6 +1360,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("glossrt: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # (`glossrt presets | head`): the reader left; no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     finally:
         if not ok:
             _remove_created()

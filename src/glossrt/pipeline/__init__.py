@@ -207,8 +207,8 @@ class Pipeline:
         #: the per-stage kernel fields of the last frame whose history was read (``kernels``)
         self._kernel_times: dict | None = None
         self._timed = 0  # frames rendered with ``timing="kernels"``
+        self.outputs = outputs  # (checked against the scene's channels, before any work)
         self._apply(self.opts, trees)
-        self.outputs = outputs  # (checked against the scene's channels)
 
     # -- configuration ---------------------------------------------------------------------
     @property
@@ -225,9 +225,12 @@ class Pipeline:
 
     @outputs.setter
     def outputs(self, names) -> None:
+        from ..render.pathtracer import ANISOTROPY_OUT
+
         names = check_outputs(names)
-        gb = getattr(self, "_gbuffer", None)
-        absent = [k for k in names or () if gb is not None and k in gb.absent]
+        absent = ([k for k in names if k in ANISOTROPY_OUT]
+                  if names and getattr(self, "setup", None) is not None
+                  and not self.shape_table.any_anisotropic else [])
         if absent:
             raise GlossrtError(f"outputs {', '.join(absent)}: scene {self.setup.name!r} has "
                                "no anisotropic material, and its frames have no tangent or "

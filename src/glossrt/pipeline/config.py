@@ -299,8 +299,12 @@ def range_text(name: str) -> str:
     if kind is bool:
         return "true|false"
     lo, hi, open_below = RANGES[name]
-    text = f"{'(' if open_below else '['}{lo:g}, {hi:g}]"
+    text = f"{'(' if open_below else '['}{_number(lo)}, {_number(hi)}]"
     return f"-1 or {text}" if name == "max_depth" else text
+
+
+def _number(v: float) -> str:
+    return str(v) if isinstance(v, int) else f"{v:g}"
 
 
 def resolve(preset: str | None = "schied2017", **choices: Any) -> dict[str, Any]:

@@ -235,9 +235,6 @@ class GBufferStage(Stage):
         self._aniso_omit = (() if self.renderer.shapes.any_anisotropic
                             else render.pathtracer.ANISOTROPY_OUT)
         self.omit = OMIT + self._aniso_omit
-        #: the channels this scene's frames never hold (the anisotropy channels when no
-        #: material is anisotropic)
-        self.absent = self._aniso_omit
         self.reset()
 
     def reset(self) -> None:
