@@ -20,7 +20,8 @@ their inputs): it never re-records.
 BSPVT trees (``direct=ltc+bspvt``) are built on first use with a progress bar and cached in
 memory keyed by the occluders' geometry and the resolution (:func:`stages.scene_trees`;
 ``bspvt_cache=DIR`` also keeps them on disk); ``bspvt=FILE`` uses prebuilt trees
-(``glossrt bspvt build``), checked against the scene before any work. Moving an occluder
+(``glossrt bspvt build``), checked against the scene before any work whatever ``direct``
+resolves to (trees of another scene are refused, never ignored). Moving an occluder
 invalidates them: under ``direct=ltc+bspvt`` the polygon lights take the ratio estimator and
 the ``full`` preset (``direct=auto``) switches to ``ltc+ratio`` while an occluder is away from
 its rest pose (and back when it returns: the trees are still cached).
@@ -154,8 +155,10 @@ class Pipeline:
     :data:`OPTIONS` overriding the preset. ``progress``: progress bars (BSPVT's trees).
     ``bspvt``: a file of prebuilt BSPVT trees (``glossrt bspvt build``, or a
     :class:`glossrt.lights.bspvt.BSPVT`) for ``direct=ltc+bspvt`` (or ``auto``), checked against
-    the scene before any work; ``bspvt_cache``: a folder where built trees are kept, keyed by
-    the geometry, and found again by later pipelines. ``timing``: how ``meta["pipeline"]
+    the scene before any work (trees of another scene are one GlossrtError, even where
+    ``auto`` resolves to ``ltc+ratio`` and would not use them); ``bspvt_cache``: a folder
+    where built trees are kept, keyed by the geometry, and found again by later pipelines.
+    ``timing``: how ``meta["pipeline"]
     ["stage_ms"]`` is measured (:data:`glossrt.timing.STAGE_TIMINGS`, :class:`glossrt.timing.
     StageClock`): ``"kernels"`` (default) the kernel time of each stage from Dr.Jit's kernel
     history, no stage synchronised; ``"sync"`` the wall time of each stage with the device
@@ -318,15 +321,17 @@ class Pipeline:
             from ..lights.bspvt.scene import scene_meshes
 
             trees_ok = bool(scene_meshes(self.setup.scene))
-            # (checked once: a later plan, e.g. an occluder away from its rest pose, keeps
-            # the trees of the rest pose)
-            if trees is not None and trees is not getattr(self, "_checked_trees", None):
-                from ..lights.bspvt import match_scene
+        # prebuilt trees fit the scene whatever ``direct`` resolves to (``auto`` may resolve
+        # to ltc+ratio and not use them: another scene's trees are still refused). Checked
+        # once: a later plan, e.g. an occluder away from its rest pose, keeps the trees of
+        # the rest pose
+        if trees is not None and trees is not getattr(self, "_checked_trees", None):
+            from ..lights.bspvt import match_scene
 
-                try:
-                    match_scene(self.setup.scene, trees)
-                except GlossrtError as e:
-                    raise GlossrtError(f"bspvt: scene {name!r}: {e}") from None
+            try:
+                match_scene(self.setup.scene, trees)
+            except GlossrtError as e:
+                raise GlossrtError(f"bspvt: scene {name!r}: {e}") from None
         if opts["indirect"] == "oidn":
             from ..denoise.oidn import oidn_available
 
@@ -344,7 +349,7 @@ class Pipeline:
         the_plan = self._check(opts, direct, trees)
         exclude, on = the_plan.exclude, the_plan.shapes
         self.bspvt_trees = trees
-        if direct == "ltc+bspvt":
+        if trees is not None:
             self._checked_trees = trees
 
         def same(*keys: str) -> bool:
