@@ -1,10 +1,19 @@
-"""Test set-up: select glossrt's backend once (CPU unless GLOSSRT_DEVICE says otherwise)."""
+"""Test set-up: select glossrt's backend once (CPU unless GLOSSRT_DEVICE says otherwise);
+point the user's cache folder (``XDG_CACHE_HOME``: built BSPVT trees,
+glossrt.pipeline.stages.default_bspvt_cache) at a temporary folder of this test process,
+removed at exit, so that no test reads or writes the real one (subprocesses inherit it)."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
 import pytest
 
 os.environ.setdefault("GLOSSRT_DEVICE", "auto")
+USER_CACHE = tempfile.mkdtemp(prefix="glossrt-test-cache-")
+os.environ["XDG_CACHE_HOME"] = USER_CACHE
+atexit.register(shutil.rmtree, USER_CACHE, True)
 
 from glossrt import backend  # noqa: E402
 

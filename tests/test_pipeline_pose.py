@@ -251,6 +251,35 @@ def test_tree_file_of_another_scene_is_refused_before_any_work(tree_file, no_bui
     assert Frame.load(out / "frame_0000.exr").meta["pipeline"]["bspvt"]["trees"] == tree_file
 
 
+def test_tree_file_of_another_scene_is_refused_where_full_would_not_use_trees(
+        tree_file, no_builds, tmp_path, capsys):
+    """light-shapes has no mesh fine enough for BSPVT's trees, so ``full`` (direct=auto)
+    takes ltc+ratio there: polygon-light's trees given for it were accepted and ignored.
+    A tree file given is checked against the scene whatever ``direct`` resolves to: one
+    line naming the file and the mismatch, from the Python API, ``render`` and the viewer,
+    before any work."""
+    import glossrt.view as gv
+    from glossrt.cli import main
+
+    assert pipeline.Pipeline("light-shapes", preset="full", size=SMALL,
+                             progress=False).direct_mode == "ltc+ratio"
+    want = "bspvt: scene 'light-shapes': the BSPVT trees in .*polygon-light.*another scene"
+    with pytest.raises(GlossrtError, match=want):
+        pipeline.Pipeline("light-shapes", preset="full", size=SMALL, progress=False,
+                          bspvt=tree_file)
+    out = tmp_path / "frames"
+    capsys.readouterr()
+    assert main(["render", "light-shapes", "--pipeline", "full", "--bspvt", tree_file,
+                 "--size", "32x24", "--frames", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "another scene" in err and tree_file in err, err
+    assert not out.exists()
+    with pytest.raises(GlossrtError, match=want):
+        gv.open("light-shapes", pipeline="full", size=SMALL, port=0, verbose=False,
+                captures=tmp_path / "c", bspvt=tree_file).stop()
+    assert not (tmp_path / "c").exists()
+
+
 def test_built_trees_are_cached_by_geometry(tmp_path, monkeypatch):
     """In memory: a second pipeline on the same geometry builds nothing; on disk
     (bspvt_cache): a new process (the memory cache emptied) reads them back; moving an

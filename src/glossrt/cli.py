@@ -312,6 +312,9 @@ def cmd_render(args) -> int:
                            "--pipeline")
     if args.bspvt is not None:
         raise GlossrtError("--bspvt (prebuilt BSPVT trees) goes with --pipeline")
+    if args.bspvt_cache is not None:
+        raise GlossrtError("--bspvt-cache (where built BSPVT trees are kept) goes with "
+                           "--pipeline")
     if args.specaa is not None:
         from .specaa import parse_method
 
@@ -433,6 +436,12 @@ def _variant() -> str:
     return backend.use()
 
 
+def _bspvt_cache(value: str | None) -> bool | str:
+    """``--bspvt-cache``: unset the user's cache folder (True), ``none`` no cache on disk
+    (False), else the folder (glossrt.pipeline.Pipeline's ``bspvt_cache``)."""
+    return True if value is None else False if value == "none" else value
+
+
 def _render_pipeline(args, size) -> int:
     """``render --pipeline PRESET|FILE``: composed frames (glossrt.pipeline), every stage's
     layer as channels and the per-stage timings in the header (docs/FORMATS.md)."""
@@ -477,7 +486,7 @@ def _render_pipeline(args, size) -> int:
         _check_memory(setup.size, "the scene's film size")
     # every refusal before work (a --bspvt file of another scene too)
     pipe = pipeline.Pipeline(setup, preset=preset, bspvt=args.bspvt, outputs=outputs,
-                             **choices)
+                             bspvt_cache=_bspvt_cache(args.bspvt_cache), **choices)
     out = _writable_dir(args.out)
     desc = f"pipeline {preset} {setup.name} {setup.size[0]}x{setup.size[1]}"
     with Progress(len(todo), desc) as p:
@@ -941,7 +950,8 @@ def cmd_view(args) -> int:
     _check_memory(size)
     v = Viewer(args.scene, pipeline=_pipeline_spec(args.pipeline), size=size, host=args.host,
                port=args.port, captures=args.captures, bspvt=args.bspvt,
-               params=_defines(args), **_set_options(args))
+               params=_defines(args), bspvt_cache=_bspvt_cache(args.bspvt_cache),
+               **_set_options(args))
     print(f"glossrt view: {v.url}  ({args.scene}, {v.pipe.preset}, {size[0]}x{size[1]}; "
           f"captures into {v.captures}; Ctrl-C stops)", flush=True)
     # stopped within 1 s: the render loop ended or was left mid-frame, no capture half-written
@@ -1034,6 +1044,11 @@ _CLUSTER = _arg("--cluster", default=None, metavar="SPEC",
                      "auto (the cluster `ray start --head` started here) or ray://HOST:PORT; "
                      "none = in this process (default: env GLOSSRT_CLUSTER, else none). "
                      "Same results either way")
+_BSPVT_CACHE = _arg("--bspvt-cache", default=None, metavar="DIR|none",
+                    help="where built BSPVT trees (direct=ltc+bspvt) are kept and found again "
+                         "by later runs, keyed by the scene's geometry (default: "
+                         "$XDG_CACHE_HOME/glossrt/bspvt, else ~/.cache/glossrt/bspvt; made "
+                         "when first written); none: build them in every run")
 
 #: every subcommand, in the order of ``glossrt --help``
 COMMANDS: tuple[Command, ...] = (
@@ -1089,6 +1104,7 @@ COMMANDS: tuple[Command, ...] = (
                      help="--pipeline with direct=ltc+bspvt: prebuilt trees (`glossrt bspvt "
                           "build`) instead of building them; refused unless they fit the "
                           "scene"),
+                _BSPVT_CACHE,
                 _arg("--outputs", default=None, metavar="NAMES",
                      help="--pipeline: write only these channels, comma-separated (color "
                           "always; e.g. direct,indirect,normal); the others are freed as "
@@ -1254,7 +1270,9 @@ COMMANDS: tuple[Command, ...] = (
                           "(default ./captures, made at the first capture)"),
                 _SET,
                 _arg("--bspvt", default=None, metavar="FILE",
-                     help="prebuilt BSPVT trees (glossrt bspvt build) for direct=ltc+bspvt"),
+                     help="prebuilt BSPVT trees (glossrt bspvt build) for direct=ltc+bspvt; "
+                          "refused unless they fit the scene"),
+                _BSPVT_CACHE,
             ), more_help=_builtin_scenes_help),
     Command("presets", cmd_presets,
             "the pipeline presets' settings and every option with its range and default",

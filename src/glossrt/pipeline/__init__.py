@@ -17,10 +17,13 @@ denoiser's and TAA's reprojection) point back to the pose of the previous frame 
 whatever its index. A new pose replays the frozen kernels (camera, shapes and lights are
 their inputs): it never re-records.
 
-BSPVT trees (``direct=ltc+bspvt``) are built on first use with a progress bar and cached in
-memory keyed by the occluders' geometry and the resolution (:func:`stages.scene_trees`;
-``bspvt_cache=DIR`` also keeps them on disk); ``bspvt=FILE`` uses prebuilt trees
-(``glossrt bspvt build``), checked against the scene before any work. Moving an occluder
+BSPVT trees (``direct=ltc+bspvt``) are built on first use with a progress bar and cached,
+keyed by the occluders' geometry and the resolution (:func:`stages.scene_trees`), in memory
+and on disk: by default in the user's cache folder (``$XDG_CACHE_HOME/glossrt/bspvt``, else
+``~/.cache/glossrt/bspvt``), where later processes find them; ``bspvt_cache=DIR`` chooses
+another folder, ``bspvt_cache=False`` none. ``bspvt=FILE`` uses prebuilt trees (``glossrt
+bspvt build``), checked against the scene before any work whatever ``direct`` resolves to
+(trees of another scene are refused, never ignored). Moving an occluder
 invalidates them: under ``direct=ltc+bspvt`` the polygon lights take the ratio estimator and
 the ``full`` preset (``direct=auto``) switches to ``ltc+ratio`` while an occluder is away from
 its rest pose (and back when it returns: the trees are still cached).
@@ -166,8 +169,16 @@ class Pipeline:
     :data:`OPTIONS` overriding the preset. ``progress``: progress bars (BSPVT's trees).
     ``bspvt``: a file of prebuilt BSPVT trees (``glossrt bspvt build``, or a
     :class:`glossrt.lights.bspvt.BSPVT`) for ``direct=ltc+bspvt`` (or ``auto``), checked against
-    the scene before any work; ``bspvt_cache``: a folder where built trees are kept, keyed by
-    the geometry, and found again by later pipelines. ``timing``: how ``meta["pipeline"]
+    the scene before any work (trees of another scene are one GlossrtError, even where
+    ``auto`` resolves to ``ltc+ratio`` and would not use them). ``bspvt_cache``: where
+    built trees are kept on disk, keyed by the geometry and the resolution, and found again
+    by later pipelines and processes: ``True`` (default) the user's cache folder
+    (:func:`stages.default_bspvt_cache`: ``$XDG_CACHE_HOME/glossrt/bspvt``, else
+    ``~/.cache/glossrt/bspvt``); a path: that folder; ``False`` (or ``None``): none, the
+    trees are kept in memory only. The folder is made when the first trees are written; one
+    that cannot be made or written is warned about once and the trees are kept in memory (the
+    frames are the same); a damaged or stale file in it is built anew. :attr:`bspvt_cache` is
+    the folder in use (None: none). ``timing``: how ``meta["pipeline"]
     ["stage_ms"]`` is measured (:data:`glossrt.timing.STAGE_TIMINGS`, :class:`glossrt.timing.
     StageClock`): ``"kernels"`` (default) the kernel time of each stage from Dr.Jit's kernel
     history, no stage synchronised; ``"sync"`` the wall time of each stage with the device
@@ -179,7 +190,8 @@ class Pipeline:
     ``stage_ms_frame`` (``stage_host_ms`` is every frame's own). 1: every frame."""
 
     def __init__(self, setup_or_scene, preset: str = "schied2017", size=None,
-                 progress: bool = True, bspvt=None, bspvt_cache=None,
+                 progress: bool = True, bspvt=None,
+                 bspvt_cache: bool | str | os.PathLike | None = True,
                  timing: str = "kernels", timing_every: int = 8, outputs=None,
                  **choices: Any):
         check_stage_timing(timing)
@@ -190,9 +202,10 @@ class Pipeline:
             preset, file_choices = parse(preset)  # (None: the default preset)
             choices = {**file_choices, **choices}
         self.opts = resolve(preset, **choices)  # names and values, before the scene loads
-        if bspvt_cache is not None and not os.path.isdir(bspvt_cache):
-            raise GlossrtError(f"bspvt_cache: not a folder: {bspvt_cache}")
-        self.bspvt_cache = bspvt_cache
+        from .stages import bspvt_cache_dir
+
+        #: the folder built BSPVT trees are kept in (None: in memory only)
+        self.bspvt_cache: str | None = bspvt_cache_dir(bspvt_cache)
         trees = self._load_trees(bspvt, self.opts)  # a bad file fails before the scene loads
         self.setup = _setup_of(setup_or_scene, size)
         self.setup.prepare_to_move()  # moving a shape later never re-records (set_transform)
@@ -341,15 +354,17 @@ class Pipeline:
             from ..lights.bspvt.scene import scene_meshes
 
             trees_ok = bool(scene_meshes(self.setup.scene))
-            # (checked once: a later plan, e.g. an occluder away from its rest pose, keeps
-            # the trees of the rest pose)
-            if trees is not None and trees is not getattr(self, "_checked_trees", None):
-                from ..lights.bspvt import match_scene
+        # prebuilt trees fit the scene whatever ``direct`` resolves to (``auto`` may resolve
+        # to ltc+ratio and not use them: another scene's trees are still refused). Checked
+        # once: a later plan, e.g. an occluder away from its rest pose, keeps the trees of
+        # the rest pose
+        if trees is not None and trees is not getattr(self, "_checked_trees", None):
+            from ..lights.bspvt import match_scene
 
-                try:
-                    match_scene(self.setup.scene, trees)
-                except GlossrtError as e:
-                    raise GlossrtError(f"bspvt: scene {name!r}: {e}") from None
+            try:
+                match_scene(self.setup.scene, trees)
+            except GlossrtError as e:
+                raise GlossrtError(f"bspvt: scene {name!r}: {e}") from None
         if opts["indirect"] == "oidn":
             from ..denoise.oidn import oidn_available
 
@@ -367,7 +382,7 @@ class Pipeline:
         the_plan = self._check(opts, direct, trees)
         exclude, on = the_plan.exclude, the_plan.shapes
         self.bspvt_trees = trees
-        if direct == "ltc+bspvt":
+        if trees is not None:
             self._checked_trees = trees
 
         def same(*keys: str) -> bool:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import warnings
 
 import drjit as dr
 import numpy as np
@@ -471,8 +472,40 @@ class PointLights:
 #: faces of its non-emitting meshes, the analytic occluders' boxes) and the resolution
 _TREES: dict = {}
 _TREES_MAX = 4
-#: trees built by :func:`scene_trees` in this process (a cache hit builds none)
+#: trees built by :func:`scene_trees` in this process (a cache hit, in memory or on disk,
+#: builds none)
 BUILDS = {"count": 0}
+#: tree cache folders found unwritable in this process (each is warned about once)
+_UNWRITABLE: set = set()
+
+
+def default_bspvt_cache() -> str:
+    """The user's cache folder for built BSPVT trees: ``$XDG_CACHE_HOME/glossrt/bspvt``, else
+    (unset, empty or relative, as the XDG base directory specification says)
+    ``~/.cache/glossrt/bspvt``. Read when a pipeline is made; created when the first trees
+    are written."""
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        base = os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "glossrt", "bspvt")
+
+
+def bspvt_cache_dir(cache: bool | str | os.PathLike | None) -> str | None:
+    """The folder ``Pipeline(bspvt_cache=...)`` keeps built trees in: ``True`` the user's
+    cache folder (:func:`default_bspvt_cache`); ``False`` or ``None`` none (trees are kept in
+    memory only); a path that folder (made when the first trees are written). A path that
+    exists and is not a folder, or any other value, is one :class:`GlossrtError`."""
+    if cache is True:
+        return default_bspvt_cache()
+    if cache is False or cache is None:
+        return None
+    if isinstance(cache, str | os.PathLike) and os.fspath(cache):
+        folder = os.fspath(cache)
+        if os.path.exists(folder) and not os.path.isdir(folder):
+            raise GlossrtError(f"bspvt_cache: {folder} exists and is not a folder")
+        return folder
+    raise GlossrtError("bspvt_cache must be a folder, True (the user's cache folder) or False "
+                       f"(no cache on disk), got {cache!r}")
 
 
 def geometry_key(scene, resolution: int) -> str:
@@ -490,29 +523,63 @@ def geometry_key(scene, resolution: int) -> str:
     return h.hexdigest()
 
 
-def scene_trees(scene, resolution: int, progress: bool = True, cache_dir=None):
+def _read_cached(scene, resolution: int, path: str):
+    """The trees in cache file ``path`` if they fit ``scene`` at ``resolution``, else None
+    (no file, or one damaged, of another format version, or stale: built anew)."""
+    from ..lights.bspvt import BSPVT, match_scene
+
+    if not os.path.isfile(path):
+        return None
+    try:
+        trees = BSPVT.load(path)
+        if int(trees.resolution) != int(resolution):
+            return None
+        match_scene(scene, trees)
+    except GlossrtError:
+        return None
+    return trees
+
+
+def _write_cached(trees, folder: str, path: str) -> None:
+    """Keep ``trees`` in cache file ``path`` (made in ``folder`` if need be), written whole or
+    not at all (:meth:`glossrt.lights.bspvt.BSPVT.save`: a temporary file renamed over
+    ``path``, so a process reading it meanwhile sees the old file or the new one). A folder
+    that cannot be made or written is warned about once per process; the trees stay in
+    memory."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+        trees.save(path)
+    except OSError as e:
+        if folder not in _UNWRITABLE:
+            _UNWRITABLE.add(folder)
+            warnings.warn(f"BSPVT trees not cached on disk: cannot write to {folder} "
+                          f"({e.strerror or e}); kept in memory for this process only "
+                          "(--bspvt-cache DIR or bspvt_cache=DIR chooses another folder, "
+                          "none turns the cache off)", stacklevel=2)
+        return
+    trees.source = path
+
+
+def scene_trees(scene, resolution: int, progress: bool = True,
+                cache_dir: str | os.PathLike | None = None):
     """BSPVT trees of ``scene`` as it is posed now: cached in memory per
     :func:`geometry_key`; with ``cache_dir`` also on disk (``bspvt-<key>.npz``, read back by
-    later processes, checked against the scene); built with a progress bar on a miss."""
-    from ..lights.bspvt import BSPVT, build_scene_trees, match_scene
+    later processes and checked against the scene: a damaged or stale file is built anew and
+    replaced); built with a progress bar on a miss (:data:`BUILDS` counts the builds). A
+    folder that cannot be written costs a warning, never the trees."""
+    from ..lights.bspvt import build_scene_trees
 
     key = geometry_key(scene, resolution)
     if key in _TREES:
         return _TREES[key]
-    path = os.path.join(os.fspath(cache_dir), f"bspvt-{key[:20]}.npz") if cache_dir else None
-    trees = None
-    if path is not None and os.path.exists(path):
-        try:
-            trees = BSPVT.load(path)
-            match_scene(scene, trees)
-        except GlossrtError:  # a stale or damaged cache file: built anew below
-            trees = None
+    folder = os.fspath(cache_dir) if cache_dir else None
+    path = os.path.join(folder, f"bspvt-{key[:20]}.npz") if folder else None
+    trees = _read_cached(scene, resolution, path) if path is not None else None
     if trees is None:
         trees = build_scene_trees(scene, resolution, progress=progress)
         BUILDS["count"] += 1
         if path is not None:
-            trees.save(path)
-            trees.source = path
+            _write_cached(trees, folder, path)
     if len(_TREES) >= _TREES_MAX:
         _TREES.pop(next(iter(_TREES)))
     _TREES[key] = trees
@@ -1112,5 +1179,5 @@ def display(image, exposure: float = 0.0, tonemap: str = "filmic") -> np.ndarray
 
 
 __all__ = ["CompositeStage", "DirectStage", "GBufferStage", "IndirectStage", "PointLights",
-           "SpecAAStage", "Stage", "TAAStage", "display", "geometry_key", "highlight_maps_key",
-           "scene_trees"]
+           "SpecAAStage", "Stage", "TAAStage", "bspvt_cache_dir", "default_bspvt_cache",
+           "display", "geometry_key", "highlight_maps_key", "scene_trees"]

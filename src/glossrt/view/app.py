@@ -151,14 +151,17 @@ class Viewer:
     ``scene``: anything :func:`glossrt.scenes.load` takes (a built-in name, an XML path, a
     Mitsuba scene dict or an ``mi.Scene``; ``params``: an XML file's ``$parameters``).
     ``pipeline``: a preset or a TOML file (:func:`glossrt.pipeline.parse`), ``choices``
-    override its options. Everything is checked before the server starts: a
+    override its options; ``bspvt`` and ``bspvt_cache``: as :class:`glossrt.pipeline.Pipeline`'s
+    (prebuilt trees; where built trees are kept, by default the user's cache folder).
+    Everything is checked before the server starts: a
     :class:`~glossrt.errors.GlossrtError` means nothing was started and nothing written. The
     stats say which method shades which light and what share of the pixels takes the path
     tracer's direct light (``stats["lights"]``, ``stats["fallback_share"]``)."""
 
     def __init__(self, scene, pipeline: str = "full", size=(320, 180),
                  host: str = "127.0.0.1", port: int = 8080, captures="captures",
-                 verbose: bool = True, bspvt=None, params=None, **choices: Any):
+                 verbose: bool = True, bspvt=None, params=None, bspvt_cache=True,
+                 **choices: Any):
         from .. import pipeline as pl
 
         if not isinstance(host, str) or not host:
@@ -170,6 +173,7 @@ class Viewer:
         pl.resolve(preset, **choices)  # names and values, before the scene loads
         self.captures = _check_captures(captures)
         self.verbose = verbose
+        self._bspvt_cache = bspvt_cache
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="glossrt-view", daemon=True)
         _claim(self)
@@ -189,7 +193,7 @@ class Viewer:
         with DRJIT_LOCK:  # (the caller's own Dr.Jit work may run meanwhile)
             setup = load(scene, size=size, params=params)
             self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
-                                    **choices)
+                                    bspvt_cache=self._bspvt_cache, **choices)
             self.size = tuple(setup.size)
             self._lights = self._light_rests()
             self._camera = self._scene_camera()
@@ -597,7 +601,8 @@ class Viewer:
         if "preset" in values:
             preset = values.pop("preset")
             try:
-                new = pl.Pipeline(self.pipe.setup, preset=preset, progress=False)
+                new = pl.Pipeline(self.pipe.setup, preset=preset, progress=False,
+                                  bspvt_cache=self.pipe.bspvt_cache)
             except GlossrtError as e:
                 self._set_message(f"refused: {e}")
             else:
