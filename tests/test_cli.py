@@ -298,19 +298,53 @@ def test_round_robin_batches_short_calls():
     assert all(t >= 0.03 for t in times["long"])
 
 
-def test_demo_writes_report(tmp_path):
+@pytest.fixture(scope="module")
+def small_demo(tmp_path_factory):
+    """One small demo run: its folder, its report page and the lines it wrote on stderr."""
+    import contextlib
+    import io
+
     from glossrt.demo import run_demo
 
-    page = run_demo(tmp_path / "demo", size=(32, 24), frames=4, ref_every=2, ref_spp=16,
-                    mitsuba_spp=16, log=lambda *a: None)
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        page = run_demo(out, size=(32, 24), frames=4, ref_every=2, ref_spp=16, mitsuba_spp=16)
+    return out, page, err.getvalue().splitlines()
+
+
+def test_demo_writes_report(small_demo):
+    out, page, _ = small_demo
     html = page.read_text()
     assert page.name == "index.html"
     for heading in ("Frames", "converged reference", "Mitsuba", "Timings"):
         assert heading in html
-    assert len(os.listdir(tmp_path / "demo" / "frames")) == 4
-    assert len(os.listdir(tmp_path / "demo" / "references")) == 2
+    assert len(os.listdir(out / "frames")) == 4
+    assert len(os.listdir(out / "references")) == 2
     for src in __import__("re").findall(r'src="([^"]+)"', html):
-        assert (tmp_path / "demo" / src).is_file()
+        assert (out / src).is_file()
+
+
+def test_demo_says_what_it_does_on_stderr(small_demo):
+    """Every step of the demo and every report section writes progress lines on stderr: a
+    line when a section starts and when it ends, and the long sections (the papers') lines
+    of their own steps or progress bars in between."""
+    from glossrt.report import registered_sections
+
+    _, _, lines = small_demo
+    for start in ("1 spp frames: 4/4", "references (16 spp): 32/32",
+                  "Mitsuba's path integrator"):
+        assert any(ln.startswith(start) for ln in lines), (start, lines)
+    names = [name for name, _, _ in registered_sections()]
+    for k, name in enumerate(names):
+        begin = lines.index(f"report section {k + 1}/{len(names)}: {name} ...")
+        end = next(i for i, ln in enumerate(lines)
+                   if i > begin and ln.startswith(f"{name}: done ("))
+        steps = [ln for ln in lines[begin + 1:end] if ln.startswith(f"{name}: ")]
+        if name in ("denoisers", "lobes", "ltc", "bspvt", "highlights", "specaa",
+                    "pipeline"):
+            assert steps, (name, lines[begin:end + 1])
+    assert lines[-1] == "writing the report page ..."
 
 
 def test_help_has_examples(capsys):

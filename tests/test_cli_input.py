@@ -270,7 +270,7 @@ def test_demo_api_refuses_too_few_frames(tmp_path):
     from glossrt.errors import GlossrtError
 
     with pytest.raises(GlossrtError, match="frames"):
-        run_demo(tmp_path / "d", size=(16, 12), frames=1, log=lambda *a: None)
+        run_demo(tmp_path / "d", size=(16, 12), frames=1, progress=False)
     assert not (tmp_path / "d").exists()
 
 

@@ -145,6 +145,57 @@ def test_failing_section_is_shown_and_raises(tmp_path, clean_registry):
     assert "still runs" in page and "Fine" in page
 
 
+def test_verbose_report_names_each_section_and_its_steps_on_stderr(tmp_path, clean_registry,
+                                                                   capsys):
+    @rp.register_section("test-steps", order=-500)
+    def steps(ctx, report):
+        ctx.say("first step ...")
+        with ctx.bar("items") as p:
+            for k in range(4):
+                p(k + 1, 4)
+        report.section("Steps").paragraph("done")
+
+    @rp.register_section("test-broken", order=-400)
+    def broken(ctx, report):
+        raise ValueError("boom")
+
+    ctx = rp.DemoContext(out_dir=tmp_path, scene="s", verbose=True)
+    with pytest.raises(GlossrtError, match="test-broken"):
+        rp.build_report(ctx, "Demo")
+    err = capsys.readouterr().err.splitlines()
+    want = ["report section 1/2: test-steps ...", "test-steps: first step ...",
+            *(f"test-steps: items: {k}/4 (" for k in range(1, 5)), "test-steps: done (",
+            "report section 2/2: test-broken ...", "test-broken: failed (",
+            "writing the report page ..."]
+    assert len(err) == len(want), err
+    assert all(e.startswith(w) for e, w in zip(err, want, strict=True)), err
+    assert "ValueError: boom" in err[-2]
+    # quiet unless verbose (a context of one's own, as the experiments' tests make)
+    quiet = rp.DemoContext(out_dir=tmp_path, scene="s")
+    quiet.say("nothing")
+    with quiet.bar("nothing", 3) as p:
+        p(3)
+    assert capsys.readouterr().err == ""
+
+
+def test_progress_off_a_terminal_writes_a_line_for_a_slow_update(monkeypatch):
+    import io
+
+    from glossrt import progress
+
+    clock = [0.0]
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: clock[0])
+    out = io.StringIO()
+    with progress.Progress(100, "work", stream=out) as p:
+        p.update(1)  # quarter 0 again, at once: no line
+        clock[0] = progress.LINE_EVERY + 0.5
+        p.update(2)  # quarter 0, but after LINE_EVERY seconds: a line
+        p.update(25)  # a new quarter: a line
+    t = f"{progress.LINE_EVERY + 0.5:.1f}s"
+    assert out.getvalue().splitlines() == ["work: 0/100 (0.0s)", f"work: 2/100 ({t})",
+                                           f"work: 25/100 ({t})"]
+
+
 def test_register_same_name_replaces(clean_registry):
     @rp.register_section("test-dup", order=1)
     def one(ctx, report):

@@ -152,15 +152,18 @@ def check_demo_args(size: tuple[int, int], frames: int, ref_every: int = 4, ref_
 
 def run_demo(out: str | Path, size: tuple[int, int] = (160, 120), frames: int = 8,
              ref_every: int = 4, ref_spp: int = 256, mitsuba_spp: int = 256,
-             scene: str = "glossy-cornell", log=print) -> Path:
+             scene: str = "glossy-cornell", progress: bool = True) -> Path:
     """Render, measure and report; returns the path of ``index.html``. Bad arguments
-    (:func:`check_demo_args`) and scenes fail before anything is written."""
+    (:func:`check_demo_args`) and scenes fail before anything is written. ``progress``: each
+    step and report section says on stderr what it does and how far it is (a line when it
+    starts, a :class:`~glossrt.progress.Progress` bar where it has many items)."""
     from . import render, scenes
     from .frame import frame_filename
     from .progress import Progress
 
     check_demo_args(size, frames, ref_every, ref_spp, mitsuba_spp)
     out = Path(out)
+    ctx = DemoContext(out_dir=out, scene=scene, verbose=progress)
     setup = scenes.load(scene, size=size, frames=frames)
     for sub in ("frames", "references"):
         try:
@@ -173,7 +176,7 @@ def run_demo(out: str | Path, size: tuple[int, int] = (160, 120), frames: int = 
 
     t0 = time.perf_counter()
     seq = []
-    with Progress(frames, "1 spp frames") as p:
+    with Progress(frames, "1 spp frames", enabled=progress) as p:
         for i in range(frames):
             t = time.perf_counter()
             f = r.render(i)
@@ -189,7 +192,7 @@ def run_demo(out: str | Path, size: tuple[int, int] = (160, 120), frames: int = 
     refs = []
     t0 = time.perf_counter()
     idx = list(range(0, frames, ref_every))
-    with Progress(len(idx) * ref_spp, f"references ({ref_spp} spp)") as p:
+    with Progress(len(idx) * ref_spp, f"references ({ref_spp} spp)", enabled=progress) as p:
         for k, i in enumerate(idx):
             ref = r.render_reference(i, ref_spp, progress=lambda d, n, k=k: p.update(k * n + d))
             ref.save(out / "references" / frame_filename(i))
@@ -197,11 +200,12 @@ def run_demo(out: str | Path, size: tuple[int, int] = (160, 120), frames: int = 
     timings[f"references, {ref_spp} spp, per frame"] = (time.perf_counter() - t0) / len(idx)
 
     t0 = time.perf_counter()
+    ctx.say(f"Mitsuba's path integrator, frame 0, {mitsuba_spp} spp ...")
     mit = r.render_mitsuba(0, mitsuba_spp)
     dr.eval(mit)  # Dr.Jit is lazy: time the rendering, not the tracing
     dr.sync_thread()
     timings[f"Mitsuba path, {mitsuba_spp} spp"] = time.perf_counter() - t0
 
-    ctx = DemoContext(out_dir=out, scene=scene, frames=seq, references=refs, timings=timings,
-                      extra={"mitsuba": (mit, mitsuba_spp)})
+    ctx.frames, ctx.references, ctx.timings = seq, refs, timings
+    ctx.extra["mitsuba"] = (mit, mitsuba_spp)
     return build_report(ctx, "glossrt demo")

@@ -1,9 +1,14 @@
-"""A small progress bar on stderr (no dependency): live on a terminal, a few lines otherwise."""
+"""A small progress bar on stderr (no dependency): live on a terminal, a few lines otherwise
+(one at each quarter, and one at any update :data:`LINE_EVERY` seconds or more after the
+last line)."""
 
 from __future__ import annotations
 
 import sys
 import time
+
+#: seconds after which a bar off a terminal writes a line at its next update, quarter or not
+LINE_EVERY = 3.0
 
 
 class Progress:
@@ -17,6 +22,7 @@ class Progress:
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.t0 = time.perf_counter()
         self._last_quarter = -1
+        self._last_line = self.t0
         self.done = 0
 
     def update(self, done: int) -> None:
@@ -35,8 +41,9 @@ class Progress:
             self.stream.flush()
         else:
             quarter = int(4 * frac)
-            if quarter != self._last_quarter:
+            if quarter != self._last_quarter or time.perf_counter() - self._last_line >= LINE_EVERY:
                 self._last_quarter = quarter
+                self._last_line = time.perf_counter()
                 self.stream.write(f"{self.desc}: {self.done}/{self.total} ({elapsed:.1f}s)\n")
                 self.stream.flush()
 

@@ -64,16 +64,17 @@ def _setup(alpha: float, size, density=DENSITIES["default"]):
 _DEFAULT_SCENE = "polygon-light"
 
 
-def _trees(setup, resolution: int, epsilon: float, cluster=None):
+def _trees(setup, resolution: int, epsilon: float, cluster=None, progress: bool = False):
     """BSPVT trees of the default-density ``polygon-light`` ``setup``: in this process
     (``cluster`` None), or by vertex chunks on ``cluster`` (issue 27: the chunk items load the
     built-in :data:`_DEFAULT_SCENE` by name, whose vertices are checked to be ``setup``'s;
-    the same trees as the one-process build)."""
+    the same trees as the one-process build). ``progress``: the build's progress bars on
+    stderr."""
     from ..lights.bspvt import build_scene_trees, scene_vertices
 
     if cluster is None:
-        return build_scene_trees(setup.scene, resolution, epsilon, progress=False)
-    trees = build_scene_trees(_DEFAULT_SCENE, resolution, epsilon, progress=False,
+        return build_scene_trees(setup.scene, resolution, epsilon, progress=progress)
+    trees = build_scene_trees(_DEFAULT_SCENE, resolution, epsilon, progress=progress,
                               cluster=cluster)
     if not np.array_equal(trees.positions, scene_vertices(setup.scene)[0].astype(np.float32)):
         raise GlossrtError(f"{_DEFAULT_SCENE!r} does not have {setup.name}'s vertices: "
@@ -165,15 +166,17 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
         setup = _setup(a, size)
         if trees is None:
             say(f"building trees (R = {resolution}) ...")
-            trees = _trees(setup, resolution, epsilon, cluster)
+            trees = _trees(setup, resolution, epsilon, cluster, progress is not None)
         r = render.Renderer(setup)
         for fi in frames:
-            say(f"alpha {a:g}, frame {fi}: references ({ref_spp} spp) and methods")
+            say(f"alpha {a:g}, frame {fi}: shadowed and unshadowed Monte Carlo references "
+                f"({ref_spp} spp)")
             gb = r.render(fi)
             lights = polygon_lights(setup, fi)
             f0 = fresnel_image(setup, gb)
             ref = render_mc(gb, lights, ref_spp, f0=f0, scene=setup.scene, seed=11)
             ref_u = render_mc(gb, lights, ref_spp, f0=f0, seed=11)
+            say(f"alpha {a:g}, frame {fi}: {', '.join(METHODS)}")
             shade_bspvt(setup.scene, gb, trees, lights, "pixel", f0=f0)  # warm kernels
             runs = {
                 "bspvt-vertex": lambda s=setup, g=gb, lt=lights, f=f0, t=trees: shade_bspvt(
@@ -189,6 +192,7 @@ def images(alphas=ALPHAS, frames=(0, 24), size=(128, 96), resolution: int = 32,
             hit = gb.numpy("mesh_id")[..., 0] > 0
             mae = {m: float(np.abs(out[m] - ref)[hit].mean()) for m in METHODS}
             # the yardstick: Mitsuba's own direct integrator (emitters' own pixels left out)
+            say(f"alpha {a:g}, frame {fi}: Mitsuba's direct integrator ({ref_spp} spp)")
             direct = np.array(r.render_mitsuba(fi, ref_spp, integrator="direct"))
             surf = hit & ~(gb.numpy("emission").max(-1) > 0)
             vs_direct = {m: float(np.abs(out[m] - direct)[surf].mean()) for m in METHODS}
@@ -243,7 +247,7 @@ def section_bspvt(ctx: DemoContext, report: Report) -> None:
     res = max(8, int(16 * scale))
     small = scale < 1.0  # (tests run the demo tiny)
     out = images(alphas=(0.1,) if small else (0.1, 1.0), frames=(0,) if small else (0, 24),
-                 size=size, resolution=res, ref_spp=spp)
+                 size=size, resolution=res, ref_spp=spp, progress=ctx.say)
     s = report.section(
         "Polygon-light shadows: BSPVT",
         "Okuno & Iwasaki's binary space partitioning visibility trees on polygon-light "

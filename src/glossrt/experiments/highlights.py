@@ -104,9 +104,10 @@ def convergence(size=(320, 180), ref_samples: int = 2048, counts=SAMPLE_COUNTS,
 
     alphas = list(LIGHT_SHAPES_ALPHAS)
     masks = [hit & np.isclose(rough, a, rtol=1e-4) for a in alphas]
-    say(f"references ({ref_samples} samples): ellipsoidal, GGX")
-    refs = {"ellipsoidal": reference(gb, lights, maps, f0, "ellipsoidal", ref_samples),
-            "ggx": reference(gb, lights, maps, f0, "ggx", ref_samples)}
+    refs = {}
+    for dist in ("ellipsoidal", "ggx"):
+        say(f"reference ({ref_samples} samples): {dist}")
+        refs[dist] = reference(gb, lights, maps, f0, dist, ref_samples)
     res = Convergence(tuple(size), ref_samples, alphas)
 
     def add(method, samples, img, ref):
@@ -203,7 +204,8 @@ def section_highlights(ctx: DemoContext, report: Report) -> None:
     t0 = time.perf_counter()
     scale, size = section_size(ctx, (160, 90), 2, (32, 18))
     ref = 256 if scale >= 1 else 32
-    conv = convergence(size=size, ref_samples=ref, counts=(4, 16) if scale >= 1 else (4,))
+    conv = convergence(size=size, ref_samples=ref, counts=(4, 16) if scale >= 1 else (4,),
+                       progress=ctx.say)
     s = report.section(
         "Light-shape highlights",
         "Kimura & Tokoi 2004 on light-shapes: the lights rendered into a cube map per object, "

@@ -1083,22 +1083,31 @@ def section_lobes(ctx: DemoContext, report: Report) -> None:
         "full discussion; nothing is tuned to match the paper.")
     s.saved_figure("fig3.png", plot_fig3, "fig. 3 analogue: the lobe weight vs the angle "
                    "between lobe axes, exact (eq. 6) and approximate (eq. 7)")
-    f4 = fig4(size=size, ref_spp=spp)
+    ctx.say(f"fig. 4 analogue: roughness-map {size[0]}x{size[1]}, reference {spp} spp ...")
+    with ctx.bar("fig. 4 filters") as p:
+        f4 = fig4(size=size, ref_spp=spp, progress=p)
     markdown_table(s, f4.markdown(), "fig. 4 analogue: roughness-map, indirect specular")
     s.images_row([(k, v) for k, v in f4.images.items()], name="fig4")
-    f5 = fig5(size=size, ref_spp=spp)
+    ctx.say(f"fig. 5 analogue: glossy-spheres {size[0]}x{size[1]}, reference {spp} spp ...")
+    with ctx.bar("fig. 5 filters") as p:
+        f5 = fig5(size=size, ref_spp=spp, progress=p)
     markdown_table(s, f5.markdown(), "fig. 5 analogue: glossy-spheres, one parameter set")
     s.images_row([(k, v) for k, v in f5.images.items()], name="fig5")
-    f6 = fig6(size=size, ref_spp=spp)
+    ctx.say(f"fig. 6 analogue: glossy-spheres, reference {spp} spp, then the sweeps ...")
+    with ctx.bar("fig. 6 sweeps") as p:
+        f6 = fig6(size=size, ref_spp=spp, progress=p)
     markdown_table(s, f6.markdown(), "fig. 6 analogue: optima per sphere")
     s.saved_figure("fig6.png", lambda p: f6.plot(str(p)), "fig. 6 analogue: MSE vs beta "
                    "(lobe) and vs 1/sigma_n^2 (normal), one line per Phong exponent")
-    up = ue.upsampling(size=size, ref_spp=spp, low_spp=spp)
+    ctx.say("joint bilateral upsampling (roughness-map) ...")
+    up = ue.upsampling(size=size, ref_spp=spp, low_spp=spp, progress=ctx.say)
     markdown_table(s, up.markdown(), "joint bilateral upsampling of converged 1/2 and 1/4 "
                    "resolution indirect light (roughness-map); adaptive re-sampling where the "
                    f"normalised weight sum < {up.threshold}")
     s.images_row([(k, v) for k, v in up.images.items()], name="upsampling")
-    st = ue.spatio_temporal(size=size, frames=8, ref_spp=spp, ref_frames=(3, 7))
+    ctx.say("spatio-temporal upsampling (glossy-cornell, 8 frames) ...")
+    st = ue.spatio_temporal(size=size, frames=8, ref_spp=spp, ref_frames=(3, 7),
+                            progress=ctx.say)
     markdown_table(s, st.markdown(), "spatial vs spatio-temporal upsampling (1/2, jittered "
                    "1 spp low-resolution frames, animated glossy-cornell), indirect light MSE")
     ctx.timings["specular-lobe section (figs. 3-6, upsampling)"] = time.perf_counter() - t0

@@ -336,7 +336,7 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
     if textured:
         runs.append(("textured 0.25", "polygon-light-textured", "textured light, alpha 0.25"))
     for a, name, label in runs:
-        say(f"{name}: G-buffer, LTC, Monte Carlo reference ({ref_spp} spp)")
+        say(f"{name}: G-buffer, LTC, unshadowed Monte Carlo reference ({ref_spp} spp)")
         setup = scenes.load(name, size=size)
         gb = render.Renderer(setup).render(frame)
         lights = polygon_lights(setup, frame)
@@ -349,6 +349,7 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
         # the reference's BRDF against Mitsuba's own direct integrator: the same Monte Carlo
         # with shadows (direct has them) on the pixels that see a non-emitting surface
         r = render.Renderer(setup)
+        say(f"{name}: Mitsuba's direct integrator and shadowed Monte Carlo ({ref_spp} spp)")
         direct = np.array(r.render_mitsuba(frame, ref_spp, integrator="direct"))
         shadowed = render_mc(gb, lights, ref_spp, f0=f0, scene=setup.scene, seed=1)
         surf = hit & ~(gb.numpy("emission").max(-1) > 0)
@@ -358,6 +359,8 @@ def images(alphas: tuple[float, ...] = ALPHAS, size: tuple[int, int] = (160, 120
         rmse = float(np.sqrt(np.mean(err**2)))
         rel = float(np.mean(np.abs(err)) / max(np.mean(np.abs(ref[hit])), 1e-12))
         mc_spp, mc_ms = None, None
+        say(f"{name}: the Monte Carlo samples per pixel that reach LTC's RMSE (up to "
+            f"{max_spp})")
         spp = 1
         while spp <= max_spp:
             img, ms = _timed(lambda spp=spp, gb=gb, lights=lights, f0=f0:
@@ -525,7 +528,8 @@ def section_ltc(ctx: DemoContext, report: Report) -> None:
     t0 = time.perf_counter()
     _, size = section_size(ctx, (96, 72), 4, (16, 12))
     spp = min(512, int(ctx.references[0].meta.get("spp", 256)) * 2) if ctx.references else 512
-    res = images(alphas=ALPHAS, size=size, ref_spp=spp, max_spp=64, textured=True)
+    res = images(alphas=ALPHAS, size=size, ref_spp=spp, max_spp=64, textured=True,
+                 progress=ctx.say)
     s = report.section(
         "Polygon lights: LTC",
         "Heitz et al. 2016 with glossrt's own GGX LTC fit: direct light of polygon-light "

@@ -906,7 +906,7 @@ def section_pipeline(ctx: DemoContext, report: Report) -> None:
     presets = ("schied2017", "tokuyoshi2015", "full")
     scene = "glossy-cornell"
     res = evaluate(size=size, spp=spp, frames=frames, scenes=(scene,), presets=presets,
-                   variants=False, static=False)
+                   variants=False, static=False, progress=ctx.say)
     s = report.section(
         "Frame pipeline",
         f"glossrt.pipeline composes the papers into one real-time frame (issue 25): "

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..metrics import flicker
+from ..progress import Progress
 from ..report import DemoContext, Report, register_section
 from ..report.registry import (
     BenchContext,
@@ -171,54 +172,66 @@ def evaluate(size=(320, 180), spp: int = 256, frames: int = 8, temporal_spp: int
         return fresnel_image(setup, fr)
 
     res = SpecAAResults(tuple(size), spp, temporal_spp, frames)
+    show = progress is not None  # progress bars on stderr
+
     say(f"reference, frame 0 ({spp} sub-pixel samples, box filter)")
-    ref = specaa.reference(rend, 0, *lights_of(0), f0_of=materials, spp=spp)
+    with Progress(spp, "reference, box filter (sub-pixel samples)", enabled=show) as p:
+        ref = specaa.reference(rend, 0, *lights_of(0), f0_of=materials, spp=spp, progress=p)
     say(f"reference, frame 0 ({spp} sub-pixel samples, Gaussian filter, variance 0.25)")
-    ref_g = specaa.reference(rend, 0, *lights_of(0), f0_of=materials, spp=spp,
-                             pixel_filter="gaussian")
+    with Progress(spp, "reference, Gaussian filter (sub-pixel samples)", enabled=show) as p:
+        ref_g = specaa.reference(rend, 0, *lights_of(0), f0_of=materials, spp=spp,
+                                 pixel_filter="gaussian", progress=p)
     # the reference against Mitsuba's own direct integrator (box pixel filter, 4x the spp)
     say(f"Mitsuba's direct integrator, frame 0 ({4 * spp} spp)")
     direct = np.array(rend.render_mitsuba(0, 4 * spp, integrator="direct"))
     seqs: dict[str, list] = {m: [] for m in methods}
     seqs["reference"] = []
-    for t in range(frames):
-        say(f"frame {t + 1}/{frames}")
-        lt, pl = lights_of(t)
-        g = rend.render(t)
-        f0_t = materials(g)
-        if t == 0:
-            flat = _flat_mask(setup, g)
-            hit = g.numpy("mesh_id")[..., 0] > 0
-            surf = hit & ~(g.numpy("emission").max(-1) > 0)
-            res.reference_vs_direct = {
-                "rel_l1": float(np.abs(ref - direct)[surf].sum() / np.abs(direct)[surf].sum()),
-                "mean_ratio": float(ref[surf].mean() / max(direct[surf].mean(), 1e-12))}
-        for m in methods:
-            meth, masking = _variant(m)
-            seqs[m].append(specaa.shade(g, lt, pl, meth, f0_t, frozen=True, masking=masking))
-        seqs["reference"].append(
-            ref if t == 0 and temporal_spp == spp
-            else specaa.reference(rend, t, lt, pl, f0_of=materials, spp=temporal_spp))
+    say(f"{frames} frames: every method, and a reference of {temporal_spp} sub-pixel "
+        "samples for the temporal error")
+    with Progress(frames * (len(methods) + 1), "frames x (methods + reference)",
+                  enabled=show) as bar:
+        for t in range(frames):
+            lt, pl = lights_of(t)
+            g = rend.render(t)
+            f0_t = materials(g)
+            if t == 0:
+                flat = _flat_mask(setup, g)
+                hit = g.numpy("mesh_id")[..., 0] > 0
+                surf = hit & ~(g.numpy("emission").max(-1) > 0)
+                res.reference_vs_direct = {
+                    "rel_l1": float(np.abs(ref - direct)[surf].sum() / np.abs(direct)[surf].sum()),
+                    "mean_ratio": float(ref[surf].mean() / max(direct[surf].mean(), 1e-12))}
+            for m in methods:
+                meth, masking = _variant(m)
+                seqs[m].append(specaa.shade(g, lt, pl, meth, f0_t, frozen=True, masking=masking))
+                bar.update(bar.done + 1)
+            seqs["reference"].append(
+                ref if t == 0 and temporal_spp == spp
+                else specaa.reference(rend, t, lt, pl, f0_of=materials, spp=temporal_spp))
+            bar.update(bar.done + 1)
     res.reference_temporal = metrics.temporal_error(seqs["reference"])
     ref_flat = float(ref[flat].mean()) if flat.any() else float("nan")
-    for m in methods:
-        img = seqs[m][0]
-        d = (img - ref).mean(axis=-1)
-        res.rows.append({
-            "method": m,
-            "rmse": metrics.rmse(img, ref),
-            "rmse_surfaces": float(np.sqrt(np.mean((img - ref)[hit] ** 2))),
-            "flip": metrics.flip(img, ref),
-            "rmse_gauss": metrics.rmse(img, ref_g),
-            "flip_gauss": metrics.flip(img, ref_g),
-            "flat_bias": float(d[flat].mean() / max(ref_flat, 1e-9)) if flat.any()
-            else float("nan"),
-            "flat_pixels": int(flat.sum()),
-            "temporal": metrics.temporal_error(seqs[m]),
-            "flicker": flicker(seqs[m], seqs["reference"]),
-            "bias": float((img - ref)[hit].mean() / max(float(ref[hit].mean()), 1e-9)),
-        })
-        res.images[m] = img
+    say(f"scores of {len(methods)} methods (RMSE, FLIP, temporal error, flicker)")
+    with Progress(len(methods), "scores", enabled=show) as bar:
+        for m in methods:
+            img = seqs[m][0]
+            d = (img - ref).mean(axis=-1)
+            res.rows.append({
+                "method": m,
+                "rmse": metrics.rmse(img, ref),
+                "rmse_surfaces": float(np.sqrt(np.mean((img - ref)[hit] ** 2))),
+                "flip": metrics.flip(img, ref),
+                "rmse_gauss": metrics.rmse(img, ref_g),
+                "flip_gauss": metrics.flip(img, ref_g),
+                "flat_bias": float(d[flat].mean() / max(ref_flat, 1e-9)) if flat.any()
+                else float("nan"),
+                "flat_pixels": int(flat.sum()),
+                "temporal": metrics.temporal_error(seqs[m]),
+                "flicker": flicker(seqs[m], seqs["reference"]),
+                "bias": float((img - ref)[hit].mean() / max(float(ref[hit].mean()), 1e-9)),
+            })
+            res.images[m] = img
+            bar.update(bar.done + 1)
     res.images[f"Gaussian reference ({spp} spp)"] = ref_g
     res.images[f"reference ({spp} spp)"] = ref
     res.seconds = time.perf_counter() - t_start
@@ -267,7 +280,8 @@ def section_specaa(ctx: DemoContext, report: Report) -> None:
     scale, size = section_size(ctx, (160, 90), 2, (32, 18))
     spp = 256 if scale >= 1 else 16
     frames = 6 if scale >= 1 else 2
-    res = evaluate(size=size, spp=spp, frames=frames, temporal_spp=min(spp, 64))
+    res = evaluate(size=size, spp=spp, frames=frames, temporal_spp=min(spp, 64),
+                   progress=ctx.say)
     s = report.section(
         "Specular antialiasing",
         "NDF filtering (Kaplanyan et al. 2016, as evaluated by Tokuyoshi) on normal-mapped: "

@@ -80,7 +80,8 @@ def _available(method: str) -> str | None:
     return None
 
 
-def _run_sequence(method: str, frames: list) -> tuple[list, list[float]]:
+def _run_sequence(method: str, frames: list, tick=None) -> tuple[list, list[float]]:
+    """``method``'s output and seconds per frame of ``frames``; ``tick()`` after each."""
     from .. import denoise
 
     d = denoise.make(method)
@@ -89,6 +90,8 @@ def _run_sequence(method: str, frames: list) -> tuple[list, list[float]]:
         img, t = timed_eval(d, f)
         secs.append(t)
         outs.append(img)
+        if tick is not None:
+            tick()
     return outs, secs
 
 
@@ -100,7 +103,9 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
     ``cluster``: where the references are rendered (:func:`glossrt.render.blocks.references`:
     None, in this process as before; else as sample blocks on that cluster); ``cache``: a
     folder that keeps each finished reference frame for a rerun (the experiment command's
-    ``--out``/references)."""
+    ``--out``/references). ``progress(done, total)``: after each denoised frame (the
+    sequence's and the static sequence's, every method; a method that cannot run here counts
+    as done)."""
     from .. import render, scenes
     from ..render import blocks
 
@@ -116,12 +121,22 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
     refs = {f.index: f for f in references}
     rs = render.Renderer(scenes.load_static(scene, size=size))
     static = [rs.render(i) for i in range(static_frames)]
+    per_method = len(sequence) + static_frames
+    total, done = len(methods) * per_method, 0
+
+    def tick():
+        nonlocal done
+        done += 1
+        if progress:
+            progress(done, total)
+
     for k, m in enumerate(methods):
         why = _available(m)
         if why:
             res.skipped[m] = why
+            done = (k + 1) * per_method
             continue
-        outs, secs = _run_sequence(m, sequence)
+        outs, secs = _run_sequence(m, sequence, tick)
         res.seconds[m] = steady_median(secs)
         rows = []
         for f, img in zip(sequence, outs, strict=True):
@@ -133,11 +148,9 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
         res.per_frame[m] = rows
         res.quality[m] = {key: float(np.mean([r[key] for r in rows]))
                           for key in ("rmse", "ssim", "flip")}
-        souts, _ = _run_sequence(m, static)
+        souts, _ = _run_sequence(m, static, tick)
         res.temporal[m] = [metrics.temporal_error(souts[i - 1:i + 1])
                            for i in range(1, len(souts))]
-        if progress:
-            progress(k + 1)
     res.images["1 spp"] = sequence[max(refs)]["color"]
     res.images["reference"] = refs[max(refs)]["color"]
     return res
@@ -145,9 +158,14 @@ def denoisers(size=(160, 120), frames: int = 20, ref_every: int = 10, ref_spp: i
 
 @register_section("denoisers", order=40)
 def section_denoisers(ctx: DemoContext, report: Report) -> None:
-    res: DenoiserResults = ctx.extra.get("denoisers") or denoisers(
-        size=(ctx.frames[0].width, ctx.frames[0].height), sequence=ctx.frames,
-        references=ctx.references, static_frames=30)
+    res: DenoiserResults | None = ctx.extra.get("denoisers")
+    if res is None:
+        ctx.say(f"a static 30-frame sequence, then each of {', '.join(DEFAULT_METHODS)} on "
+                f"the demo's {len(ctx.frames)} frames and on the static ones ...")
+        with ctx.bar("denoised frames") as p:
+            res = denoisers(size=(ctx.frames[0].width, ctx.frames[0].height),
+                            sequence=ctx.frames, references=ctx.references, static_frames=30,
+                            progress=p)
     s = report.section(
         "Denoisers",
         "Every denoiser on the same 1 spp sequence, against the converged references "

@@ -31,6 +31,7 @@ import numpy as np
 from ..backend import mi
 from ..errors import GlossrtError
 from ..frame import Frame
+from ..progress import Progress
 from . import (
     COMPONENTS,
     GBUFFER_OUT,
@@ -262,14 +263,19 @@ def references(renderer: Renderer, job: dict, frames: Sequence[int], spp: int,
     ``job``: :func:`reference_job` of ``renderer``'s scene. ``cache``: a folder where each
     reference frame is written as soon as it is complete (atomically, :meth:`Frame.save`)
     and read back by a later call for the same job, sample count and path, so that a killed
-    experiment keeps the references it had finished."""
+    experiment keeps the references it had finished. ``desc`` names a progress bar of the
+    samples on stderr (:class:`glossrt.progress.Progress`; in this process and on a cluster
+    alike); ``""``: none."""
     frames = [int(i) for i in frames]
     paths = ({i: _cache_path(cache, job, spp, cluster is not None, i) for i in frames}
              if cache is not None else None)
 
     def make(todo: list[int]) -> Iterator[Frame]:
         if cluster is None:
-            yield from (renderer.render_reference(i, spp) for i in todo)
+            with Progress(len(todo) * spp, desc, enabled=bool(desc)) as bar:
+                for k, i in enumerate(todo):
+                    yield renderer.render_reference(
+                        i, spp, progress=lambda d, _n, k=k: bar.update(k * spp + d))
             return
         if job.get("size") and tuple(job["size"]) != (renderer.width, renderer.height):
             raise GlossrtError(f"reference job size {job['size']} is not the renderer's "

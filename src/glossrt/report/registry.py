@@ -21,12 +21,15 @@ This module is a library below the experiments: it imports none of them.
 from __future__ import annotations
 
 import json
+import sys
+import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import GlossrtError
+from ..progress import Progress
 from ..timing import MIN_SAMPLE
 from .page import Report
 
@@ -59,7 +62,10 @@ class DemoContext:
 
     ``frames`` are the rendered (1 spp) glossrt Frames, ``references`` converged Frames for
     the same frame indices or a sparser subset; ``timings`` maps a stage name to seconds;
-    ``extra`` holds anything else a section needs.
+    ``extra`` holds anything else a section needs. With ``verbose`` (``glossrt demo``) a
+    section tells what it is doing on stderr: :meth:`say` writes a line when a step starts,
+    :meth:`bar` gives a :class:`~glossrt.progress.Progress` bar for a step of many items;
+    both name the section that runs (:attr:`section`, set by :func:`build_report`).
     """
 
     out_dir: Path
@@ -68,6 +74,45 @@ class DemoContext:
     references: list = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    verbose: bool = False
+    section: str = ""
+
+    def say(self, message: str) -> None:
+        """``SECTION: message`` on stderr when :attr:`verbose` (a step starts)."""
+        if self.verbose:
+            sys.stderr.write(f"{self.section}: {message}\n" if self.section else f"{message}\n")
+            sys.stderr.flush()
+
+    def bar(self, desc: str, total: int | None = None) -> _Bar:
+        """A progress bar ``SECTION: desc``, shown when :attr:`verbose`: ``with
+        ctx.bar("filters") as p: fn(progress=p)``, ``p(done, total)`` or ``p(done)`` after
+        each item (``total``: given here or by the first call)."""
+        return _Bar(f"{self.section}: {desc}" if self.section else desc, total, self.verbose)
+
+
+class _Bar:
+    """:meth:`DemoContext.bar`: a :class:`Progress` made when its total is known (from the
+    constructor or the first ``bar(done, total)``)."""
+
+    def __init__(self, desc: str, total: int | None, enabled: bool):
+        self.desc, self.enabled = desc, enabled
+        self.p = None if total is None else Progress(total, desc, enabled=enabled)
+
+    def __call__(self, done: int, total: int | None = None) -> None:
+        if self.p is None or (total is not None and max(int(total), 1) != self.p.total):
+            if self.p is not None:
+                self.p.close()
+            self.p = Progress(1 if total is None else total, self.desc, enabled=self.enabled)
+        self.p.update(done)
+
+    def __enter__(self) -> _Bar:
+        if self.p is not None:
+            self.p.update(0)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.p is not None:
+            self.p.close()
 
 
 SectionFn = Callable[[DemoContext, Report], None]
@@ -120,23 +165,32 @@ def build_report(ctx: DemoContext, title: str, out_dir: str | Path | None = None
     The report goes to ``out_dir`` (default ``ctx.out_dir``); returns the path of
     ``index.html``. If any section raised, its traceback is shown in the page and, after
     the page is written, :class:`GlossrtError` is raised naming the failed sections and
-    the report's path.
+    the report's path. With ``ctx.verbose`` a line on stderr names each section when it
+    starts (``report section K/N: NAME ...``) and when it ends (``NAME: done (S s)``).
     """
     report = Report(out_dir if out_dir is not None else ctx.out_dir, title)
     failures: list[str] = []
     sections = registered_sections()
     if not sections:
         report.section("No sections").paragraph("No report sections are registered.")
-    for name, _order, fn in sections:
+    for k, (name, _order, fn) in enumerate(sections):
+        ctx.section = ""
+        ctx.say(f"report section {k + 1}/{len(sections)}: {name} ...")
+        ctx.section = name
+        t0 = time.perf_counter()
         try:
             fn(ctx, report)
+            ctx.say(f"done ({time.perf_counter() - t0:.1f}s)")
         except Exception as e:  # a failing section must not lose the page
+            ctx.say(f"failed ({time.perf_counter() - t0:.1f}s): {type(e).__name__}: {e}")
             failures.append(f"{name}: {type(e).__name__}: {e}")
             sec = report.section(f"{name} (failed)")
             sec.error(
                 f"Section {name!r} failed: {type(e).__name__}: {e}",
                 details="".join(traceback.format_exception(e)),
             )
+    ctx.section = ""
+    ctx.say("writing the report page ...")
     path = report.write()
     if failures:
         raise GlossrtError(
