@@ -162,6 +162,9 @@ def test_capture_and_record_write_whole_multilayer_exrs(viewer):
     ({"pipeline": "nope"}, "unknown pipeline"),
     ({"direct": "magic"}, "direct"),
     ({"host": ""}, "host"),
+    ({"host": "no-such-host.invalid"}, "cannot be resolved"),
+    ({"host": "999.1.1.1"}, "cannot be resolved"),
+    ({"host": "192.0.2.1"}, "cannot serve on it"),  # (an address of no machine here)
 ])
 def test_bad_input_is_refused_before_anything_starts(kw, msg, tmp_path):
     import glossrt.view as gv
@@ -247,6 +250,23 @@ def test_cli_bad_port_is_one_line(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2
     assert p.stderr.strip().count("\n") == 0 and "port" in p.stderr
+    assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.parametrize("host", ["999.1.1.1", "no-such-host.invalid"])
+def test_cli_bad_host_is_one_line_before_any_work(tmp_path, host):
+    """A host that cannot be bound: one line, at once, nothing served (the server used to
+    retry for ever after the URL line, and Ctrl-C then printed a thread's traceback)."""
+    try:
+        p = subprocess.run([sys.executable, "-m", "glossrt.cli", "view", "polygon-light",
+                            "--size", "32x18", "--host", host, "--captures",
+                            str(tmp_path / "c")], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired as e:
+        raise AssertionError(f"glossrt view --host {host} still runs after 60 s: "
+                             f"{e.stdout!r} {e.stderr!r}") from None
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().count("\n") == 0 and host in p.stderr, p.stderr
+    assert "http://" not in p.stdout and "Traceback" not in p.stderr
     assert not (tmp_path / "c").exists()
 
 

@@ -948,16 +948,29 @@ def cmd_view(args) -> int:
 
     size = scenes.parse_size(args.size)
     _check_memory(size)
-    v = Viewer(args.scene, pipeline=_pipeline_spec(args.pipeline), size=size, host=args.host,
-               port=args.port, captures=args.captures, bspvt=args.bspvt,
-               params=_defines(args), bspvt_cache=_bspvt_cache(args.bspvt_cache),
-               **_set_options(args))
-    print(f"glossrt view: {v.url}  ({args.scene}, {v.pipe.preset}, {size[0]}x{size[1]}; "
-          f"captures into {v.captures}; Ctrl-C stops)", flush=True)
-    # stopped within 1 s: the render loop ended or was left mid-frame, no capture half-written
-    serve(v, timeout=1.0, stop_server=False)
-    print("glossrt view: stopped", file=sys.stderr, flush=True)
+    try:
+        # checked first (options, files, host, port, the scene); the pipeline's construction
+        # (BSPVT's trees) goes on in the viewer's thread after the URL is printed
+        v = Viewer(args.scene, pipeline=_pipeline_spec(args.pipeline), size=size,
+                   host=args.host, port=args.port, captures=args.captures, bspvt=args.bspvt,
+                   params=_defines(args), bspvt_cache=_bspvt_cache(args.bspvt_cache),
+                   **_set_options(args))
+        print(f"glossrt view: {v.url}  ({args.scene}, {v.preset}, {size[0]}x{size[1]}; "
+              f"captures into {v.captures}; Ctrl-C stops)", flush=True)
+        if v.pipe is None:
+            print("glossrt view: serving; the pipeline is being built, progress in the panel",
+                  file=sys.stderr, flush=True)
+        # stopped within 1 s: the render loop ended or was left mid-frame, no capture
+        # half-written
+        serve(v, timeout=1.0, stop_server=False)
+    except KeyboardInterrupt:  # (before serve() took Ctrl-C over: the build may be running)
+        print("glossrt: interrupted", file=sys.stderr, flush=True)
+        os._exit(130)
     sys.stdout.flush()
+    if v.error is not None:
+        print(f"glossrt: error: {v.error}", file=sys.stderr, flush=True)
+        os._exit(2)
+    print("glossrt view: stopped", file=sys.stderr, flush=True)
     # no interpreter teardown: a frame still recording would hold it, and Dr.Jit's and
     # Mitsuba's shutdown alone takes about a second on the 2-core VM (the 2 s promise)
     os._exit(0)

@@ -1,13 +1,23 @@
 """The live viewer: :class:`Viewer` serves a :class:`glossrt.pipeline.Pipeline` to browsers
 through viser (issue 26).
 
+Start-up. What can be checked without work (options, size, captures folder, host and port)
+is checked first. The render loop's thread then loads the scene and constructs the pipeline
+(BSPVT's trees can take a minute); as soon as the pipeline's own checks have passed (the
+scene, a trees file, the options against the scene) the server starts and the URL is known,
+while the construction goes on. The panel shows its progress; an error of the construction
+is shown there in one line and ends the render loop (:attr:`Viewer.error`). A refusal before
+the server starts raises from the constructor.
+
 Threads. viser runs its websocket server and calls the GUI and camera callbacks on its own
 threads; those callbacks only post to an :class:`~glossrt.view.inbox.Inbox` (latest value
-wins). One render loop, on its own thread, owns every Dr.Jit call after start-up: at the
-start of each frame it takes what was posted, applies it to the pipeline (a refusal is
-shown in the panel and the previous state kept), renders, and broadcasts the chosen layer
-as a JPEG background image to every connected client. A client that connects gets the
-current camera and image; one that leaves changes nothing.
+wins). One render loop, on its own thread, owns every Dr.Jit call after start-up (the
+pipeline's construction included): at the start of each frame it takes what was posted,
+applies it to the pipeline (a refusal is shown in the panel and the previous state kept),
+renders, and broadcasts the chosen layer as a JPEG background image to every connected
+client. A client that connects gets the current camera and image; one that leaves changes
+nothing. At the interpreter's exit the loop is stopped and waited for (a Dr.Jit call still
+running while the interpreter finalizes aborts the process).
 
 Ground truth on pause: after :data:`STILL_FRAMES` frames without a change of camera,
 lights, options or animation time, a second pipeline with the ``reference`` preset
@@ -20,7 +30,9 @@ into the captures folder only; names are made here, never taken from the browser
 
 from __future__ import annotations
 
+import atexit
 import collections
+import errno
 import math
 import os
 import re
@@ -77,6 +89,33 @@ def _claim(viewer: Viewer) -> None:
             if old._thread.is_alive():
                 old._thread.join()
         _CURRENT[:] = [viewer]
+        if not _EXIT_HOOK:
+            # threading's exit hooks run before every atexit one (Mitsuba's variant modules
+            # register theirs when first imported, maybe later than this, by the loop)
+            getattr(threading, "_register_atexit", atexit.register)(_stop_at_exit)
+            _EXIT_HOOK.append(True)
+
+
+#: whether :func:`_stop_at_exit` is registered
+_EXIT_HOOK: list[bool] = []
+
+
+def _stop_at_exit() -> None:
+    """At the interpreter's exit, before the atexit hooks (Mitsuba's and Dr.Jit's shutdown
+    among them): stop this process' viewer (if it still runs) and wait for its render loop to
+    end. ``stop()`` returns within its timeout while a frame (or the pipeline's construction)
+    goes on; a Dr.Jit call still running in that thread while the interpreter finalized
+    aborted the process ("terminate called without an active exception"), crashed it or hung
+    it."""
+    with _CURRENT_LOCK:
+        viewers = list(_CURRENT)
+    for v in viewers:
+        v._stop.set()  # (the loop's panel writes end; viser's own exit hook stops its server)
+        inbox = getattr(v, "inbox", None)
+        if inbox is not None:
+            inbox.wake()
+        if v._thread.is_alive():
+            v._thread.join()
 
 #: GUI ranges of the numeric pipeline options (slider: min, max, step); others are numbers
 SLIDERS: dict[str, tuple[float, float, float]] = {
@@ -112,6 +151,37 @@ def _check_port(port) -> int:
     return port
 
 
+def _check_host(host: str, port: int) -> None:
+    """Refuse a host this machine cannot serve on, as the server would bind it: the name
+    resolved, and a socket bound to each of its addresses at ``port`` (one in use is fine: the
+    server takes the next free port, and the URL names it)."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
+                                   flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError) as e:
+        why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+        raise GlossrtError(f"host {host!r} cannot be resolved ({why}): give an address of "
+                           "this machine, e.g. 127.0.0.1 or 0.0.0.0") from None
+    for family, kind, proto, _, addr in dict.fromkeys(infos):
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            try:
+                s.bind(addr)
+            except OSError as e:
+                if e.errno == errno.EADDRINUSE:
+                    continue
+                if e.errno == errno.EACCES:
+                    raise GlossrtError(f"port {port}: not allowed to serve on it (ports below "
+                                       "1024 need root); choose another --port") from None
+                raise GlossrtError(f"host {host!r} ({addr[0]}): cannot serve on it "
+                                   f"({e.strerror or e}): give an address of this machine, "
+                                   "e.g. 127.0.0.1 or 0.0.0.0") from None
+
+
 def _free_port(host: str) -> int:
     import socket
 
@@ -144,6 +214,54 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(str(text)).stem)[:60] or "scene"
 
 
+#: a line of :class:`glossrt.progress.Progress` (on a terminal or not): description, done, total
+_PROGRESS_LINE = re.compile(
+    r"\r?(?P<desc>[^\r\n:]+): (?:\[[# ]*\] )?(?P<done>\d+)/(?P<total>\d+)\b")
+
+
+class _ProgressTap:
+    """Stands in for ``sys.stderr`` while the render loop's thread constructs the pipeline:
+    that thread's progress lines (:class:`glossrt.progress.Progress`, e.g. BSPVT's trees)
+    are passed to ``show(desc, done, total)`` (the panel) and on to the stream only when
+    ``forward``; every other write passes through unchanged."""
+
+    def __init__(self, stream, show, forward: bool) -> None:
+        self._stream = stream
+        self._show = show
+        self._forward = forward
+        self._thread = threading.get_ident()
+        self._swallowed = False  # the last write of the thread was a progress line not passed on
+
+    def write(self, text: str) -> int:
+        if threading.get_ident() == self._thread:
+            m = _PROGRESS_LINE.match(text)
+            if m is not None:
+                try:
+                    self._show(m["desc"].strip(), int(m["done"]), int(m["total"]))
+                except Exception:  # noqa: BLE001 - the panel's trouble never stops the build
+                    pass
+                if not self._forward:
+                    self._swallowed = True
+                    return len(text)
+            elif self._swallowed and text == "\n":  # (a bar's end on a terminal)
+                self._swallowed = False
+                return len(text)
+        return self._stream.write(text)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+    def __enter__(self) -> _ProgressTap:
+        sys.stderr = self
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if sys.stderr is self:  # (left alone if someone replaced it meanwhile)
+            sys.stderr = self._stream
+        self._show = lambda *a: None  # (a Progress made meanwhile may keep this stream)
+        self._forward = True
+
+
 class Viewer:
     """A live view of a frame pipeline in the browser. Start with :func:`open`; stop with
     :meth:`stop` (or use it as a context manager).
@@ -153,10 +271,15 @@ class Viewer:
     ``pipeline``: a preset or a TOML file (:func:`glossrt.pipeline.parse`), ``choices``
     override its options; ``bspvt`` and ``bspvt_cache``: as :class:`glossrt.pipeline.Pipeline`'s
     (prebuilt trees; where built trees are kept, by default the user's cache folder).
-    Everything is checked before the server starts: a
+    Everything is checked before the server starts (the options, the host and port, the scene
+    and the pipeline's checks against it): a
     :class:`~glossrt.errors.GlossrtError` means nothing was started and nothing written. The
-    stats say which method shades which light and what share of the pixels takes the path
-    tracer's direct light (``stats["lights"]``, ``stats["fallback_share"]``)."""
+    server starts once those checks have passed; the pipeline's construction (BSPVT's trees)
+    goes on in the render loop's thread, with its progress in the panel, and :attr:`pipe` is
+    None until it ends. An error of that construction ends the render loop: :attr:`error`
+    holds it in one line, the panel shows it and :meth:`wait` raises it. The stats say which
+    method shades which light and what share of the pixels takes the path tracer's direct
+    light (``stats["lights"]``, ``stats["fallback_share"]``)."""
 
     def __init__(self, scene, pipeline: str = "full", size=(320, 180),
                  host: str = "127.0.0.1", port: int = 8080, captures="captures",
@@ -170,8 +293,9 @@ class Viewer:
         size = _check_size(size)
         preset, file_choices = pl.parse(pipeline)
         choices = {**file_choices, **choices}
-        pl.resolve(preset, **choices)  # names and values, before the scene loads
+        self._opts = pl.resolve(preset, **choices)  # names and values, before the scene loads
         self.captures = _check_captures(captures)
+        _check_host(host, port)
         self.verbose = verbose
         self._bspvt_cache = bspvt_cache
         self._stop = threading.Event()
@@ -187,17 +311,16 @@ class Viewer:
                params=None) -> None:
         import drjit as dr
 
-        from .. import pipeline as pl
-        from ..scenes import load
-
-        with DRJIT_LOCK:  # (the caller's own Dr.Jit work may run meanwhile)
-            setup = load(scene, size=size, params=params)
-            self.pipe = pl.Pipeline(setup, preset=preset, progress=verbose, bspvt=bspvt,
-                                    bspvt_cache=self._bspvt_cache, **choices)
-            self.size = tuple(setup.size)
-            self._lights = self._light_rests()
-            self._camera = self._scene_camera()
-            dr.sync_thread()  # the render loop's thread takes over every Dr.Jit array
+        #: the pipeline, once constructed (None until then)
+        self.pipe = None
+        #: why the pipeline's construction failed, in one line (None: it did not)
+        self.error: str | None = None
+        self._build_exc: BaseException | None = None
+        self._build = (scene, preset, choices, size, bspvt, params)
+        # set by the render loop's thread when the pipeline's checks have passed (the scene
+        # loaded, the pose known) or the construction ended
+        self._checked = threading.Event()
+        self._panel = threading.Event()  # the panel exists: the loop's writes go to it (_gui)
         self.inbox = Inbox()
         self._lock = threading.Lock()  # the snapshot the API reads (stats, last images)
         self._save_lock = threading.Lock()
@@ -208,9 +331,12 @@ class Viewer:
         self.playing = False
         self.layer = "color"
         self.message = ""
-        self.status = "starting"
+        self.status = "building the pipeline"
         #: the last statuses shown (what a person saw: "recording kernels", "live", ...)
         self.status_log: collections.deque[str] = collections.deque(maxlen=64)
+        self.status_log.append(self.status)
+        #: the construction's progress: (what, done, total) of its current step, or None
+        self.progress: tuple[str, int, int] | None = None
         self._rebuilt = False
         self.stats: dict[str, Any] = {"frames": 0, "fps": 0.0, "reference_spp": 0}
         self.last_image: np.ndarray | None = None
@@ -226,11 +352,78 @@ class Viewer:
         self._still = 0
         self._sent_camera: ViewerCamera | None = None
         self._syncing_clients: dict[int, float] = {}
+        with DRJIT_LOCK:  # (the caller's own Dr.Jit work may run meanwhile)
+            dr.sync_thread()  # the render loop's thread takes over every Dr.Jit array
+        self._thread.start()
+        while not self._checked.wait(0.1):  # (Ctrl-C stays responsive)
+            pass
+        if self.error is not None:  # refused before anything was served
+            self._thread.join()
+            raise self._build_exc
         self._start_server(host, port)
         self._build_gui()
-        self._thread.start()
 
     # -- start-up -------------------------------------------------------------------------
+    def _construct(self) -> bool:
+        """The render loop's first work: load the scene and construct the pipeline; True
+        when it is ready. Sets :attr:`_checked` once the pipeline's checks have passed (the
+        server may start) or the construction ended."""
+        from .. import pipeline as pl
+        from ..scenes import load
+
+        scene, preset, choices, size, bspvt, params = self._build
+        viewer = self
+
+        class _Checked(pl.Pipeline):
+            """The pipeline, telling the viewer when its checks have passed."""
+
+            def _check(self, *args, **kwargs):
+                plan = super()._check(*args, **kwargs)
+                if not viewer._checked.is_set():
+                    viewer._posed(self.setup)
+                return plan
+
+        try:
+            with DRJIT_LOCK, _ProgressTap(sys.stderr, self._show_progress, self.verbose):
+                setup = load(scene, size=size, params=params)
+                pipe = _Checked(setup, preset=preset, progress=True, bspvt=bspvt,
+                                bspvt_cache=self._bspvt_cache, **choices)
+                if not self._checked.is_set():  # (a pipeline that checked nothing here)
+                    self._posed(pipe.setup)
+        except Exception as e:  # noqa: BLE001 - one line for the user, the loop ends
+            self._build_exc = e
+            if isinstance(e, GlossrtError):
+                self.error = str(e)
+            else:  # (a fault of glossrt's: its traceback, here or raised by the constructor)
+                if self._checked.is_set():
+                    traceback.print_exc(file=sys.stderr)
+                self.error = f"the pipeline's construction failed: {type(e).__name__}: {e}"
+            self.error = " ".join(self.error.split())
+            if self._checked.is_set():  # (served: the panel says it)
+                self._set_message(f"error: {self.error}")
+                self._set_status("stopped: the pipeline's construction failed")
+                self._gui(lambda: setattr(self._progress_bar, "animated", False))
+            self._checked.set()
+            return False
+        self.pipe = pipe
+        return True
+
+    def _posed(self, setup) -> None:
+        """What the server and the panel need of the scene (its size, camera, movable
+        lights), from the render loop's thread; then the server may start."""
+        self.size = tuple(setup.size)
+        self._lights = self._light_rests(setup)
+        self._camera = self._scene_camera(setup)
+        self._up = np.asarray(setup.rest_camera, np.float64)[:3, 1]
+        self._checked.set()
+
+    def _show_progress(self, desc: str, done: int, total: int) -> None:
+        """A progress line of the pipeline's construction: in the status and the bar."""
+        self.progress = (desc, done, total)
+        self._set_status(f"building the pipeline: {desc} {done}/{total}")
+        value = 100.0 * min(done, total) / max(total, 1)
+        self._gui(lambda: setattr(self._progress_bar, "value", value))
+
     def _start_server(self, host: str, port: int) -> None:
         import viser
 
@@ -247,8 +440,7 @@ class Viewer:
                                             verbose=False)
         self.host = host
         self.port = int(self.server.get_port())
-        up = np.asarray(self.pipe.setup.rest_camera, np.float64)[:3, 1]
-        self.server.scene.set_up_direction(tuple(float(v) for v in up))
+        self.server.scene.set_up_direction(tuple(float(v) for v in self._up))
         # a client starts from (and its "Reset View" returns to) viser's initial camera: make
         # it the scene's, or the client reports viser's default camera as a move once the
         # page has loaded (seen under load in the browser tests)
@@ -259,16 +451,15 @@ class Viewer:
         init.look_at = cam.look_at
         self.server.on_client_connect(self._on_connect)
 
-    def _scene_camera(self) -> ViewerCamera:
-        s = self.pipe.setup
+    def _scene_camera(self, setup=None) -> ViewerCamera:
+        s = self.pipe.setup if setup is None else setup
         return from_pipeline(s.camera_matrix(0), s.current_fov, self.size,
                              pivot=s.look_at_point())
 
-    def _light_rests(self) -> dict[str, tuple[np.ndarray, float]]:
+    def _light_rests(self, setup) -> dict[str, tuple[np.ndarray, float]]:
         """The polygon lights that can move: shape id -> (rest centre, size)."""
         from ..lights.scene import polygon_lights
 
-        setup = self.pipe.setup
         movable = set(setup.movable_shapes())
         out = {}
         for light in polygon_lights(setup, 0, skip=True):
@@ -277,6 +468,11 @@ class Viewer:
                 c = v.mean(axis=0)
                 out[light.id] = (c, float(np.max(np.linalg.norm(v - c, axis=1))))
         return out
+
+    @property
+    def preset(self) -> str:
+        """The pipeline's preset (the one asked for while the pipeline is constructed)."""
+        return self._opts["preset"] if self.pipe is None else self.pipe.preset
 
     @property
     def url(self) -> str:
@@ -313,18 +509,28 @@ class Viewer:
         return gui.add_number(name, float(value))
 
     def _build_gui(self) -> None:
+        with self._gui_lock:  # (the loop's writes wait for the panel, then go to it)
+            self._add_widgets()
+            self._panel.set()
+
+    def _add_widgets(self) -> None:
         from ..pipeline import OPTIONS, PRESETS
 
         gui = self.server.gui
-        self._status_md = gui.add_markdown("**starting**")
-        self._message_md = gui.add_markdown("")
+        self._status_md = gui.add_markdown(f"**{self.status}**")
+        # the pipeline's construction (BSPVT's trees: its steps' progress), then hidden
+        done = self.progress[1] / max(self.progress[2], 1) if self.progress else 0.0
+        self._progress_bar = gui.add_progress_bar(100.0 * min(done, 1.0),
+                                                  animated=self.error is None,
+                                                  visible=self.last_image is None)
+        self._message_md = gui.add_markdown(self.message)
         self._stats_md = gui.add_markdown("")  # fps, stage ms, errors: at the top
         self._widgets: dict[str, Any] = {}
+        opts = self._opts if self.pipe is None else self.pipe.opts
         with gui.add_folder("Pipeline"):
             self._preset = gui.add_dropdown("preset", list(PRESETS),
-                                            initial_value=self.pipe.preset)
+                                            initial_value=opts["preset"])
             self._preset.on_update(self._on_preset)
-        opts = self.pipe.opts
         placed = {n for names in FOLDERS.values() for n in names}
         folders = dict(FOLDERS)
         folders["Parameters"] = tuple(n for n in OPTIONS if n not in placed)
@@ -484,13 +690,18 @@ class Viewer:
         self.inbox.post("record", frames)
 
     def wait(self, frames: int = 1, timeout: float = 60.0, until=None) -> bool:
-        """Wait until ``frames`` more frames were rendered (or ``until()`` is true)."""
+        """Wait until ``frames`` more frames were rendered (or ``until()`` is true); False
+        when ``timeout`` seconds passed first or the render loop ended. The first frame
+        comes after the pipeline's construction; an error of that raises here
+        (:class:`~glossrt.errors.GlossrtError`, :attr:`error`)."""
         start = self.stats["frames"]
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end and self._thread.is_alive():
             if (until() if until is not None else self.stats["frames"] >= start + frames):
                 return True
             time.sleep(0.02)
+        if self.error is not None:
+            raise GlossrtError(self.error) from self._build_exc
         return False
 
     def stop(self, timeout: float = 2.0, stop_server: bool = True) -> None:
@@ -543,18 +754,19 @@ class Viewer:
             return  # (every frame sets it: no GUI update, no repeats in the log)
         self.status = text
         self.status_log.append(text)
-        self._gui(setattr, self._status_md, "content", f"**{text}**")
+        self._gui(lambda: setattr(self._status_md, "content", f"**{text}**"))
 
     def _set_message(self, text: str) -> None:
         self.message = text
-        self._gui(setattr, self._message_md, "content", text)
+        self._gui(lambda: setattr(self._message_md, "content", text))
 
     def _gui(self, write, *args, **kwargs) -> None:
         """The render loop's every write to the panel or the scene: ``write(*args,
-        **kwargs)``, unless :meth:`stop` has begun (viser warns of, and never delivers, a
-        message queued after its server stopped; stop() waits for a write in progress)."""
+        **kwargs)``, once the panel exists (it is built from the state of the moment) and
+        unless :meth:`stop` has begun (viser warns of, and never delivers, a message queued
+        after its server stopped; stop() waits for a write in progress)."""
         with self._gui_lock:
-            if not self._stop.is_set():
+            if self._panel.is_set() and not self._stop.is_set():
                 write(*args, **kwargs)
 
     def _send_cameras(self, cam: ViewerCamera) -> None:
@@ -774,6 +986,11 @@ class Viewer:
 
     def _loop(self) -> None:
         try:
+            if not self._construct():
+                return
+            while not self._panel.wait(0.05):  # (the server starts meanwhile)
+                if self._stop.is_set():
+                    return
             self._frames()
         finally:
             self._meter.close()
@@ -820,6 +1037,8 @@ class Viewer:
         img = self._image(frame)
         self.last_frame, self.last_image = frame, img
         self._gui(self.server.scene.set_background_image, img, format="jpeg", jpeg_quality=90)
+        if self._progress_bar.visible:  # (the construction's, until the first image)
+            self._gui(setattr, self._progress_bar, "visible", False)
         self._captures(frame, actions)
         recorded = self.pipe.recordings() - rec0
         # the status first: once the stats show the new state, the status says so too
@@ -846,8 +1065,9 @@ def open(scene, pipeline: str = "full", size=(320, 180), host: str = "127.0.0.1"
 
 
 def serve(viewer: Viewer, timeout: float = 1.8, stop_server: bool = True) -> None:
-    """Block until Ctrl-C or SIGTERM, then stop ``viewer`` within ``timeout`` seconds (see
-    :meth:`Viewer.stop`)."""
+    """Block until Ctrl-C or SIGTERM (or the render loop ends: :attr:`Viewer.error` says
+    why when the pipeline's construction failed), then stop ``viewer`` within ``timeout``
+    seconds (see :meth:`Viewer.stop`)."""
     import signal
 
     done = threading.Event()
@@ -859,6 +1079,9 @@ def serve(viewer: Viewer, timeout: float = 1.8, stop_server: bool = True) -> Non
     try:
         while not done.wait(0.05) and viewer._thread.is_alive():
             pass
+        if viewer.error is not None and not done.is_set():
+            viewer.server.flush()  # (the panel's error on its way to the open pages)
+            done.wait(0.5)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
