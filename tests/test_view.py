@@ -78,6 +78,18 @@ def test_refused_change_keeps_the_previous_state(viewer):
     _settle(viewer, 1)  # still rendering
 
 
+def test_number_inputs_are_bounded_by_the_options_ranges(viewer):
+    from glossrt.pipeline.config import HELP, RANGES
+
+    for name in ("svgf_sigma_l", "ratio_spp", "seed", "lobe_kappa"):
+        if name not in viewer._widgets:
+            continue
+        w = viewer._widgets[name]
+        lo, hi, _ = RANGES[name]
+        assert (w.min, w.max) == (lo, hi), name
+        assert w.hint.startswith(HELP[name]), name
+
+
 def test_camera_from_the_browser_moves_the_pipeline(viewer):
     from glossrt.scenes import look_at
 

@@ -484,6 +484,7 @@ class Viewer:
     # -- the panel --------------------------------------------------------------------------
     def _widget(self, gui, name: str, value: Any):
         from ..pipeline import OPTIONS
+        from ..pipeline.config import HELP, RANGES, range_text
         from ..specaa import METHODS, parse_method
 
         kind = OPTIONS[name]
@@ -502,11 +503,18 @@ class Viewer:
             lo, hi, step = SLIDERS[name]
             return gui.add_slider(name, min=lo, max=hi, step=step,
                                   initial_value=float(min(max(value, lo), hi)))
+        # the option's range (glossrt.pipeline.config.RANGES) bounds the input; its line of
+        # help is the hint
+        lo, hi, _ = RANGES[name]
         if kind is int:
             init = 0 if value is None else int(value)
-            return gui.add_number(name + (" (0: scene's)" if name == "max_depth" else ""),
-                                  init, step=1)
-        return gui.add_number(name, float(value))
+            if name == "max_depth":  # (0: the scene's; -1: no limit)
+                return gui.add_number(name + " (0: scene's)", init, min=-1, max=int(hi),
+                                      step=1, hint=HELP[name])
+            return gui.add_number(name, init, min=int(lo), max=int(hi), step=1,
+                                  hint=HELP[name])
+        return gui.add_number(name, float(value), min=float(lo), max=float(hi),
+                              hint=f"{HELP[name]}; {range_text(name)}")
 
     def _build_gui(self) -> None:
         with self._gui_lock:  # (the loop's writes wait for the panel, then go to it)
