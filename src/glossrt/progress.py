@@ -4,11 +4,29 @@ last line)."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
+import threading
 import time
+from collections.abc import Callable, Iterator
 
 #: seconds after which a bar off a terminal writes a line at its next update, quarter or not
 LINE_EVERY = 3.0
+
+_local = threading.local()
+
+
+@contextlib.contextmanager
+def observe(show: Callable[[str, int, int], None], quiet: bool = False) -> Iterator[None]:
+    """Within the block, every :class:`Progress` update made by this thread also calls
+    ``show(desc, done, total)`` (a GUI's progress bar); ``quiet``: those bars write nothing to
+    their stream. Exceptions of ``show`` are ignored: a display never stops the work."""
+    old = getattr(_local, "observer", None)
+    _local.observer = (show, quiet)
+    try:
+        yield
+    finally:
+        _local.observer = old
 
 
 class Progress:
@@ -27,6 +45,12 @@ class Progress:
 
     def update(self, done: int) -> None:
         self.done = min(int(done), self.total)
+        observer = getattr(_local, "observer", None)
+        if observer is not None:
+            with contextlib.suppress(Exception):
+                observer[0](self.desc, self.done, self.total)
+            if observer[1]:
+                return
         if not self.enabled:
             return
         frac = self.done / self.total
@@ -51,7 +75,8 @@ class Progress:
         self.update(done)
 
     def close(self) -> None:
-        if self.enabled and self.tty:
+        observer = getattr(_local, "observer", None)
+        if self.enabled and self.tty and not (observer is not None and observer[1]):
             self.stream.write("\n")
             self.stream.flush()
 

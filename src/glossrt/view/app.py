@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import progress
 from ..errors import GlossrtError
 from . import layers
 from .camera import ViewerCamera, from_pipeline, gizmo_matrix, to_pipeline
@@ -215,53 +216,6 @@ def _slug(text: str) -> str:
 
 
 #: a line of :class:`glossrt.progress.Progress` (on a terminal or not): description, done, total
-_PROGRESS_LINE = re.compile(
-    r"\r?(?P<desc>[^\r\n:]+): (?:\[[# ]*\] )?(?P<done>\d+)/(?P<total>\d+)\b")
-
-
-class _ProgressTap:
-    """Stands in for ``sys.stderr`` while the render loop's thread constructs the pipeline:
-    that thread's progress lines (:class:`glossrt.progress.Progress`, e.g. BSPVT's trees)
-    are passed to ``show(desc, done, total)`` (the panel) and on to the stream only when
-    ``forward``; every other write passes through unchanged."""
-
-    def __init__(self, stream, show, forward: bool) -> None:
-        self._stream = stream
-        self._show = show
-        self._forward = forward
-        self._thread = threading.get_ident()
-        self._swallowed = False  # the last write of the thread was a progress line not passed on
-
-    def write(self, text: str) -> int:
-        if threading.get_ident() == self._thread:
-            m = _PROGRESS_LINE.match(text)
-            if m is not None:
-                try:
-                    self._show(m["desc"].strip(), int(m["done"]), int(m["total"]))
-                except Exception:  # noqa: BLE001 - the panel's trouble never stops the build
-                    pass
-                if not self._forward:
-                    self._swallowed = True
-                    return len(text)
-            elif self._swallowed and text == "\n":  # (a bar's end on a terminal)
-                self._swallowed = False
-                return len(text)
-        return self._stream.write(text)
-
-    def __getattr__(self, name: str):
-        return getattr(self._stream, name)
-
-    def __enter__(self) -> _ProgressTap:
-        sys.stderr = self
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if sys.stderr is self:  # (left alone if someone replaced it meanwhile)
-            sys.stderr = self._stream
-        self._show = lambda *a: None  # (a Progress made meanwhile may keep this stream)
-        self._forward = True
-
-
 class Viewer:
     """A live view of a frame pipeline in the browser. Start with :func:`open`; stop with
     :meth:`stop` (or use it as a context manager).
@@ -384,7 +338,7 @@ class Viewer:
                 return plan
 
         try:
-            with DRJIT_LOCK, _ProgressTap(sys.stderr, self._show_progress, self.verbose):
+            with DRJIT_LOCK, progress.observe(self._show_progress, quiet=not self.verbose):
                 setup = load(scene, size=size, params=params)
                 pipe = _Checked(setup, preset=preset, progress=True, bspvt=bspvt,
                                 bspvt_cache=self._bspvt_cache, **choices)
