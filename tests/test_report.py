@@ -226,3 +226,28 @@ def test_montage_writes_a_grid_without_switching_the_backend(tmp_path):
     assert out == tmp_path / "m.png"
     assert mpimg.imread(out).shape[:2] == (150, 200)
     assert matplotlib.get_backend() == before
+
+
+def test_progress_observer_sees_this_threads_bars_and_can_quiet_them():
+    import io
+    import threading
+
+    from glossrt import progress
+
+    seen, out = [], io.StringIO()
+
+    def other_thread():  # another thread's bars are not observed
+        with progress.Progress(2, "other", stream=out) as p:
+            p.update(2)
+
+    with progress.observe(lambda *a: seen.append(a), quiet=True):
+        with progress.Progress(4, "trees", stream=out) as p:
+            p.update(3)
+        t = threading.Thread(target=other_thread)
+        t.start()
+        t.join()
+    assert seen == [("trees", 0, 4), ("trees", 3, 4)]
+    assert "trees" not in out.getvalue() and "other: 2/2" in out.getvalue()
+    with progress.Progress(4, "after", stream=out) as p:  # outside the block: as before
+        p.update(4)
+    assert "after: 4/4" in out.getvalue() and len(seen) == 2
