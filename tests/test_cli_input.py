@@ -30,6 +30,8 @@ def _readme_commands() -> list[str]:
     lines, cur = [], ""
     for raw in "\n".join(blocks).splitlines():
         line = raw.split("#", 1)[0].rstrip()
+        if line.endswith(" &"):  # (the shell runs it in the background)
+            line = line[:-2].rstrip()
         if cur:
             cur += " " + line.strip()
         elif line.startswith("glossrt "):
