@@ -9,7 +9,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.glossrt-installed
 DEMO_OUT ?= demo-out
 
-.PHONY: demo test view llvm chromium bench clean-venv
+.PHONY: demo test check view llvm chromium bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -25,8 +25,13 @@ llvm: $(STAMP)
 chromium:
 	@bash scripts/ensure-chromium.sh
 
+# the whole suite (what CI runs), the 25 slowest tests listed at the end
 test: llvm chromium
-	bash scripts/run-tests.sh $(BIN)/python
+	bash scripts/run-tests.sh $(BIN)/python --durations=25
+
+# the quick tier for the inner loop: every test not marked slow (docs/TESTING.md)
+check: llvm
+	bash scripts/run-tests.sh $(BIN)/python -m "not slow"
 
 # the live viewer on the built-in polygon-light scene: open the URL it prints; Ctrl-C stops
 VIEW_SCENE ?= polygon-light

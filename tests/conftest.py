@@ -20,7 +20,25 @@ from glossrt import backend  # noqa: E402
 VARIANT = backend.use()
 
 
+#: whole files in the slow tier (docs/TESTING.md; `make check` runs ``-m "not slow"``): the
+#: ones that start processes (CLI runs, Ray, viewers, browsers), render end to end or at paper
+#: scale; single heavy tests elsewhere carry ``@pytest.mark.slow`` themselves
+SLOW_FILES = frozenset({
+    "test_any_scene.py", "test_bspvt_cache.py", "test_bspvt_paper_scale.py", "test_cli.py",
+    "test_cluster.py", "test_cluster_builds.py", "test_cluster_docs.py", "test_cluster_gpus.py",
+    "test_cluster_scenes.py", "test_experiment_cluster.py", "test_fig7_upsampling.py",
+    "test_harness.py", "test_import_side_effects.py", "test_lobes_paper_scale.py",
+    "test_pipeline_experiment.py", "test_readme.py", "test_references_cache.py",
+    "test_screenshot.py", "test_specaa_paper_scale.py", "test_view.py", "test_view_browser.py",
+    "test_view_meter.py", "test_view_start.py", "test_view_stop.py", "test_view_unit.py",
+})
+
+
 def pytest_collection_modifyitems(config, items):
+    slow = pytest.mark.slow
+    for item in items:
+        if item.path.name in SLOW_FILES:
+            item.add_marker(slow)
     if VARIANT == backend.GPU_VARIANT:
         return
     skip = pytest.mark.skip(reason="needs a CUDA device")

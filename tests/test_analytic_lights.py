@@ -127,6 +127,7 @@ def ggx_conductor_np(wo, wi, n, alpha, eta, k) -> np.ndarray:
 # -- (a) diffuse shading against Mitsuba ---------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("light", [POINT, DIRECTIONAL], ids=["point", "directional"])
 def test_lambertian_floor_matches_mitsuba(light):
     setup = setup_of(floor_scene(light))
@@ -221,6 +222,7 @@ def test_moving_light_reuses_kernels():
 # -- (b) point light given by position or to_world ----------------------------------------
 
 
+@pytest.mark.slow
 def test_point_light_position_or_to_world():
     base = {"intensity": {"type": "rgb", "value": [1.0, 2.0, 3.0]}}
     by_pos = setup_of(floor_scene({"type": "point", "position": [0.4, -0.3, 1.2], **base}))

@@ -280,6 +280,7 @@ def roughness_map():
     return mse
 
 
+@pytest.mark.slow
 def test_roughness_map_both_filters_reduce_error(roughness_map):
     assert roughness_map["normal"] < 0.5 * roughness_map["input"]
     assert roughness_map["lobe"] < 0.5 * roughness_map["input"]

@@ -47,6 +47,7 @@ def _uneven_items(n: int, **settings) -> list[dict]:
     return [dict(template, start=a, stop=b) for a, b in cuts]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("settings", [{}, {"max_leaves": 3}])
 def test_uneven_chunks_in_any_order_give_the_monolithic_trees(monolithic, settings):
     mono = monolithic if not settings else build_scene_trees(
@@ -65,6 +66,7 @@ def test_uneven_chunks_in_any_order_give_the_monolithic_trees(monolithic, settin
         assert _same_bytes(getattr(chunked, k), getattr(mono, k)), k
 
 
+@pytest.mark.slow
 def test_a_chunk_in_a_fresh_process_equals_the_chunk_here(tmp_path, monolithic):
     item = _uneven_items(monolithic.vertex_count)[0]
     item = dict(item, start=300, stop=340)

@@ -336,6 +336,7 @@ def test_all_invisible_is_zero():
     assert st["pieces"] == 0 and st["live"] > 0  # leaves of value 0 are dropped unintegrated
 
 
+@pytest.mark.slow
 def test_half_plane_and_random_trees_match_brute_force():
     """A single line per face (half-plane visibility) and random multi-level trees with leaf
     values in {0, 1, uniform}: == the brute-force reference within its error bound + float32
@@ -546,6 +547,7 @@ def test_shade_vertices_against_unshadowed_formulas():
     np.testing.assert_allclose(s4, 0.4 * spec, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_deep_chain_tree():
     """A chain of 21 vertical lines on the +Z face, each with a lit leaf on its left and the
     rest of the chain on its right: the fused traversal holds 21 leaf pieces on its stack at

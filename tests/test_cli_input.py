@@ -408,6 +408,7 @@ def test_huge_size_is_refused_by_its_memory_estimate(tmp_path, capsys):
         assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_memory_estimate_covers_a_measured_render(tmp_path):
     """Peak resident memory of a real render (a fresh process) against the estimate: the
     estimate must cover it and not be more than 3x above it. The peak is the process' own

@@ -299,6 +299,7 @@ def test_polygon_integral_takes_the_distribution():
         polygon_integral(quad, n, wo, 0.3, distribution="phong")
 
 
+@pytest.mark.slow
 def test_anisotropic_materials_are_refused_by_name(tmp_path):
     """The isotropic methods (LTC and what builds on it, highlights, specular antialiasing)
     refuse anisotropic lobes: the library from the frame's ``meta["anisotropic"]``, the CLI
@@ -691,6 +692,7 @@ def test_ratio_estimator_matches_mitsuba_direct():
     assert err <= 0.24
 
 
+@pytest.mark.slow
 def test_highlights_against_mitsuba_direct():
     """The converged highlight estimate through the light map (GGX, the pixel's own lobe)
     against Mitsuba's direct integrator on light-shapes with the spheres' diffuse reflectance

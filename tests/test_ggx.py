@@ -212,6 +212,7 @@ def test_interpolation_error_within_documented_bounds(table: ggx.SpecularAlbedoT
     assert np.all(err <= interp_bound(mu, alpha) + 5e-5), err.max()
 
 
+@pytest.mark.slow
 def test_table_matches_independent_uniform_mc(table: ggx.SpecularAlbedoTable) -> None:
     """(a) E(mu, alpha, F0) for random off-grid inputs and RGB F0 against plain Monte Carlo with
     uniform hemisphere sampling of wi (pdf 1/(2 pi)) of F D G1(wo) G1(wi) / (4 cos_o)."""

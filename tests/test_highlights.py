@@ -76,6 +76,7 @@ def quadrature(frame, maps, f0, alpha, pix, n_delta=1500, n_theta=360):
     return ((wgt * fres * g)[..., None] * env).sum((0, 1))
 
 
+@pytest.mark.slow
 def test_estimator_matches_quadrature():
     alpha = 0.2
     f, lights, maps, f0 = setup_plane(alpha)
@@ -119,6 +120,7 @@ def test_culling_drops_only_dark_pixels():
     assert np.abs(a - b).sum() <= 0.02 * b.sum()
 
 
+@pytest.mark.slow
 def test_ggx_converges_to_the_brdf_lit_by_a_small_light():
     """A 4 x 4 quad at distance 20 (11 degrees) on alpha 0.3 GGX: the GGX reference of the
     environment (unfiltered) agrees with the point-light shading of the same BRDF: in the
@@ -147,6 +149,7 @@ def test_bad_options():
         HighlightRenderer(samples=0)
 
 
+@pytest.mark.slow
 def test_cli_highlight(tmp_path):
     from glossrt.cli import main
 
@@ -157,6 +160,7 @@ def test_cli_highlight(tmp_path):
         assert (out / "frame_0000.exr").exists()
 
 
+@pytest.mark.slow
 def test_frozen_path_matches_the_traced_one():
     """``frozen=True`` (one dr.freeze'd kernel, per-pixel roughness) gives the traced
     estimator's result (hash samples, no culling) on every frame of a moving camera, and

@@ -38,6 +38,7 @@ def _z(a, b):
     return (a.mean(0) - b.mean(0))[ok] / np.sqrt(se2[ok]), (a.mean(0) == b.mean(0))[~ok]
 
 
+@pytest.mark.slow
 def test_aov_layout(renders):
     ours = renders[0][0]
     n = 3 + sum(len(c) for _, c in AOV_LAYERS)
@@ -95,6 +96,7 @@ def _along_axis(pos, to_world):
     return (pos - m[:3, 3]) @ (m[:3, 2] / np.linalg.norm(m[:3, 2]))
 
 
+@pytest.mark.slow
 def test_depth_is_measured_from_the_posed_camera():
     """On a later frame of an orbiting camera the depth AOV is the distance along the posed
     camera's axis (it was measured from scene.sensors()[0], the rest pose: right on frame 0,
@@ -124,6 +126,7 @@ def _one_sphere_scene(bsdf: dict) -> mi.Scene:
     })
 
 
+@pytest.mark.slow
 def test_a_new_scene_at_a_freed_scenes_address_gets_its_own_tables(monkeypatch):
     """The plugin kept its shape/emitter tables in a dict keyed by id(scene): a new scene that
     CPython put at a freed scene's address (measured: within ~20 new scenes, but not every

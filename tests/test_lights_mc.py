@@ -207,6 +207,7 @@ def _mitsuba_direct_at_centres(setup, spp: int) -> np.ndarray:
                     -1).reshape(h, w, 3)
 
 
+@pytest.mark.slow
 def test_diffuse_surface_gets_no_specular_at_grazing_light():
     """On a plain ``diffuse`` plane under a grazing quad light, the Monte Carlo reference and
     LTC with the materials' Fresnel terms (``fresnel_image``, the CLI's and the pipeline's

@@ -54,6 +54,7 @@ def _positive_finite(values) -> bool:
     return bool(np.all(np.isfinite(a)) and np.all(a > 0))
 
 
+@pytest.mark.slow
 def test_fig4_table_and_images(r4):
     assert list(r4.mse) == list(le.FIG4_METHODS)
     for table in (r4.mse, r4.mse_sharp, r4.mse_rough):
@@ -78,6 +79,7 @@ def test_fig4_table_and_images(r4):
     assert all(md[2 + k].startswith(f"| {m} |") for k, m in enumerate(le.FIG4_METHODS))
 
 
+@pytest.mark.slow
 def test_fig5_spheres_and_errors(r5):
     from glossrt.scenes.library import phong_to_alpha
 
@@ -97,6 +99,7 @@ def test_fig5_spheres_and_errors(r5):
     assert "s=1000" in md[0] and "s=10 " in md[0]
 
 
+@pytest.mark.slow
 def test_fig6_optima_are_the_argmins_of_the_curves(r6):
     r, calls = r6
     n = len(BETAS)

@@ -29,6 +29,7 @@ from glossrt.lights.quadrature import polygon_quadrature  # noqa: E402
 from test_lights_mc import QUAD_DOWN, Light, lambert, plane_frame  # noqa: E402
 
 
+@pytest.mark.slow
 def test_polygon_integral_against_quadrature():
     """600 random one-sided quads and triangles (views up to 87 degrees, alpha ~0.1-1):
     relative error statistics are printed (docs/RESULTS.md). Asserted: the rigorous bound of
@@ -139,6 +140,7 @@ def test_prefiltered_texture_levels():
         PrefilteredTexture(img * np.nan)
 
 
+@pytest.mark.slow
 def test_frozen_shading_replays_the_moving_light():
     """``frozen=True`` (dr.freeze) gives the traced result bit for bit on every frame of the
     moving light and the moving G-buffer, recording once (new light positions are inputs, not
@@ -162,6 +164,7 @@ def test_frozen_shading_replays_the_moving_light():
     assert ltc._shade_frozen.n_recordings - before <= 1
 
 
+@pytest.mark.slow
 def test_textured_light_is_finite_on_its_own_pixels():
     """Pixels on the textured light itself (shading point on the light's plane) get 0 from
     it, not NaN (the texture lookup has no direction there)."""

@@ -327,6 +327,7 @@ def _lobe_polygon_errors(shipped, j, i, n_quads=12, seed=0):
     return np.array(errs), np.array(masses)
 
 
+@pytest.mark.slow
 def test_ltc_reproduces_lobe_over_polygons(shipped):
     """The shipped LTC and the normalised lobe give each polygon nearly the same mass.
 
@@ -594,6 +595,7 @@ def test_main_writes_a_small_table(tmp_path):
     assert t.n_r == t.n_u == 3
 
 
+@pytest.mark.slow
 def test_cli_fits_a_beckmann_table(tmp_path):
     """``glossrt ltc-fit --distribution beckmann`` writes a Beckmann table (the norm at
     normal incidence of the roughest row is Beckmann's, not GGX's albedo)."""

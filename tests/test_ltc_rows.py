@@ -60,6 +60,7 @@ def reference():
     return out
 
 
+@pytest.mark.slow
 def test_fit_table_by_rows_equals_the_cell_order_fit(reference):
     table = ltc_fit.fit_table(SIZE, progress=False, fit_samples=FIT, moment_samples=MOMENTS)
     for k in KEYS:
@@ -68,6 +69,7 @@ def test_fit_table_by_rows_equals_the_cell_order_fit(reference):
     assert reference["nfev"][:, 1:].sum() > 10 * SIZE  # the rows did real work
 
 
+@pytest.mark.slow
 def test_a_row_fitted_in_a_fresh_process_equals_the_reference_row(tmp_path, reference):
     j = 3
     alpha, cos_o, mo = _moments()

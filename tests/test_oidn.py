@@ -59,6 +59,7 @@ def _with(frame: Frame, drop: tuple[str, ...] = (), **replace: np.ndarray) -> Fr
 # -- OIDN ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @needs_oidn
 def test_oidn_reduces_rmse_against_reference(rendered):
     _, frame, ref = rendered

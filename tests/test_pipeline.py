@@ -153,6 +153,7 @@ def test_analytic_direct_leaves_the_lights_out_of_the_primary_hit():
     assert f.numpy("direct").mean() > 0.05
 
 
+@pytest.mark.slow
 def test_ltc_composition_equals_the_converged_path_traced_image():
     """direct=ltc (unshadowed) on a scene without occluders: the converged composed image
     (path tracing with the light excluded at the primary hit, accumulated, plus LTC) equals

@@ -41,6 +41,7 @@ def _composed(setup, direct: str, **kw):
     return f
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["vertex", "pixel"])
 def test_ltc_bspvt_composition_is_within_ltc_plus_bspvt_error(static_scene, mode):
     """Composed = emission + BSPVT direct (B) + the path tracer's light with the polygon light

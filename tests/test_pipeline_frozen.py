@@ -24,6 +24,7 @@ def bspvt_pipe(request):
     return pipe
 
 
+@pytest.mark.slow
 def test_frozen_bspvt_matches_traced_and_keeps_recordings(bspvt_pipe):
     from glossrt.lights.bspvt import shade_bspvt
     from glossrt.lights.scene import polygon_lights
@@ -79,6 +80,7 @@ def test_timing_every_n_frames_adds_no_recordings(bspvt_pipe):
     pipe.timing_every = 8
 
 
+@pytest.mark.slow
 def test_textured_light_prefiltered_once_across_frames():
     """light-shapes' textured light: polygon_lights reads a new texture array every frame;
     the direct stage keeps one prefiltered mip chain for the same texels (before: one build
@@ -93,6 +95,7 @@ def test_textured_light_prefiltered_once_across_frames():
     assert len(direct._textures) == 1 and len(direct._stable) == 1
 
 
+@pytest.mark.slow
 def test_oidn_time_counted_in_its_stage():
     """``indirect=oidn`` filters on the host, where Dr.Jit's kernel history sees nothing: the
     stage's ``stage_ms`` (``timing="kernels"``) holds the filter's own time

@@ -21,6 +21,7 @@ def _literal(t) -> bool:
     return t.array.state == dr.VarState.Literal
 
 
+@pytest.mark.slow
 def test_zero_channels_are_zero_in_a_full_trace_and_hold_no_buffer():
     """The channels :meth:`Renderer.zero_channels` declares 0 (``indirect_*`` at path depth
     2, ``direct_*`` with every emitter excluded at the primary hit; both at depth 1) are 0
@@ -54,6 +55,7 @@ def test_zero_channels_are_zero_in_a_full_trace_and_hold_no_buffer():
     assert render.Renderer(setup).zero_channels() == ()
 
 
+@pytest.mark.slow
 def test_omit_leaves_channels_out_and_refuses_unknown_names():
     setup = scenes.load("polygon-light", size=(16, 12))
     r = render.Renderer(setup)
@@ -77,6 +79,7 @@ def test_tile_rows_and_starts():
     assert starts == [0, 7, 14, 21, 23]  # the last tile ends on the last row
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["plain", "jitter+roughness+exclude"])
 def test_tiled_frame_equals_the_untiled_and_the_traced_one(case):
     """7-row tiles of a 40x30 frame (the last one overlapping the one before) against the
@@ -109,6 +112,7 @@ def test_tiled_frame_equals_the_untiled_and_the_traced_one(case):
     assert whole._tile_frozen.n_recordings == 0
 
 
+@pytest.mark.slow
 def test_tiles_count_every_nonfinite_sample_once():
     """An infinite sky makes every background sample non-finite (replaced by 0 and counted):
     the overlapping last tile must not count its shared rows twice (the count of the frame
@@ -147,6 +151,7 @@ def _pipe(tile_pixels: int | None, size=(64, 36)):
     return pipe
 
 
+@pytest.mark.slow
 def test_full_pipeline_tiled_equals_untiled_and_keeps_the_schema():
     """``full`` (indirect at 1/2 resolution, every polygon light analytic) with 5-row tiles
     in both G-buffer renderers against the untiled pipeline: every layer and channel equal

@@ -54,6 +54,7 @@ def test_probe_maps_equal_the_single_map_renderer():
         np.testing.assert_allclose(data[m], want, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_steady_frames_build_no_maps_and_a_moved_light_rebuilds_them():
     """Light held still by set_transform: one build in four frames, one recording of the
     shading kernel. Moving the light rebuilds the maps once; its direct layer then equals a
@@ -137,6 +138,7 @@ def _model_reference(lights, p, n, v, ratio, n_u=192, n_theta=48):
     return ((g * fr)[..., None] * _ray_lights(lights, p, l)).mean((0, 1))
 
 
+@pytest.mark.slow
 def test_probe_grid_brings_the_floor_to_the_per_pixel_reference():
     """polygon-light's floor (6 m, 2 m under the light), frame 0: relative L1 error of the
     highlights (4 hash samples x 32 frames) against the per-pixel model reference at 120
@@ -177,6 +179,7 @@ def test_probe_grid_brings_the_floor_to_the_per_pixel_reference():
     assert errs[DEFAULTS["highlight_probes"]] < 0.45
 
 
+@pytest.mark.slow
 def test_probe_grid_brings_ggx_highlights_to_monte_carlo():
     """The same on the GGX variant (the pixel's own lobe, visible normals + filtered
     importance sampling through the maps) against glossrt's Monte Carlo direct light (light

@@ -96,6 +96,7 @@ def test_lobe_beta_beyond_its_range_is_refused_not_an_overflow():
 # The filters' float32 arithmetic at the ends of their ranges: every composed value finite,
 # and the image not black (the default's mean within a factor of 3; a 1e39 sigma gave 0,
 # a 1e39 kappa NaN in 2878 of 3072 pixels).
+@pytest.mark.slow
 @pytest.mark.parametrize("preset,names", [
     ("schied2017", ("svgf_sigma_z", "svgf_sigma_n", "svgf_sigma_l")),
     ("tokuyoshi2015", ("lobe_beta", "lobe_kappa")),
@@ -243,6 +244,7 @@ def test_presets_lists_every_preset_and_option_with_range_and_default(capsys):
         assert "svgf_sigma_l = (0, 10000]  (default 4)" in text
 
 
+@pytest.mark.slow
 def test_the_example_pipeline_file_loads_and_renders(tmp_path):
     example = ROOT / "examples" / "pipeline.toml"
     preset, choices = load_toml(example)

@@ -26,6 +26,7 @@ def test_tile_pixels_checked():
         SpatioTemporalUpsampler(tile_pixels=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("weight", ["lobe", "normal"])
 def test_tiled_upsampler_equals_untiled(weight):
     """Five frames (history, moving jitter) of the frozen upsampler with 5-row tiles (the

@@ -20,6 +20,7 @@ def test_bad_filter_options_are_one_line(kw, msg):
         resolve("full", **kw)
 
 
+@pytest.mark.slow
 def test_filter_options_reach_the_filters_and_change_the_image():
     pipe = Pipeline("polygon-light", preset="tokuyoshi2015", size=(48, 28), progress=False)
     ind = pipe.stages["indirect"]
@@ -38,6 +39,7 @@ def test_filter_options_reach_the_filters_and_change_the_image():
     assert np.abs(a - b).mean() > 1e-3 * np.abs(a).mean()
 
 
+@pytest.mark.slow
 def test_highlight_distribution_reaches_the_renderer():
     pipe = Pipeline("polygon-light", preset="kimura-tokoi", size=(32, 18), progress=False,
                     highlight_probes=1, highlight_distribution="ggx")

@@ -36,6 +36,7 @@ CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset,scene,choices", CASES,
                          ids=[f"{p}-{s}-{i}" for i, (p, s, _) in enumerate(CASES)])
 def test_fewest_outputs_same_color(preset, scene, choices):
@@ -60,6 +61,7 @@ def test_fewest_outputs_same_color(preset, scene, choices):
         assert a.meta["pipeline"]["outputs"] == "all"
 
 
+@pytest.mark.slow
 def test_chosen_outputs_same_values():
     """A choice of layers and G-buffer channels: exactly those (and ``color``), each equal
     to the frame that keeps everything; changing the outputs between frames keeps the
@@ -91,6 +93,7 @@ def test_outputs_refused():
     assert pipe.outputs == ("color", "direct")
 
 
+@pytest.mark.slow
 def test_fewest_outputs_lower_peak():
     """The memory the marked outputs save, measured with Dr.Jit's allocator (``full`` at
     128x96 on polygon-light, ``release_memory``, steady frames of one pipeline whose outputs
@@ -172,6 +175,7 @@ def test_bspvt_vertex_mode_needs_no_material_image():
     assert lazy._fn.n_recordings == 1
 
 
+@pytest.mark.slow
 def test_liveness_frees_after_last_reader():
     """What each stage of ``full`` finds in the context with ``color`` only: the low frame
     without the channels its stage does not read (emission, position) and gone after the
@@ -203,6 +207,7 @@ def test_liveness_frees_after_last_reader():
     assert keys == {"frame", "composite"} and names == {"mesh_id", "motion"}
 
 
+@pytest.mark.slow
 def test_render_cli_outputs(tmp_path, capsys):
     """``glossrt render --pipeline P --outputs NAMES`` writes only those channels (and
     color), the same values as a render that keeps everything; a bad name, or --outputs

@@ -52,6 +52,7 @@ def _assert_same(a, b, skip=()):
             np.testing.assert_array_equal(a.numpy(n), b.numpy(n), err_msg=n)
 
 
+@pytest.mark.slow
 def test_moved_point_light_equals_the_scene_loaded_with_it_there():
     """Frame 2 with the lamp moved by set_transform (a translation by exact binary
     fractions, so the moved position is the same float32 as the loaded one) is the frame 2
@@ -80,6 +81,7 @@ def test_moved_point_light_equals_the_scene_loaded_with_it_there():
     _assert_same(moved.render(2), rest[2])
 
 
+@pytest.mark.slow
 def test_rotated_point_light_and_the_accumulation_restarts():
     """A rotation about a point moves the lamp to R (p - c) + c (an isotropic light has no
     orientation): the converged frame equals the scene loaded there (float rounding of the

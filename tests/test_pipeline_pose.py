@@ -30,6 +30,7 @@ def _assert_same_frames(a, b, skip=()):
 # -- explicit poses against the animation ------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene,orbit,preset,choices,moving", [
     # camera path + a moving analytic sphere; path-traced light, SVGF, TAA
     ("glossy-cornell", None, "schied2017", {}, ("sphere",)),
@@ -90,6 +91,7 @@ def _light_scene(light_to_world, size=(32, 24)):
     }
 
 
+@pytest.mark.slow
 def test_moved_polygon_light_equals_the_scene_built_with_it_there():
     """set_transform moves a polygon light for the analytic direct stage (LTC) and for the
     path tracer (camera-visible emission, the light at deeper bounces): the converged
@@ -212,6 +214,7 @@ def no_builds(monkeypatch):
     monkeypatch.setattr(stages, "_TREES", {})
 
 
+@pytest.mark.slow
 def test_prebuilt_tree_file_is_used(tree_file, no_builds):
     pipe = pipeline.Pipeline("polygon-light", preset="okuno-iwasaki", size=SMALL,
                              progress=False, bspvt=tree_file)  # bspvt_resolution 32: unused
@@ -228,6 +231,7 @@ def test_prebuilt_tree_file_is_used(tree_file, no_builds):
     assert np.abs(g.numpy("direct") - f.numpy("direct")).max() > 0.01
 
 
+@pytest.mark.slow
 def test_tree_file_of_another_scene_is_refused_before_any_work(tree_file, no_builds,
                                                                  tmp_path):
     from glossrt.cli import main
@@ -251,6 +255,7 @@ def test_tree_file_of_another_scene_is_refused_before_any_work(tree_file, no_bui
     assert Frame.load(out / "frame_0000.exr").meta["pipeline"]["bspvt"]["trees"] == tree_file
 
 
+@pytest.mark.slow
 def test_tree_file_of_another_scene_is_refused_where_full_would_not_use_trees(
         tree_file, no_builds, tmp_path, capsys):
     """light-shapes has no mesh fine enough for BSPVT's trees, so ``full`` (direct=auto)
@@ -280,6 +285,7 @@ def test_tree_file_of_another_scene_is_refused_where_full_would_not_use_trees(
     assert not (tmp_path / "c").exists()
 
 
+@pytest.mark.slow
 def test_built_trees_are_cached_by_geometry(tmp_path, monkeypatch):
     """In memory: a second pipeline on the same geometry builds nothing; on disk
     (bspvt_cache): a new process (the memory cache emptied) reads them back; moving an
@@ -305,6 +311,7 @@ def test_built_trees_are_cached_by_geometry(tmp_path, monkeypatch):
     assert stages.geometry_key(setup.scene, BSPVT_RES) != key
 
 
+@pytest.mark.slow
 def test_moving_an_occluder_under_bspvt(tree_file, no_builds):
     """Under direct=ltc+bspvt, moving an occluder makes its polygon lights take the ratio
     estimator while it is away (the meta says which and why) and BSPVT again when it

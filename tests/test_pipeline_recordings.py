@@ -37,6 +37,7 @@ COARSE = {"bspvt_resolution": 8}  # BSPVT's trees build in a second
 # -- the pipeline: no recording after the warm-up ------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("preset", "scene"), [("full", "polygon-light"),
                                                ("schied2017", "glossy-cornell")])
 def test_steady_frames_and_moves_add_no_recording(preset, scene):

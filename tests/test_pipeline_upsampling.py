@@ -35,6 +35,7 @@ def converged():
     return setup, ref, pipe, gb, low
 
 
+@pytest.mark.slow
 def test_low_resolution_tracing(converged):
     """The full-resolution renderer traces no indirect light (the primary hit's light
     alone, within the scene's depth), the low one traces it at 1/2 the size with no direct
@@ -91,6 +92,7 @@ def test_upsampled_indirect_against_the_converged_reference(converged):
     assert abs(out[hit].mean() - target[hit].mean()) < 0.05 * target[hit].mean()
 
 
+@pytest.mark.slow
 def test_tokuyoshi2015_preset_layers_add_up_and_steady_frames_replay():
     pipe = pipeline.Pipeline("polygon-light", preset="tokuyoshi2015", size=(32, 24),
                              progress=False)
@@ -113,6 +115,7 @@ def test_tokuyoshi2015_preset_layers_add_up_and_steady_frames_replay():
     pipe.render(10)
 
 
+@pytest.mark.slow
 def test_resample_and_normal_weights_run():
     pipe = pipeline.Pipeline("polygon-light", preset="full", size=(32, 24), progress=False,
                              bspvt_resolution=8, upsampling="joint-bilateral",
@@ -147,6 +150,7 @@ def test_scale_that_does_not_divide_the_size_is_refused(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_frozen_upsamplers_equal_unfrozen_with_a_moving_camera():
     """The pipeline's frozen upsamplers (camera terms and jitter opaque inputs) give the
     unfrozen path's result to float32 rounding on every frame of a moving camera, and steady

@@ -291,6 +291,7 @@ def quadrature(random_set):
 # ------------------------------------------------------------------------------ clipping
 
 
+@pytest.mark.slow
 def test_clip_matches_reference_sutherland_hodgman(random_set):
     polys, ks, _ = random_set
     sel = slice(0, 600)
@@ -340,6 +341,7 @@ def test_clip_special_cases():
 # ------------------------------------------------------------------------------ Monte Carlo
 
 
+@pytest.mark.slow
 def test_random_polygons_vs_monte_carlo(random_set):
     """3000 random convex polygons (3 to 8 vertices, ~40 % straddling the horizon), 8192
     cosine-distributed directions each: exact binomial p-values of the hit counts under the
@@ -393,6 +395,7 @@ def test_atan2_accuracy_assumed_by_the_bound():
     assert rel.max() < 14.0
 
 
+@pytest.mark.slow
 def test_accuracy_vs_quadrature(random_set, quadrature):
     """float32 results against float64 quadrature. Bounds from the error analysis: robust
     form, :func:`robust_bound` per polygon (<= 16 eps absolute); exact form, acos near 1 has an

@@ -48,6 +48,7 @@ def _check_exclude_all(setup, spp):
         assert "primary_exclude" not in a.meta
 
 
+@pytest.mark.slow
 def test_excluding_every_emitter_removes_direct_light_only():
     """glossy-cornell (one area light; emission seen by the camera stays)."""
     _check_exclude_all(scenes.load("glossy-cornell", size=SIZE), spp=16)

@@ -95,6 +95,7 @@ def _far_scene():
         "type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, -50.0, 0])}})
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("occluders", ["none", "far"])
 @pytest.mark.parametrize("split", [True, False])
 def test_no_occluders_gives_ltc_exactly(data, occluders, split):
@@ -306,6 +307,7 @@ def _two_light_floor(w=40, h=16):
     return frame, lights, occ, np.full((h, w, 3), 0.04, np.float32)
 
 
+@pytest.mark.slow
 def test_one_ratio_per_light():
     """Heitz, Hill & McGuire 2018, sec. 5: L = sum_l A_l S_l / U_l. Two lights over a floor,
     one hidden from it by an occluder, the other not: at 16 spp, denoised (the defaults),

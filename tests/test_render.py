@@ -249,6 +249,7 @@ def mitsuba_case(request, xml_path):
                 theirs_var=theirs_var, mask=mask, drop=drop, dropped=dropped)
 
 
+@pytest.mark.slow
 def test_mitsuba_case_has_enough_interior_pixels(mitsuba_case):
     # the comparison must not become vacuous when scenes or the mask change
     assert mitsuba_case["mask"].sum() >= 150, mitsuba_case["mask"].sum()
@@ -285,6 +286,7 @@ def test_component_sum_matches_mitsuba_path_blurred(mitsuba_case):
     assert not bad.any(), (c["name"], bad.sum(), (err / np.maximum(theirs[m], 1e-6))[bad][:5])
 
 
+@pytest.mark.slow
 def test_near_mirror_pixels_match_mitsuba_when_supersampled():
     """Pixel-centre sampling differs from a box filter on near-mirror surfaces; rendering glossrt
     at 4x4 the resolution and box-downsampling it integrates the pixel like Mitsuba does, so the
@@ -661,6 +663,7 @@ def test_render_pixels_equals_full_render(cornell_renderer):
                                       err_msg=name)
 
 
+@pytest.mark.slow
 def test_render_pixels_launches_bounded_chunks_with_the_same_values(cornell_renderer,
                                                                     monkeypatch):
     """Many samples of many pixels go in launches of at most MAX_LANES lanes (adaptive
@@ -1081,6 +1084,7 @@ def test_emitter_sampling_matches_mitsuba_with_sampling_weights():
     assert abs(1 / 3 - SW_WEIGHTS["lamp_big"] / total) > 100 / math.sqrt(n)
 
 
+@pytest.mark.slow
 def test_sampling_weight_scene_matches_mitsuba_path():
     """Whole-image check as in test_component_sum_matches_mitsuba_path_interior_mean, on a
     scene where Mitsuba samples emitters by sampling_weight."""

@@ -603,6 +603,7 @@ def test_included_files_are_checked(tmp_path):
     assert "SmoothDielectric" in {s.bsdf().class_name() for s in setup.shapes}
 
 
+@pytest.mark.slow
 def test_included_integrator_depth_is_used_and_matches_mitsuba(tmp_path):
     """Mitsuba's own Cornell box sets max_depth in an <include>d base.xml; glossrt read only
     the top-level file and rendered such scenes at depth 3, darker than Mitsuba's `path`
@@ -734,6 +735,7 @@ def _render_all(setup, **kw) -> dict:
     return {name: f.numpy(name) for name in f.names if name != "motion"}
 
 
+@pytest.mark.slow
 def test_scene_forms_render_alike(tmp_path):
     """A scene dict, the same scene loaded by Mitsuba (mi.Scene), and the same scene written
     as XML (a str path and a PathLike) give the same frame, the same name rules and the
@@ -760,6 +762,7 @@ def test_scene_forms_render_alike(tmp_path):
     assert scenes.load(d, size=SIZE).name == "dict"
 
 
+@pytest.mark.slow
 def test_builtin_dict_renders_like_the_builtin():
     """A built-in's own scene dict (no animation) renders frame 0 like the built-in, at the
     same path depth; mi.cornell_box() loads with its integrator's max_depth."""

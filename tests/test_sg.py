@@ -281,6 +281,7 @@ def test_exact_weight_vs_quadrature():
 _dirs = st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: 0.1 < sum(x * x for x in v))
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(
     xp=_dirs, xq=_dirs,

@@ -68,6 +68,7 @@ def floor_only(size=(32, 24), name="floor-only", **extra):
     }, size, name)
 
 
+@pytest.mark.slow
 def test_pixel_triangles_rebuild_positions():
     setup = coarse_polygon_light()
     gb = render.Renderer(setup).render(0)
@@ -101,6 +102,7 @@ def test_unoccluded_floor_matches_ltc():
     assert 0 < rel < 0.25, rel
 
 
+@pytest.mark.slow
 def test_bspvt_against_shadowed_reference():
     setup = coarse_polygon_light()
     gb = render.Renderer(setup).render(0)
@@ -159,6 +161,7 @@ def test_vertex_materials_follow_the_bsdfs():
     assert f0[start["sphere"]][0] > 0.5 and f0[start["floor"]][0] == pytest.approx(0.0962, 1e-3)
 
 
+@pytest.mark.slow
 def test_trees_of_another_scene_are_refused():
     setup = floor_only()
     trees = build_scene_trees(setup.scene, resolution=4, progress=False)
@@ -170,6 +173,7 @@ def test_trees_of_another_scene_are_refused():
         shade_bspvt(setup.scene, gb, trees, [], "bogus")
 
 
+@pytest.mark.slow
 def test_cli_build_and_shade(tmp_path, capsys):
     from glossrt.cli import main
 
@@ -216,6 +220,7 @@ def test_vertex_inside_geometry_is_dark_not_nan():
     assert d[1].min() > 0.01 and s[1].min() > 0.001
 
 
+@pytest.mark.slow
 def test_textured_light_with_shadows():
     """The textured light (prefiltered texture per visible piece) with BSPVT shadows: far
     closer to the shadowed Monte Carlo reference than unshadowed textured LTC."""
@@ -244,6 +249,7 @@ def floor_and_ball(size=(32, 24)):
         "bsdf": {"type": "diffuse"}})
 
 
+@pytest.mark.slow
 def test_trees_refuse_occluders_moved_since_the_build(tmp_path):
     """Okuno & Iwasaki's visibility is precomputed for static occluders: trees shaded after
     an analytic occluder moved (or a mesh was edited in place, after a cached pass) would

@@ -476,6 +476,7 @@ def _strips_scene(rfilter: dict, size=(24, 16)) -> dict:
     return d
 
 
+@pytest.mark.slow
 def test_gaussian_reference_matches_mitsubas_gaussian_pixel_filter():
     # The Gaussian-filtered reference against Mitsuba's own render of the same scene with its
     # `gaussian` reconstruction filter (stddev 0.5 px: variance 0.25) and direct integrator
@@ -562,6 +563,7 @@ def test_frozen_replays_match_traced_under_camera_motion():
                                        specaa.shade(*((fr,) + args)), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_filtering_approaches_the_supersampled_reference():
     # normal-mapped, small: the deferred isotropic filter is closer to the 64-sample
     # reference than unfiltered shading, and unbiased on the flat strip

@@ -114,6 +114,7 @@ def test_material_alpha_override_reproduces_the_unoverridden_render(name):
     assert np.abs(c.numpy("direct_specular") - a.numpy("direct_specular")).max() > 0.1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("distribution", ["beckmann", "ggx"])
 def test_plastic_specular_lobe_matches_mitsuba_eval_and_pdf(distribution):
     """roughplastic (its sampling mixture is not Mitsuba's, so paths differ): the overridden
@@ -165,6 +166,7 @@ def test_plastic_specular_lobe_matches_mitsuba_eval_and_pdf(distribution):
     np.testing.assert_allclose(np.array(pdf_s)[ok], np.array(pdf_at)[ok], rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_smooth_and_diffuse_bsdfs_are_untouched():
     """Lanes whose BSDF is smooth or diffuse keep Mitsuba's: an override changes nothing."""
     for bsdf in ({"type": "diffuse"}, {"type": "conductor", "material": "Ag"},
@@ -201,6 +203,7 @@ def _with_alpha(bsdf: dict, alpha: float) -> dict:
     return {**bsdf, "alpha": alpha}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lights", ["env", "area"])
 @pytest.mark.parametrize("name", list(MATERIALS))
 def test_constant_override_converges_to_the_scene_with_that_alpha(name, lights):
@@ -278,6 +281,7 @@ def _env_setup():
     return scenes.load(d, size=PIPE_SIZE)
 
 
+@pytest.mark.slow
 def test_pipeline_specaa_on_an_env_map_scene_traces_the_filtered_roughness():
     """An environment-map-only scene (nothing for an analytic stage to shade) with
     ``specaa=avgnormal-eig``: the frame's radiance is the path tracer's with the filtered

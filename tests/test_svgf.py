@@ -445,6 +445,7 @@ def test_steady_state_without_young_pixels():
     np.testing.assert_array_equal(_length(svgf), len(outs))
 
 
+@pytest.mark.slow
 def test_steady_state_without_young_pixels_frozen(frozen_guard):
     frozen_guard()
     svgf, outs = _steady_state_run(frozen=True)
@@ -493,6 +494,7 @@ def test_disocclusion_resets_history():
     np.testing.assert_allclose(got[block], _ema(xs[k:])[-1][block], rtol=2e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("levels", [0, 5])
 def test_nonfinite_input_does_not_poison_history(levels):
     rng = np.random.default_rng(9)
@@ -768,6 +770,7 @@ def animated_sequence():
     return frames, refs
 
 
+@pytest.mark.slow
 def test_svgf_beats_per_frame_atrous(animated_sequence, frozen_guard):
     frozen_guard()
     frames, refs = animated_sequence
@@ -792,6 +795,7 @@ def test_svgf_beats_per_frame_atrous(animated_sequence, frozen_guard):
         assert ss > sa, f"frame {i}: SVGF SSIM {ss:.4f} not above atrous {sa:.4f}"
 
 
+@pytest.mark.slow
 def test_temporal_stability_static_scene(frozen_guard):
     """Sec. 5.4: static camera, lights and scene; temporal error (mean absolute luminance
     change between consecutive outputs) over the last 20 frames of 30. The paper reports
@@ -905,6 +909,7 @@ def _with_old_gbuffer(frame, old, region):
                  index=frame.index)
 
 
+@pytest.mark.slow
 def test_disocclusion_leaves_no_ghost(frozen_guard):
     frozen_guard()
     w, h, n_after = 64, 48, 5

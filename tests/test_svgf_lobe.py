@@ -26,6 +26,7 @@ def _run(method, frames):
     return out
 
 
+@pytest.mark.slow
 def test_lobe_weights_reduce_error_on_the_glossy_sphere(cornell):
     """Measured at 160x120 (docs/RESULTS.md): RMSE 0.105 -> 0.056 at frame 10. Here: the
     lobe-weighted SVGF must beat plain SVGF in RMSE overall and on the alpha-0.05 sphere."""

@@ -152,6 +152,7 @@ def test_taa_jitter_is_halton_2_3():
         taa_jitter(0, count=0)
 
 
+@pytest.mark.slow
 def test_jittered_taa_resolves_edges_towards_the_box_filtered_image():
     """The pipeline's TAA with its sub-pixel jitter (``taa_jitter``) converges, on geometric
     edges, towards the pixel-area (box-filtered) image, which Mitsuba's own ``direct``
@@ -186,6 +187,7 @@ def test_jittered_taa_resolves_edges_towards_the_box_filtered_image():
     assert err["no jitter"] == pytest.approx(err["off"], rel=0.01), err
 
 
+@pytest.mark.slow
 def test_taa_under_motion_without_jitter_beats_the_raw_input():
     """schied2017 on the animated polygon-light (camera and light move), 64x48, frames 3..5
     against 64 spp references: TAA without jitter keeps the consistency test on the pixel's

@@ -68,6 +68,7 @@ def _lookup_error(case, light, mc_tex, textures=None) -> float:
     return float(np.abs(factor * case["mc_plain"] - mc_tex).sum() / mc_tex.sum())
 
 
+@pytest.mark.slow
 def test_textured_light_against_monte_carlo(refs):
     """The calibrated lookup (footprint scale c = FOOTPRINT_SCALE, blend in log2 sigma,
     levels centred) against Monte Carlo: each case's error below a bound set from the

@@ -171,6 +171,7 @@ def cornell():
             for f in (1, 2)}
 
 
+@pytest.mark.slow
 def test_jittered_low_samples_land_on_full_pixel_centres(cornell):
     full = cornell[1].render(3).numpy("position")
     for k in range(4):
@@ -186,6 +187,7 @@ def test_render_rejects_a_jitter_outside_the_pixel(cornell):
         cornell[2].render(0, jitter=(0.5, 0.0))
 
 
+@pytest.mark.slow
 def test_render_pixels_with_many_samples(cornell):
     """Means of 1024 samples over every 7th pixel agree with the reference's (independent
     samples: deterministic seeds, measured 0.1% / 1.7% apart); the G-buffer is unchanged."""
@@ -214,6 +216,7 @@ def roughness_up():
     return full_r, full, ref, low
 
 
+@pytest.mark.slow
 def test_adaptive_resample_fixes_the_low_weight_pixels(roughness_up):
     full_r, full, ref, low = roughness_up
     img, wts = up.upsample(full, low, weight="lobe", return_weights=True)
@@ -240,6 +243,7 @@ def test_adaptive_resample_fixes_the_low_weight_pixels(roughness_up):
     np.testing.assert_array_equal(np.array(out)[~mask], np.array(img)[~mask])
 
 
+@pytest.mark.slow
 def test_spatio_temporal_upsampling_converges_on_a_static_view(cornell):
     """1 spp low-resolution frames of a still view (frame 0 each time, new seeds): the
     temporal upsampler averages them, the spatial one cannot. Errors of the upsampled
@@ -270,6 +274,7 @@ def test_spatio_temporal_upsampling_converges_on_a_static_view(cornell):
                                rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_upsampling_experiments_run_small():
     from glossrt.experiments import upsampling as ue
 
