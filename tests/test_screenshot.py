@@ -4,16 +4,16 @@ test_view_browser.py; without chromium or Playwright this file skips."""
 
 from __future__ import annotations
 
-import os
 import re
 import shlex
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from browser import needs_chromium
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -22,16 +22,7 @@ SCENE, PIPELINE, SIZE = "polygon-light", "schied2017", (64, 48)
 README_URL = "http://127.0.0.1:8080/"
 
 
-def _chromium() -> str | None:
-    for b in (os.environ.get("GLOSSRT_CHROMIUM"), "/usr/bin/chromium",
-              "/usr/bin/chromium-browser", shutil.which("chromium")):
-        if b and os.path.exists(b):
-            return b
-    return None
-
-
-pytestmark = pytest.mark.skipif(_chromium() is None,
-                                reason="no chromium (apt-get install chromium)")
+pytestmark = needs_chromium
 
 
 def _recipe() -> tuple[str, str]:

@@ -5,30 +5,18 @@ downloaded), WebGL through SwiftShader. `make test` installs chromium as root
 
 from __future__ import annotations
 
-import os
-import shutil
 import time
 
 import numpy as np
 import pytest
 
+from browser import ARGS, CHROMIUM, needs_chromium
+
 SIZE = (96, 54)
 VIEWPORT = {"width": 960, "height": 540}  # the render's aspect: the image fills it
-ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-        "--disable-background-networking", "--disable-component-update", "--no-first-run",
-        "--disable-sync", "--disable-quic"]
 
 
-def _chromium() -> str | None:
-    for b in (os.environ.get("GLOSSRT_CHROMIUM"), "/usr/bin/chromium",
-              "/usr/bin/chromium-browser", shutil.which("chromium")):
-        if b and os.path.exists(b):
-            return b
-    return None
-
-
-pytestmark = pytest.mark.skipif(_chromium() is None,
-                                reason="no chromium (apt-get install chromium)")
+pytestmark = needs_chromium
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +35,7 @@ def browser():
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=_chromium(), headless=True, args=ARGS)
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
         yield b
         b.close()
 

@@ -324,11 +324,7 @@ def cmd_render(args) -> int:
                                "`glossrt experiment --which specaa`")
     blocks = reference and not args.mitsuba
     if not blocks:
-        for flag, bad in (("--cluster", args.cluster), ("--resume", args.resume),
-                          ("--block-spp", args.block_spp is not None)):
-            if bad:
-                raise GlossrtError(f"{flag} goes with --reference (glossrt's converged "
-                                   "frames, rendered as sample blocks)")
+        _refuse_block_flags(args, "")
     else:
         from . import cluster
 
@@ -430,6 +426,16 @@ def _render_reference_blocks(args, setup, r, size, todo, spp) -> int:
     return 0
 
 
+def _refuse_block_flags(args, why: str) -> None:
+    """The flags of ``render --reference``'s sample blocks, refused where no blocks are
+    rendered (``why`` ends the line)."""
+    for flag, given in (("--cluster", args.cluster), ("--resume", args.resume),
+                        ("--block-spp", args.block_spp is not None)):
+        if given:
+            raise GlossrtError(f"{flag} goes with --reference (glossrt's converged frames, "
+                               f"rendered as sample blocks){why}")
+
+
 def _variant() -> str:
     from . import backend
 
@@ -455,12 +461,7 @@ def _render_pipeline(args, size) -> int:
             raise GlossrtError(f"--pipeline composes 1 spp frames: {flag} does not apply "
                                "(the reference preset accumulates converged frames; "
                                "specaa: --set specaa=METHOD)")
-    for flag, bad in (("--cluster", args.cluster), ("--resume", args.resume),
-                      ("--block-spp", args.block_spp is not None)):
-        if bad:
-            raise GlossrtError(f"{flag} goes with --reference (sample blocks of converged "
-                               "frames); --pipeline renders its frames in order in this "
-                               "process")
+    _refuse_block_flags(args, "; --pipeline renders its frames in order in this process")
     preset, choices = pipeline.parse(_pipeline_spec(args.pipeline))  # bad name or file
     outputs = (pipeline.check_outputs([k.strip() for k in args.outputs.split(",") if k.strip()])
                if args.outputs is not None else None)

@@ -293,27 +293,30 @@ class Pipeline:
         md = opts.get("max_depth")
         return md if md is not None else self.setup.max_depth
 
-    def _resolve_direct(self, opts: dict) -> str:
+    def _resolve_direct(self, opts: dict) -> tuple[str, DirectPlan | None]:
         """``direct``, with ``auto`` (the ``full`` preset) resolved for the scene as it is
         posed: ``ltc+bspvt`` when BSPVT's trees can shade at least one polygon light on at
         least one surface, else ``ltc+ratio`` (an occluder away from its rest pose, no
         triangle meshes fine enough, every polygon light with geometry behind it;
         :mod:`glossrt.pipeline.plan`). At path depth 1 (the
         scene renders emission only) every mode is ``pathtraced``: there is no direct light
-        to shade."""
+        to shade. Also returns the ``ltc+bspvt`` plan ``auto`` was resolved with, when it
+        was (None otherwise): the frame's plan, not made twice."""
         mode = opts["direct"]
         if self._max_depth(opts) == 1:
-            return "pathtraced"  # (emission only: no direct light to shade)
+            return "pathtraced", None  # (emission only: no direct light to shade)
         if mode != "auto":
-            return mode
+            return mode, None
         if moving_occluders(self.setup):
-            return "ltc+ratio"
+            return "ltc+ratio", None
         from ..lights.bspvt.scene import scene_meshes
 
         if not scene_meshes(self.setup.scene):
-            return "ltc+ratio"
+            return "ltc+ratio", None
         trial = plan(self.setup, "ltc+bspvt", self.shape_table)
-        return "ltc+bspvt" if trial.bspvt and trial.bspvt_shapes else "ltc+ratio"
+        if trial.bspvt and trial.bspvt_shapes:
+            return "ltc+bspvt", trial
+        return "ltc+ratio", None
 
     @staticmethod
     def _load_trees(bspvt, opts: dict):
@@ -335,11 +338,12 @@ class Pipeline:
                                f"glossrt.lights.bspvt.BSPVT trees, got {type(bspvt).__name__}")
         return bspvt
 
-    def _check(self, opts: dict, direct: str, trees=None) -> DirectPlan:
+    def _check(self, opts: dict, direct: str, trees=None,
+               known: DirectPlan | None = None) -> DirectPlan:
         """Every refusal of ``opts`` for this scene, before any work (bad options and files,
         never a light, material or integrator the path tracer renders), and the
-        :class:`~glossrt.pipeline.plan.DirectPlan` of ``direct`` at frame 0. ``trees``:
-        prebuilt BSPVT trees (checked against the scene:
+        :class:`~glossrt.pipeline.plan.DirectPlan` of ``direct`` at frame 0 (``known``: that
+        plan, already made). ``trees``: prebuilt BSPVT trees (checked against the scene:
         :func:`glossrt.lights.bspvt.match_scene`)."""
         name = self.setup.name
         if opts["indirect_scale"] > 1:  # the reduced-resolution indirect light
@@ -371,15 +375,17 @@ class Pipeline:
             if not oidn_available():
                 raise GlossrtError("indirect=oidn: Intel Open Image Denoise (pyoidn) is not "
                                    "installed; choose svgf, svgf-lobe, atrous or none")
+        if known is not None:
+            return known
         why = ("max_depth 1: the scene renders emission only" if self._max_depth(opts) == 1
                else "direct=pathtraced")
         return plan(self.setup, direct, self.shape_table, trees_ok, why=why)
 
     def _apply(self, opts: dict, trees=None) -> None:
         old = getattr(self, "_applied", None)
-        direct = self._resolve_direct(opts)
+        direct, known = self._resolve_direct(opts)
         trees = self.bspvt_trees if trees is None else trees
-        the_plan = self._check(opts, direct, trees)
+        the_plan = self._check(opts, direct, trees, known)
         exclude, on = the_plan.exclude, the_plan.shapes
         self.bspvt_trees = trees
         if trees is not None:

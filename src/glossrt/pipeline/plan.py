@@ -137,6 +137,8 @@ def bspvt_light_obstacle(setup, light) -> str | None:
     blocked. Found by one ray from the light's centre away from its emitting side."""
     import drjit as dr
 
+    from ..scenes import _registry_id
+
     v = np.asarray(light.vertices, np.float64)
     centre = v.mean(axis=0)
     n = np.cross(v[1] - v[0], v[2] - v[0])
@@ -148,9 +150,8 @@ def bspvt_light_obstacle(setup, light) -> str | None:
     if not bool(si.is_valid()[0]):
         return None
     key = dr.reinterpret_array(mi.UInt32, si.shape)[0]
-    hit = next((sh.id() for sh in setup.shapes
-                if dr.reinterpret_array(mi.UInt32, mi.ShapePtr(sh))[0] == key), "") \
-        or "geometry"
+    hit = next((sh.id() for sh in setup.shapes if _registry_id(mi.ShapePtr, sh) == key),
+               "") or "geometry"
     return (f"{hit!r} lies behind it (BSPVT's visibility rays through the light hit it, so "
             "the light would read as occluded)")
 
@@ -216,27 +217,37 @@ def reflects_nothing(bsdf) -> bool:
     return all(not np.any(np.asarray(params[k], np.float64)) for k in keys)
 
 
-def lights_at(setup, indices, frame: int | None = None) -> list:
-    """The lights of emitters ``indices`` (:func:`glossrt.render.emitter_index` numbering,
-    each one a polygon, point or directional light in :func:`classify_lights`) in their pose
-    at ``frame``, in that order: what the direct stage shades each frame."""
-    from ..lights.analytic import analytic_light
-    from ..lights.scene import polygon_light
-    from ..scenes import _registry_id, stable_emitters
+class LightsAt:
+    """The lights of chosen emitters (:func:`glossrt.render.emitter_index` numbering, each
+    one a polygon, point or directional light in :func:`classify_lights`) in their pose at a
+    frame: what the direct stage shades each frame. The scene's emitter order and the shapes'
+    mesh ids are read once, when it is made."""
 
-    if frame is not None:
-        setup.set_frame(int(frame))
-    if not indices:
-        return []
-    emitters = stable_emitters(setup.scene)
-    rank = {_registry_id(mi.ShapePtr, s): i + 1 for i, s in enumerate(setup.shapes)}
-    out = []
-    for k in indices:
-        e = emitters[k]
-        shape = e.get_shape()
-        out.append(analytic_light(e) if shape is None else polygon_light(
-            e, rank.get(_registry_id(mi.ShapePtr, shape), 0), f"emitter {k}"))
-    return out
+    def __init__(self, setup) -> None:
+        from ..scenes import _registry_id, stable_emitters
+
+        self.setup = setup
+        self.emitters = stable_emitters(setup.scene)
+        #: per emitter: its shape's mesh id (0 without a shape)
+        rank = {_registry_id(mi.ShapePtr, s): i + 1 for i, s in enumerate(setup.shapes)}
+        self.mesh_ids = [0 if e.get_shape() is None
+                         else rank.get(_registry_id(mi.ShapePtr, e.get_shape()), 0)
+                         for e in self.emitters]
+
+    def __call__(self, indices, frame: int | None = None) -> dict:
+        """Emitter index -> its light at ``frame`` (posed first when given), for
+        ``indices``."""
+        from ..lights.analytic import analytic_light
+        from ..lights.scene import polygon_light
+
+        if frame is not None:
+            self.setup.set_frame(int(frame))
+        out = {}
+        for k in indices:
+            e = self.emitters[k]
+            out[k] = (analytic_light(e) if e.get_shape() is None
+                      else polygon_light(e, self.mesh_ids[k], f"emitter {k}"))
+        return out
 
 
 #: a receiver mesh with fewer vertices than this takes the ratio estimator for the BSPVT
@@ -325,11 +336,11 @@ def plan(setup, mode: str, shapes_table, trees_ok: bool = True,
                f"it is not a triangle mesh ({s.class_name()}): BSPVT's trees live at mesh "
                "vertices" if mesh is None else
                f"its {mesh.vertex_count()} vertices are too few to carry a shadow (fewer "
-               "than {COARSE_VERTICES}: BSPVT interpolates visibility between them)"
+               f"than {COARSE_VERTICES}: BSPVT interpolates visibility between them)"
                if mesh.vertex_count() < COARSE_VERTICES else None)
         if why is not None:
             ratio_shapes.append(i)
-            out.ratio_shapes[label] = why.replace("{COARSE_VERTICES}", str(COARSE_VERTICES))
+            out.ratio_shapes[label] = why
         else:
             tree_shapes.append(i)
     out.shapes = tuple(keep)
@@ -347,5 +358,5 @@ def plan(setup, mode: str, shapes_table, trees_ok: bool = True,
 
 
 __all__ = ["ANALYTIC_POINT", "DirectPlan", "LightChoice", "PATH_TRACED", "POLYGON_MODES",
-           "bspvt_light_obstacle", "classify_lights", "lights_at", "moving_occluders", "plan",
+           "bspvt_light_obstacle", "classify_lights", "LightsAt", "moving_occluders", "plan",
            "reflects_nothing"]

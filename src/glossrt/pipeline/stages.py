@@ -616,6 +616,7 @@ class DirectStage(Stage):
 
     def __init__(self, setup, opts: dict, mode: str, progress: bool = True, trees=None,
                  cache_dir=None, plan=None):
+        from .plan import LightsAt
         from .plan import plan as make_plan
 
         self.setup = setup
@@ -626,6 +627,7 @@ class DirectStage(Stage):
 
             plan = make_plan(setup, mode, ShapeTable(setup.scene))
         self.plan = plan
+        self._lights = LightsAt(setup)  # the lights it shades, posed each frame
         analytic = mode != "pathtraced"
         self.points = PointLights(setup) if analytic and plan.points else None
         self.trees = None
@@ -714,8 +716,6 @@ class DirectStage(Stage):
         return out
 
     def run(self, index: int, ctx: dict) -> dict:
-        from .plan import lights_at
-
         gb: Frame = ctx["frame"]
         h, w = gb.height, gb.width
         if not self.shades:
@@ -726,7 +726,15 @@ class DirectStage(Stage):
             # among the plan's (their pixels are the path tracer's, masked out below)
             gb = _with_channels(gb, gb.channels,
                                 {k: v for k, v in gb.meta.items() if k != "anisotropic"})
-        points = lights_at(self.setup, plan.points, index)
+        ratio = plan.polygons if self.mode == "ltc+ratio" else \
+            plan.ratio if self.mode == "ltc+bspvt" else ()
+        # every light the frame shades, posed once
+        lights = self._lights((*plan.points, *plan.polygons, *plan.bspvt, *ratio), index)
+
+        def posed(indices):
+            return [lights[k] for k in indices]
+
+        points = posed(plan.points)
         # every pixel's material (lights.shading.fresnel_image, 16 floats a pixel), computed
         # on the device where it is read: BSPVT's vertex mode reads the vertices' instead
         # (FrozenShader takes the MaterialImage and calls it only when it needs it)
@@ -734,23 +742,21 @@ class DirectStage(Stage):
               or plan.bspvt_ratio else None)
         out = None
         if self.mode in ("ltc", "highlights") and plan.polygons:
-            polys = self._stable_textures(lights_at(self.setup, plan.polygons))
+            polys = self._stable_textures(posed(plan.polygons))
             if self.mode == "ltc":
                 out = self._ltc(gb, polys, f0)
             else:  # highlights: Kimura & Tokoi's specular + LTC's diffuse
                 out = (self._ltc_diffuse(gb, polys, f0)
                        + self._highlights(gb, index, polys, f0))
         if self.bspvt is not None and plan.bspvt:
-            polys = self._stable_textures(lights_at(self.setup, plan.bspvt))
+            polys = self._stable_textures(posed(plan.bspvt))
             out = self.bspvt(gb, polys, self.materials if f0 is None else f0,
                              textures=self._textures)
             if self._trees_table is not None:  # the surfaces the trees do not cover
                 out = (self._masked(out, gb, self._trees_table)
                        + self._masked(self._ratio(gb, polys, f0, index), gb, self._ratio_table))
-        ratio = plan.polygons if self.mode == "ltc+ratio" else \
-            plan.ratio if self.mode == "ltc+bspvt" else ()
         if ratio:
-            polys = self._stable_textures(lights_at(self.setup, ratio))
+            polys = self._stable_textures(posed(ratio))
             img = self._ratio(gb, polys, f0, index)
             out = img if out is None else out + img
         if points:

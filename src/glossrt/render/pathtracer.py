@@ -43,10 +43,10 @@ from ..backend import VariantStruct, mi
 from ..brdf.fresnel import ROW, split_sum
 from ..brdf.microfacet import GGX
 from ..errors import GlossrtError
-from ..scenes import render_shapes, stable_emitters
+from ..scenes import MITSUBA_DEFAULT_RR_DEPTH, render_shapes, stable_emitters
 from .materials import NORMAL_MAP_TWOSIDED
 
-RR_DEPTH = 5
+RR_DEPTH = MITSUBA_DEFAULT_RR_DEPTH
 #: what Mitsuba's max_depth = -1 ("no limit") becomes: Russian roulette ends the paths
 UNBOUNDED_DEPTH = 1 << 30
 

@@ -20,6 +20,7 @@ This module is a library below the experiments: it imports none of them.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import time
@@ -28,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .. import progress
 from ..errors import GlossrtError
 from ..progress import Progress
 from ..timing import MIN_SAMPLE
@@ -159,20 +161,9 @@ def registered_sections() -> list[tuple[str, int, SectionFn]]:
     return [(e.name, e.order, e.fn) for e in entries]
 
 
-def build_report(ctx: DemoContext, title: str, out_dir: str | Path | None = None) -> Path:
-    """Run every registered section into a :class:`Report` and write it.
-
-    The report goes to ``out_dir`` (default ``ctx.out_dir``); returns the path of
-    ``index.html``. If any section raised, its traceback is shown in the page and, after
-    the page is written, :class:`GlossrtError` is raised naming the failed sections and
-    the report's path. With ``ctx.verbose`` a line on stderr names each section when it
-    starts (``report section K/N: NAME ...``) and when it ends (``NAME: done (S s)``).
-    """
-    report = Report(out_dir if out_dir is not None else ctx.out_dir, title)
-    failures: list[str] = []
-    sections = registered_sections()
-    if not sections:
-        report.section("No sections").paragraph("No report sections are registered.")
+def _run_sections(ctx, report, sections, failures: list[str]) -> None:
+    """Each registered section into ``report``; a failing one is named in ``failures`` and
+    on the page, and the others still run."""
     for k, (name, _order, fn) in enumerate(sections):
         ctx.section = ""
         ctx.say(f"report section {k + 1}/{len(sections)}: {name} ...")
@@ -189,6 +180,28 @@ def build_report(ctx: DemoContext, title: str, out_dir: str | Path | None = None
                 f"Section {name!r} failed: {type(e).__name__}: {e}",
                 details="".join(traceback.format_exception(e)),
             )
+
+
+def build_report(ctx: DemoContext, title: str, out_dir: str | Path | None = None) -> Path:
+    """Run every registered section into a :class:`Report` and write it.
+
+    The report goes to ``out_dir`` (default ``ctx.out_dir``); returns the path of
+    ``index.html``. If any section raised, its traceback is shown in the page and, after
+    the page is written, :class:`GlossrtError` is raised naming the failed sections and
+    the report's path. With ``ctx.verbose`` a line on stderr names each section when it
+    starts (``report section K/N: NAME ...``) and when it ends (``NAME: done (S s)``).
+    """
+    report = Report(out_dir if out_dir is not None else ctx.out_dir, title)
+    failures: list[str] = []
+    sections = registered_sections()
+    if not sections:
+        report.section("No sections").paragraph("No report sections are registered.")
+    # a quiet context keeps the sections' own progress bars (experiments, references) quiet
+    # too, wherever they are made
+    quiet = (contextlib.nullcontext() if ctx.verbose
+             else progress.observe(lambda *_: None, quiet=True))
+    with quiet:
+        _run_sections(ctx, report, sections, failures)
     ctx.section = ""
     ctx.say("writing the report page ...")
     path = report.write()

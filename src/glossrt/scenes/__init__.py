@@ -846,38 +846,6 @@ def integrator_depth(scene: mi.Scene, name: str) -> IntegratorDepth:
         "\"direct\" for direct light only, or none for Mitsuba's default path tracer"))
 
 
-def integrator_max_depth(scene: mi.Scene, name: str) -> int:
-    """``max_depth`` of the loaded scene's integrator in Mitsuba's convention (-1: no
-    limit; 2 for the direct-light integrators), or a :class:`SceneError` naming an
-    integrator glossrt does not render (:func:`integrator_depth`)."""
-    d = integrator_depth(scene, name)
-    if d.error is not None:
-        raise SceneError(d.error)
-    return d.max_depth
-
-
-def _xml_plugin_types(path: str, seen: set | None = None) -> list[tuple[str, str]]:
-    """(tag, type) of every plugin element of an XML scene file and the files it
-    ``<include>``s (relative to the including file), for naming a plugin in an error."""
-    seen = set() if seen is None else seen
-    path = os.path.abspath(path)
-    if path in seen:
-        return []
-    seen.add(path)
-    try:
-        root = ET.parse(path).getroot()
-    except (ET.ParseError, OSError):
-        return []
-    out = []
-    for el in root.iter():
-        if el.get("type"):
-            out.append((el.tag, el.get("type")))
-        if el.tag == "include" and el.get("filename"):
-            out += _xml_plugin_types(os.path.join(os.path.dirname(path), el.get("filename")),
-                                     seen)
-    return out
-
-
 _LOAD_ERROR = re.compile(r"^\s*\[[\w.]+:\d+\]\s*")
 _UNDEFINED = re.compile(r"undefined parameter:?\s*\$?(\w+)")
 
