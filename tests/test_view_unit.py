@@ -131,3 +131,51 @@ def test_layer_images():
     e = layers.error_map(img, ref, scale=0.25)
     assert e.shape == (h, w, 3) and e.dtype == np.uint8
     assert e[1, 1].sum() < 10 and e[0, 0].sum() > 600
+
+
+def test_a_client_s_first_reports_are_the_sync_not_a_move(monkeypatch):
+    """A client's reports before it echoes the camera the viewer sent are ignored for
+    SYNC_SECONDS from its *first* report, however late that comes (a slow page load); after
+    the echo, a report that differs is a move."""
+    from types import SimpleNamespace
+
+    from glossrt.view import app
+
+    clock = [100.0]
+    monkeypatch.setattr(app.time, "monotonic", lambda: clock[0])
+    sent = vc.ViewerCamera((0.0, 1.0, 3.0), (0.0, 1.0, 0.0), (0.0, 1.0, 0.0), 0.6)
+    posted: list = []
+    fake = SimpleNamespace(_syncing_clients={}, _sent_camera=None, _camera=sent,
+                           inbox=SimpleNamespace(post=lambda k, v: posted.append((k, v))))
+    client = SimpleNamespace(client_id=7, camera=SimpleNamespace(), atomic=lambda: _Null())
+    app.Viewer._send_camera(fake, client, sent)
+
+    def report(c: vc.ViewerCamera) -> None:
+        app.Viewer._on_camera(fake, 7, SimpleNamespace(position=c.position, look_at=c.look_at,
+                                                      up_direction=c.up, fov=c.fov_y))
+
+    default = vc.ViewerCamera((3.0, 3.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 0.6)
+    clock[0] += 3 * app.SYNC_SECONDS  # the page took long to load
+    report(default)  # an intermediate state of the sync
+    clock[0] += 0.5 * app.SYNC_SECONDS
+    report(default)
+    assert posted == []
+    report(sent)  # the echo: in sync
+    assert posted == [] and 7 not in fake._syncing_clients
+    report(default)  # now a user's move
+    assert posted == [("camera", default)]
+    # a client that never echoes: its reports count as moves once the window has passed
+    app.Viewer._send_camera(fake, client, sent)
+    posted.clear()
+    report(default)
+    clock[0] += 1.01 * app.SYNC_SECONDS
+    report(default)
+    assert posted == [("camera", default)]
+
+
+class _Null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False

@@ -61,13 +61,15 @@ STILL_FRAMES = 2
 REFERENCE_SPP = 4
 REFERENCE_MAX_SPP = 4096
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
-#: seconds a client's camera reports are ignored after the viewer set its camera, unless it
-#: reports that camera back sooner (see Viewer._send_camera)
+#: seconds a client's camera reports are ignored from its first report after the viewer set its
+#: camera, unless it reports that camera back sooner (see Viewer._send_camera); counted from
+#: the first report, not from the send, so that a slow page load does not use the window up
 SYNC_SECONDS = 10.0
 #: a client camera within this of the viewer's (position relative to the scene's scale;
 #: direction, up and fov in radians) is an echo, not a move: a user's drag moves it by far
 #: more, and clients report our camera back through float32 and their own orbit maths
 ECHO_TOL = 1e-3
+_IN_SYNC = object()  # a client absent from Viewer._syncing_clients
 #: the viewer's Dr.Jit work in this process: a frame of its render loop, its start-up; hold it
 #: for Dr.Jit work of your own while a viewer runs (a thread running frozen kernels holds
 #: Dr.Jit's lock and waits for the GIL; another thread's Dr.Jit call waits for that lock with
@@ -305,7 +307,7 @@ class Viewer:
         self._meter = ErrorMeter()  # the loop's: RMSE per frame, FLIP in a helper process
         self._still = 0
         self._sent_camera: ViewerCamera | None = None
-        self._syncing_clients: dict[int, float] = {}
+        self._syncing_clients: dict[int, float | None] = {}
         with DRJIT_LOCK:  # (the caller's own Dr.Jit work may run meanwhile)
             dr.sync_thread()  # the render loop's thread takes over every Dr.Jit array
         self._thread.start()
@@ -547,11 +549,11 @@ class Viewer:
 
     def _send_camera(self, client, cam: ViewerCamera) -> None:
         """Put ``client``'s camera where the pipeline's is. Until the client reports that
-        camera back (or :data:`SYNC_SECONDS` pass), its camera reports are the intermediate
-        states of this update (its default camera with our up and field of view, ...): they
-        are not the user's and are ignored."""
+        camera back (or :data:`SYNC_SECONDS` pass after its first report), its camera reports
+        are the intermediate states of this update (its default camera with our up and field
+        of view, ...): they are not the user's and are ignored."""
         self._sent_camera = cam
-        self._syncing_clients[client.client_id] = time.monotonic() + SYNC_SECONDS
+        self._syncing_clients[client.client_id] = None  # the window opens at the first report
         with client.atomic():
             client.camera.fov = cam.fov_y
             client.camera.up_direction = cam.up
@@ -561,11 +563,13 @@ class Viewer:
     def _on_camera(self, client_id: int, cam) -> None:
         new = ViewerCamera(tuple(map(float, cam.position)), tuple(map(float, cam.look_at)),
                            tuple(map(float, cam.up_direction)), float(cam.fov))
-        until = self._syncing_clients.get(client_id)
-        if until is not None:
+        until = self._syncing_clients.get(client_id, _IN_SYNC)
+        if until is not _IN_SYNC:
             if new.close_to(self._sent_camera, tol=ECHO_TOL):
                 self._syncing_clients.pop(client_id, None)  # in sync from now on
                 return
+            if until is None:
+                until = self._syncing_clients[client_id] = time.monotonic() + SYNC_SECONDS
             if time.monotonic() < until:
                 return
             self._syncing_clients.pop(client_id, None)
