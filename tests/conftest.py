@@ -34,24 +34,7 @@ SLOW_FILES = frozenset({
 })
 
 
-#: the files that take longest, longest first (per-file seconds summed from ``--durations=0``
-#: on the 2-core VM): they are collected first and so handed out first by ``--dist loadfile``
-#: (tests/crash_rerun.py keeps pytest-xdist from reordering files by their number of tests,
-#: which left a two-minute file to start last), so that the workers end together
-HEAVY_FIRST = (
-    "test_cluster_docs.py", "test_cli.py", "test_pipeline_experiment.py", "test_any_scene.py",
-    "test_experiment_cluster.py", "test_render.py", "test_view_browser.py",
-    "test_specaa_primary.py", "test_bspvt_cache.py", "test_bspvt_chunks.py", "test_readme.py",
-    "test_cluster_builds.py", "test_cluster.py", "test_cluster_scenes.py",
-    "test_pipeline_outputs.py", "test_polygon.py", "test_harness.py", "test_highlights.py",
-    "test_pipeline_upsampling.py", "test_svgf.py", "test_view.py",
-    "test_pipeline_gbuffer_memory.py", "test_view_start.py", "test_pipeline.py",
-)
-
-
 def pytest_collection_modifyitems(config, items):
-    rank = {name: k for k, name in enumerate(HEAVY_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: files stay whole
     slow = pytest.mark.slow
     for item in items:
         if item.path.name in SLOW_FILES:

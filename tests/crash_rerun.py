@@ -106,9 +106,6 @@ def pytest_xdist_make_scheduler(config, log):
     "cannot send (already closed?)", seen once in CI)."""
     if config.getvalue("dist") != "loadfile":
         return None
-    # files in collection order (tests/conftest.py puts the longest first), not reordered
-    # by their number of tests
-    config.option.loadscopereorder = False
     from xdist.scheduler import LoadFileScheduling
 
     class CrashSafeLoadFile(LoadFileScheduling):
